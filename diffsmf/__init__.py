@@ -1,0 +1,28 @@
+"""diffsmf: differentiable set-membership filtering, PWL models and LMI observers in PyTorch.
+
+>>> import diffsmf as ds
+>>> Z = ds.Zonotope(center, generators)          # sets
+>>> sys = ds.systems.get("spring_damper")         # systems
+>>> res = ds.filters.HSNSMF(sys)(traj.y, u=traj.u) # filters
+"""
+
+from diffsmf import filters, sets, systems
+from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Strip, Zonotope, stack, where
+from diffsmf.systems import System, Trajectory
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Ellipsoid",
+    "Interval",
+    "Parallelotope",
+    "Strip",
+    "System",
+    "Trajectory",
+    "Zonotope",
+    "filters",
+    "sets",
+    "stack",
+    "systems",
+    "where",
+]

@@ -1,0 +1,235 @@
+"""Common base of every set in :mod:`diffsmf.sets`.
+
+A set is a small immutable object holding a few tensors whose leading dimensions are batch
+dimensions (``batch_shape``) and whose trailing dimensions are fixed by the set type
+(``center [..., n]``, ``generators [..., n, m]``, ...). Methods broadcast over the batch dims,
+never loop over them, and are differentiable with respect to every continuous field.
+
+Subclasses declare ``_fields`` (names of their tensor attributes, in constructor order) and
+``_event_dims`` (how many trailing dims of each field are *not* batch dims). The generic
+batch utilities below (indexing, ``expand``, ``to``, ``stack``, ``where``) are written once
+here from that declaration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import torch
+from torch import Tensor
+
+if TYPE_CHECKING:  # pragma: no cover
+    from diffsmf.sets.interval import Interval
+
+DEFAULT_DTYPE = torch.float64
+
+
+def as_tensor(name: str, value: Any, *, like: Tensor | None = None, min_dim: int = 0) -> Tensor:
+    """Convert ``value`` to a floating tensor (float64 unless ``like``/value is floating).
+
+    Raises ``ValueError`` naming ``name`` on NaN, on non-numeric input or on too few dims.
+    """
+    if isinstance(value, Tensor):
+        t = value
+        if not t.is_floating_point():
+            t = t.to(like.dtype if like is not None else DEFAULT_DTYPE)
+    else:
+        try:
+            t = torch.as_tensor(
+                value,
+                dtype=like.dtype if like is not None else DEFAULT_DTYPE,
+                device=like.device if like is not None else None,
+            )
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ValueError(f"{name}: cannot convert to a tensor ({exc})") from exc
+    if like is not None and (t.dtype != like.dtype or t.device != like.device):
+        t = t.to(dtype=like.dtype, device=like.device)
+    if t.dim() < min_dim:
+        raise ValueError(f"{name}: expected at least {min_dim} dims, got shape {tuple(t.shape)}")
+    if torch.isnan(t.detach()).any():
+        raise ValueError(f"{name}: contains NaN")
+    return t
+
+
+def check_finite(name: str, t: Tensor) -> Tensor:
+    """Raise ``ValueError`` naming ``name`` if ``t`` has NaN or inf; return ``t``."""
+    if not torch.isfinite(t.detach()).all():
+        raise ValueError(f"{name}: contains NaN or inf")
+    return t
+
+
+class ConvexSet:
+    """Abstract batched convex set in R^n.
+
+    Every concrete set provides ``center [..., n]``, ``dim``, ``batch_shape``, ``volume()``,
+    ``contains(x, atol)``, ``interval_hull()``, ``linear_map(A, b)``, ``minkowski_sum(other)``,
+    ``support(d)``, ``sample(k)`` and ``sample_extreme(k)``.
+    """
+
+    _fields: ClassVar[tuple[str, ...]] = ()
+    _event_dims: ClassVar[tuple[int, ...]] = ()
+
+    # ------------------------------------------------------------------ structure
+    @property
+    def center(self) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @property
+    def dim(self) -> int:
+        """State dimension n."""
+        return self.center.shape[-1]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.center.shape[:-1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.center.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.center.device
+
+    def _tensors(self) -> tuple[Tensor, ...]:
+        return tuple(getattr(self, f) for f in self._fields)
+
+    def _rebuild(self, tensors: Sequence[Tensor]) -> ConvexSet:
+        """New set of the same type from field tensors (no re-validation)."""
+        obj = object.__new__(type(self))
+        for name, t in zip(self._fields, tensors):
+            object.__setattr__(obj, name, t)
+        return obj
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"{type(self).__name__} is immutable")
+
+    def _set(self, **fields: Tensor) -> None:
+        """Used by constructors only: assign validated fields."""
+        for name, t in fields.items():
+            object.__setattr__(self, name, t)
+
+    def __getitem__(self, idx: Any) -> ConvexSet:
+        """Index the batch dimensions: ``S[0]``, ``S[:, 3]``, ``S[mask]``."""
+        if not isinstance(idx, tuple):
+            idx = (idx,)
+        return self._rebuild(
+            [t[idx + (slice(None),) * e] for t, e in zip(self._tensors(), self._event_dims)]
+        )
+
+    def expand(self, *batch_shape: int) -> ConvexSet:
+        """Broadcast to ``batch_shape`` (views, no copy)."""
+        if len(batch_shape) == 1 and isinstance(batch_shape[0], (tuple, list, torch.Size)):
+            batch_shape = tuple(batch_shape[0])
+        out = []
+        for t, e in zip(self._tensors(), self._event_dims):
+            ev = t.shape[t.dim() - e :]
+            out.append(t.expand(*batch_shape, *ev))
+        return self._rebuild(out)
+
+    def to(self, *args: Any, **kwargs: Any) -> ConvexSet:
+        """Like ``Tensor.to``: move every field to a device / dtype."""
+        return self._rebuild([t.to(*args, **kwargs) for t in self._tensors()])
+
+    def detach(self) -> ConvexSet:
+        return self._rebuild([t.detach() for t in self._tensors()])
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(dim={self.dim}, batch_shape={tuple(self.batch_shape)})"
+
+    # ------------------------------------------------------------------ set API
+    def volume(self) -> Tensor:  # pragma: no cover - abstract
+        """Lebesgue volume, shape ``batch_shape``."""
+        raise NotImplementedError
+
+    def contains(self, x: Tensor, atol: float = 1e-9) -> Tensor:  # pragma: no cover
+        """Membership of points ``x [..., n]`` (broadcast against batch) -> bool ``[...]``."""
+        raise NotImplementedError
+
+    def support(self, d: Tensor) -> Tensor:  # pragma: no cover - abstract
+        """Support function h(d) = max_{x in S} d.x for directions ``d [..., n]`` -> ``[...]``."""
+        raise NotImplementedError
+
+    def interval_hull(self) -> Interval:
+        """Smallest axis-aligned box containing the set (from the support function)."""
+        from diffsmf.sets.interval import Interval
+
+        eye = torch.eye(self.dim, dtype=self.dtype, device=self.device)
+        c = self.center
+        r = _support_axes(self, eye) - c  # radius along each axis, [..., n]
+        return Interval(c - r, c + r)
+
+    def linear_map(self, A: Tensor, b: Tensor | None = None) -> ConvexSet:  # pragma: no cover
+        """Image ``{A x + b : x in S}`` with ``A [..., k, n]``, ``b [..., k]``."""
+        raise NotImplementedError
+
+    def translate(self, b: Tensor) -> ConvexSet:  # pragma: no cover
+        """``{x + b}``; ``b [..., n]``."""
+        raise NotImplementedError
+
+    def minkowski_sum(self, other: ConvexSet) -> ConvexSet:  # pragma: no cover
+        raise NotImplementedError
+
+    def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:  # pragma: no cover
+        """``k`` points inside the set, shape ``[*batch_shape, k, n]``."""
+        raise NotImplementedError
+
+    def sample_extreme(
+        self, k: int, generator: torch.Generator | None = None
+    ) -> Tensor:  # pragma: no cover
+        """``k`` worst-case points (vertices / boundary points), ``[*batch_shape, k, n]``.
+
+        Used by ``System.simulate(noise="vertex")``.
+        """
+        raise NotImplementedError
+
+    def intersects_strip(self, strip: Any, atol: float = 0.0) -> Tensor:
+        """Exact test that the set meets ``strip`` (any convex set): bool ``[...]``.
+
+        The projection of the set on the strip normal is the interval
+        ``normal.c +- h(normal)``; the intersection is non-empty iff it meets
+        ``[offset - halfwidth, offset + halfwidth]``.
+        """
+        a = strip.normal
+        mid = (a * self.center).sum(-1)
+        rad = self.support(a) - mid
+        return (mid - strip.offset).abs() <= rad + strip.halfwidth + atol
+
+
+def _support_axes(s: ConvexSet, eye: Tensor) -> Tensor:
+    """Support of ``s`` along the n unit axes -> ``[..., n]``."""
+    n = s.dim
+    d = eye.reshape((n,) + (1,) * len(s.batch_shape) + (n,))  # [n, 1.., n]
+    h = s.support(d)  # [n, ...]
+    return h.movedim(0, -1)
+
+
+def stack(sets: Sequence[ConvexSet], dim: int = 0) -> ConvexSet:
+    """Stack sets of one type and equal field shapes into a new batch dim ``dim``.
+
+    ``dim`` indexes the batch dims (``0`` = new leading dim).
+    """
+    if len(sets) == 0:
+        raise ValueError("sets: need at least one set to stack")
+    cls = type(sets[0])
+    if any(type(s) is not cls for s in sets):
+        raise ValueError("sets: all sets must have the same type to stack")
+    nb = len(sets[0].batch_shape)
+    if dim < 0:
+        dim += nb + 1
+    fields = []
+    for i, _name in enumerate(cls._fields):
+        fields.append(torch.stack([s._tensors()[i] for s in sets], dim=dim))
+    return sets[0]._rebuild(fields)
+
+
+def where(cond: Tensor, a: ConvexSet, b: ConvexSet) -> ConvexSet:
+    """Batched select: ``a`` where ``cond [...]`` is True, else ``b`` (same type and shapes)."""
+    if type(a) is not type(b):
+        raise ValueError(f"where: sets differ in type ({type(a).__name__}, {type(b).__name__})")
+    out = []
+    for ta, tb, e in zip(a._tensors(), b._tensors(), a._event_dims):
+        c = cond.reshape(cond.shape + (1,) * e)
+        out.append(torch.where(c, ta, tb))
+    return a._rebuild(out)

@@ -1,0 +1,65 @@
+"""Small shared utilities: learnable positive hyperparameters (GPyTorch style)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = ["Positive", "inv_softplus", "register_positive"]
+
+_SOFTPLUS_ONE = math.log(math.expm1(1.0))  # inv_softplus(1)
+
+
+def inv_softplus(x: Tensor) -> Tensor:
+    """Inverse of ``softplus`` for ``x > 0`` (stable for large x)."""
+    return torch.where(x > 20, x, torch.log(torch.expm1(x.clamp_min(1e-30))))
+
+
+def register_positive(module: nn.Module, name: str, value: Any, learnable: bool = True) -> None:
+    """Create the positive hyperparameter ``name`` on ``module``.
+
+    Stored as ``raw_<name>`` (an ``nn.Parameter``, or a buffer when not learnable) and a buffer
+    ``<name>_scale`` equal to the initial value, with ``value = scale * softplus(raw)`` and
+    ``raw`` initialised to ``inv_softplus(1)``: gradient steps are relative to the initial
+    magnitude, so bounds of 1e-3 and 1e3 train alike. Components equal to 0 stay exactly 0.
+    Pair it with a :class:`Positive` descriptor on the class to read and write ``module.name``.
+    """
+    v = torch.as_tensor(value, dtype=torch.float64)
+    if torch.isnan(v).any() or (v < 0).any():
+        raise ValueError(f"{name}: must be non-negative and not NaN, got {v.tolist()}")
+    raw = torch.full_like(v, _SOFTPLUS_ONE)
+    if learnable:
+        module.register_parameter(f"raw_{name}", nn.Parameter(raw))
+    else:
+        module.register_buffer(f"raw_{name}", raw)
+    module.register_buffer(f"{name}_scale", v.clone())
+
+
+class Positive:
+    """Descriptor for a hyperparameter created by :func:`register_positive`.
+
+    ``obj.name`` returns ``scale * softplus(raw_name)`` (differentiable in ``raw_name``);
+    ``obj.name = value`` resets ``scale`` to ``value`` and ``raw`` to ``inv_softplus(1)``.
+    """
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj: Any, objtype: type | None = None) -> Any:
+        if obj is None:
+            return self
+        raw = getattr(obj, f"raw_{self.name}")
+        return getattr(obj, f"{self.name}_scale") * F.softplus(raw)
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        scale = getattr(obj, f"{self.name}_scale")
+        v = torch.as_tensor(value, dtype=scale.dtype, device=scale.device)
+        if torch.isnan(v).any() or (v < 0).any():
+            raise ValueError(f"{self.name}: must be non-negative and not NaN")
+        with torch.no_grad():
+            scale.copy_(v.expand_as(scale))
+            getattr(obj, f"raw_{self.name}").fill_(_SOFTPLUS_ONE)
