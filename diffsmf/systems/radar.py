@@ -1,0 +1,1 @@
+"""Seed 003 radar tracking system (registered as ``"radar"``)."""
