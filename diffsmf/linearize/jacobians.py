@@ -1,0 +1,97 @@
+"""Point linearisations: autograd Jacobian / Hessian and the Stirling central difference.
+
+``fn`` is a plain torch function ``fn(x [..., n]) -> [..., k]`` that treats the leading dims
+as batch dims (output element ``b`` depends only on input element ``b``), as every
+:class:`~diffsmf.systems.System` function does. It may close over batched tensors (inputs
+``u [B, p]``, parameters), so batching is never done by ``vmap`` over the batch: the
+Jacobian rows are obtained by ``vmap`` over the k output cotangents of one batched ``vjp``
+(the batch elements do not interact, so the vjp of the summed output gives every row).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+from torch.func import vjp, vmap
+
+__all__ = ["hessian", "jacobian", "stirling_jacobian"]
+
+Fn = Callable[[Tensor], Tensor]
+
+
+def _check_x(x: Tensor) -> Tensor:
+    if not isinstance(x, Tensor) or x.dim() < 1:
+        raise ValueError("x: expected a tensor of shape [..., n]")
+    if not x.is_floating_point():
+        x = x.to(torch.float64)
+    return x
+
+
+def jacobian(fn: Fn, x: Tensor) -> Tensor:
+    """Autograd Jacobian ``d fn / d x`` at ``x [..., n]`` -> ``[..., k, n]``.
+
+    Differentiable (usable inside a loss, and twice: :func:`hessian` nests it). If ``fn``
+    broadcasts ``x`` against a larger batch (closure over batched tensors), ``x`` is first
+    expanded to the output batch shape.
+    """
+    x = _check_x(x)
+    y, pullback = vjp(fn, x)
+    if y.dim() < 1:
+        raise ValueError("fn: must return a tensor of shape [..., k]")
+    batch = torch.broadcast_shapes(x.shape[:-1], y.shape[:-1])
+    if batch != x.shape[:-1] or batch != y.shape[:-1]:
+        x = x.expand(*batch, x.shape[-1])
+        y, pullback = vjp(fn, x)
+        y = y.expand(*batch, y.shape[-1])
+    k = y.shape[-1]
+    eye = torch.eye(k, dtype=y.dtype, device=y.device)
+    cot = eye.reshape(k, *([1] * len(batch)), k).expand(k, *y.shape)  # [k, ..., k]
+    (rows,) = vmap(pullback)(cot)  # [k, ..., n]
+    return rows.movedim(0, -2)
+
+
+def hessian(fn: Fn, x: Tensor) -> Tensor:
+    """Autograd Hessian of each output of ``fn`` at ``x [..., n]`` -> ``[..., k, n, n]``."""
+    x = _check_x(x)
+    n = x.shape[-1]
+
+    def jac_flat(z: Tensor) -> Tensor:
+        J = jacobian(fn, z)
+        return J.reshape(*J.shape[:-2], -1)  # [..., k*n]
+
+    H = jacobian(jac_flat, x)  # [..., k*n, n]
+    return H.reshape(*H.shape[:-2], -1, n, n)
+
+
+def stirling_jacobian(fn: Fn, x: Tensor, h: Tensor | float) -> Tensor:
+    """Stirling (central-difference) slope matrix at ``x [..., n]`` -> ``[..., k, n]``.
+
+    Seed 000 eq. 12-13: column j is ``(fn(x + h_j e_j) - fn(x - h_j e_j)) / (2 h_j)``.
+    ``h`` is a positive scalar or a tensor broadcastable to ``[..., n]`` (per-coordinate
+    steps); the result is differentiable in ``h`` and ``x``. Exact for quadratic ``fn``.
+    The 2n stencil points are stacked in a new *leading* dim so that closures over batched
+    tensors broadcast correctly.
+    """
+    x = _check_x(x)
+    h = torch.as_tensor(h, dtype=x.dtype, device=x.device)
+    if torch.isnan(h.detach()).any() or (h.detach() <= 0).any():
+        raise ValueError("h: the Stirling step must be positive")
+    n = x.shape[-1]
+    try:
+        hx = torch.broadcast_to(h, torch.broadcast_shapes(h.shape, x.shape))  # [..., n]
+    except RuntimeError as exc:
+        msg = f"h: shape {tuple(h.shape)} does not broadcast to x {tuple(x.shape)}"
+        raise ValueError(msg) from exc
+    y0 = fn(x)  # one plain evaluation tells the output batch shape (closures over batches)
+    batch = torch.broadcast_shapes(hx.shape[:-1], y0.shape[:-1])
+    hx = hx.expand(*batch, n)
+    x = x.expand(*batch, n)
+    delta = torch.diag_embed(hx).movedim(-2, 0)  # [n, ..., n]: row j = h_j e_j
+    pts = torch.cat([x + delta, x - delta], dim=0)  # [2n, ..., n]
+    out = fn(pts)  # [2n, ..., k]
+    hcol = (2 * hx).movedim(-1, 0).unsqueeze(-1)  # [n, ..., 1]
+    hcol = hcol.reshape(n, *([1] * (out.dim() - hcol.dim())), *hcol.shape[1:])
+    diff = (out[:n] - out[n:]) / hcol  # [n, ..., k]
+    return diff.movedim(0, -1)
