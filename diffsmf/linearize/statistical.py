@@ -1,0 +1,161 @@
+"""Statistical linearisation over an ellipsoid on 4N+1 axis points (seed 003 eq. 48-55).
+
+The affine map ``fn(x) ~ A x + b`` is fitted by weighted least squares to the values of ``fn`` at
+points spread evenly on the axes of the ellipsoid ``F(c, S) = {x : (x-c)' S^-1 (x-c) <= 1}``
+(Morrell & Stirling 1991, the method seed 003 cites as [19]). With the default levels
+``(0.5, 1.0)`` each axis carries the points ``c +- 0.5 a_i`` and ``c +- a_i`` (``a_i`` the i-th
+semi-axis), which together with the centre give the paper's 4N+1 points.
+
+The fit is exact (up to rounding) for affine ``fn``. It carries no bound on the linearisation
+error: it is the paper's approximation, not a guaranteed enclosure.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = ["axis_points", "statistical_linearization"]
+
+_AXES = ("principal", "symmetric")
+
+
+class _SqrtmPSD(torch.autograd.Function):
+    """Symmetric square root of a PSD matrix with a Sylvester-equation backward.
+
+    The backward solves ``X dX + dX X = dS`` in the eigenbasis, dividing by
+    ``sqrt(l_i) + sqrt(l_j)``: finite for repeated eigenvalues (unlike ``eigh``'s backward).
+    """
+
+    @staticmethod
+    def forward(ctx, S: Tensor) -> Tensor:  # type: ignore[override]
+        evals, V = torch.linalg.eigh(S)
+        s = evals.clamp_min(0).sqrt()
+        ctx.save_for_backward(s, V)
+        return (V * s.unsqueeze(-2)) @ V.mT
+
+    @staticmethod
+    def backward(ctx, G: Tensor) -> Tensor:  # type: ignore[override]
+        s, V = ctx.saved_tensors
+        Gs = V.mT @ (0.5 * (G + G.mT)) @ V
+        denom = (s.unsqueeze(-1) + s.unsqueeze(-2)).clamp_min(torch.finfo(s.dtype).tiny)
+        return V @ (Gs / denom) @ V.mT
+
+
+def _axes_matrix(shape: Tensor, axes: str) -> Tensor:
+    """Matrix M ``[..., n, n]`` whose columns are the semi-axes used (``S = M M'``)."""
+    if axes == "principal":  # principal semi-axes sqrt(l_i) v_i (Morrell & Stirling)
+        evals, V = torch.linalg.eigh(shape)
+        return V * evals.clamp_min(0).sqrt().unsqueeze(-2)
+    return _SqrtmPSD.apply(shape)  # columns of S^(1/2): boundary points, smooth in S
+
+
+def _unit_points(n: int, levels: Sequence[float], like: Tensor) -> Tensor:
+    """Axis coordinates ``z [K, n]``: 0, then for each axis i and level t: +t e_i, -t e_i."""
+    eye = torch.eye(n, dtype=like.dtype, device=like.device)
+    rows = [torch.zeros(1, n, dtype=like.dtype, device=like.device)]
+    for i in range(n):
+        for t in levels:
+            rows.append(torch.stack([t * eye[i], -t * eye[i]]))
+    return torch.cat(rows, 0)
+
+
+def _check_levels(levels: Sequence[float]) -> tuple[float, ...]:
+    lv = tuple(float(t) for t in levels)
+    if len(lv) == 0 or any(not (t > 0) for t in lv):
+        raise ValueError(f"levels: need at least one positive level, got {levels!r}")
+    return lv
+
+
+def axis_points(
+    center: Tensor, shape: Tensor, levels: Sequence[float] = (0.5, 1.0), axes: str = "principal"
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Points spread evenly on the ellipsoid's axes (seed 003 sec. 2.2, fig. 2).
+
+    Args:
+        center: ``[..., n]``; shape: ``[..., n, n]`` symmetric positive definite.
+        levels: fractions of each semi-axis where points are placed (both signs); the default
+            ``(0.5, 1.0)`` gives the paper's 4N+1 points. ``K = 2 * len(levels) * n + 1``.
+        axes: ``"principal"`` (eigenvectors scaled by sqrt(eigenvalues), the paper's choice;
+            its gradient is undefined where ``shape`` has repeated eigenvalues) or
+            ``"symmetric"`` (columns of ``shape^(1/2)``; equal to the principal axes for
+            axis-aligned ellipsoids, differentiable everywhere; use it for gradient tuning).
+
+    Returns:
+        ``points [K, ..., n]`` (the point index leads, so that tensors closed over by a user's
+        function, e.g. inputs ``u [B, p]``, broadcast against it), ``z [K, n]`` (coordinates:
+        ``points[i] = center + M z_i``) and ``M [..., n, n]`` (columns = semi-axes,
+        ``shape = M M'``).
+    """
+    if axes not in _AXES:
+        raise ValueError(f"axes: expected one of {_AXES}, got {axes!r}")
+    lv = _check_levels(levels)
+    if center.dim() < 1 or shape.shape[-2:] != (center.shape[-1], center.shape[-1]):
+        raise ValueError(
+            f"shape: expected [..., n, n] with n = {center.shape[-1]}, got {tuple(shape.shape)}"
+        )
+    M = _axes_matrix(shape, axes)
+    z = _unit_points(center.shape[-1], lv, center)
+    points = center + torch.einsum("...ij,kj->k...i", M, z)
+    return points, z, M
+
+
+def _weight_vector(weights: Tensor | Sequence[float] | None, K: int, nlev: int, like: Tensor):
+    """Per-point weights ``[K]`` from None (uniform), ``[K]`` or ``[1 + len(levels)]``."""
+    if weights is None:
+        return torch.ones(K, dtype=like.dtype, device=like.device)
+    w = torch.as_tensor(weights, dtype=like.dtype, device=like.device)
+    if w.dim() != 1 or w.shape[0] not in (K, 1 + nlev):
+        raise ValueError(f"weights: expected shape [{K}] or [{1 + nlev}], got {tuple(w.shape)}")
+    if torch.isnan(w).any() or (w < 0).any():
+        raise ValueError("weights: must be non-negative and not NaN")
+    if w.shape[0] == 1 + nlev and K != 1 + nlev:  # centre weight, then one weight per level
+        n = (K - 1) // (2 * nlev)
+        w = torch.cat([w[:1], w[1:].repeat_interleave(2).repeat(n)])
+    return w
+
+
+def statistical_linearization(
+    fn: Callable[[Tensor], Tensor],
+    center: Tensor,
+    shape: Tensor,
+    *,
+    levels: Sequence[float] = (0.5, 1.0),
+    weights: Tensor | Sequence[float] | None = None,
+    axes: str = "principal",
+) -> tuple[Tensor, Tensor]:
+    """Weighted least-squares affine fit ``fn(x) ~ A x + b`` over ``F(center, shape)``.
+
+    Seed 003 eq. 50-55 (eq. 54 for the state map, eq. 55 for the measurement map): minimise
+    ``sum_i l_i |fn(x_i) - A x_i - b|^2`` over the axis points of :func:`axis_points`. The fit
+    is done in the axis coordinates ``z`` (``x = c + M z``), whose normal matrix does not depend
+    on the ellipsoid's scale, then mapped back with ``torch.linalg.solve`` (no inverse).
+
+    Args:
+        fn: ``fn(x [K, ..., n]) -> [K, ..., k]`` (batched torch function).
+        center: ``[..., n]``; shape: ``[..., n, n]`` positive definite.
+        levels, axes: see :func:`axis_points`.
+        weights: point weights ``l_i``: ``None`` (all 1), ``[K]`` (one per point, in the order
+            of :func:`axis_points`) or ``[1 + len(levels)]`` (centre, then one per level).
+
+    Returns:
+        ``A [..., k, n]``, ``b [..., k]``.
+    """
+    points, z, M = axis_points(center, shape, levels, axes)
+    K, n = z.shape
+    w = _weight_vector(weights, K, len(tuple(levels)), z)
+    Z1 = torch.cat([z, torch.ones(K, 1, dtype=z.dtype, device=z.device)], -1)  # [K, n+1]
+    normal = Z1.mT @ (w.unsqueeze(-1) * Z1)  # eq. 54: F L F'
+    if torch.linalg.matrix_rank(normal) < n + 1:
+        raise ValueError("weights: the weighted points do not determine an affine fit")
+    Y = fn(points)  # [K, ..., k]
+    if Y.dim() != points.dim() or Y.shape[0] != K:
+        raise ValueError(f"fn: expected output [{K}, ..., k], got {tuple(Y.shape)}")
+    rhs = torch.einsum("kj,k,k...i->...ji", Z1, w, Y)  # eq. 54: F L beta'
+    theta = torch.linalg.solve(normal, rhs)  # [..., n+1, k]
+    G, g0 = theta[..., :n, :].mT, theta[..., n, :]  # fn(c + M z) ~ G z + g0
+    A = torch.linalg.solve(M.mT, G.mT).mT  # A = G M^-1
+    b = g0 - (A @ center.unsqueeze(-1)).squeeze(-1)
+    return A, b
