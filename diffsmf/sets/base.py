@@ -171,7 +171,7 @@ class ConvexSet:
     def minkowski_sum(self, other: ConvexSet) -> ConvexSet:  # pragma: no cover
         raise NotImplementedError
 
-    def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:  # pragma: no cover
+    def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:  # noqa: D102
         """``k`` points inside the set, shape ``[*batch_shape, k, n]``."""
         raise NotImplementedError
 

@@ -190,8 +190,10 @@ class System(nn.Module):
                 th = self.theta_nominal if schedule is None else schedule(k)
                 th = torch.as_tensor(th, dtype=x.dtype, device=x.device)
                 th = th.expand(batch, th.shape[-1])
-            x = self.f(x, u, th) + draw(self.process_noise, self.n) + gauss(self.process_cov, self.n)
-            y = self.h(x) + draw(self.measurement_noise, self.m) + gauss(self.measurement_cov, self.m)
+            w = draw(self.process_noise, self.n) + gauss(self.process_cov, self.n)
+            x = self.f(x, u, th) + w
+            v = draw(self.measurement_noise, self.m) + gauss(self.measurement_cov, self.m)
+            y = self.h(x) + v
             xs.append(x)
             ys.append(y)
             us.append(u)

@@ -1,0 +1,137 @@
+"""Tests of the lead-owned shared pieces: System.simulate, Positive hyperparameters, the
+filter base loop (NaN handling, result assembly) and the CLI dispatcher."""
+
+import pytest
+import torch
+
+import diffsmf as ds
+from diffsmf.cli import main as cli_main
+from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.utils import Positive, register_positive
+
+
+def linear_system(n: int = 2) -> ds.System:
+    A = torch.tensor([[0.9, 0.2], [0.0, 0.8]])[:n, :n]
+    return ds.System(
+        f=lambda x, u, th: x @ A.mT + u,
+        h=lambda x: x[..., :1],
+        x0_set=ds.Interval(-torch.ones(n), torch.ones(n)),
+        process_noise=ds.Interval(-0.1 * torch.ones(n), 0.1 * torch.ones(n)),
+        measurement_noise=ds.Interval(-torch.full((1,), 0.2), torch.full((1,), 0.2)),
+        inputs=lambda k: torch.full((n,), 0.01 * k),
+    )
+
+
+def test_simulate_shapes_and_convention():
+    sys = linear_system()
+    tr = sys.simulate(steps=5, batch=7, seed=1)
+    assert tr.x.shape == (7, 6, 2) and tr.y.shape == (7, 5, 1) and tr.u.shape == (7, 5, 2)
+    assert tr.theta is None
+    # x_k = f(x_{k-1}, u_{k-1}) + w_{k-1}: the residual must be a process-noise sample
+    w = tr.x[:, 1:] - sys.f(tr.x[:, :-1], tr.u, None)
+    assert (w.abs() <= 0.1 + 1e-12).all()
+    # y[:, k-1] = h(x_k) + v_k
+    v = tr.y - sys.h(tr.x[:, 1:])
+    assert (v.abs() <= 0.2 + 1e-12).all()
+    assert sys.x0_set.contains(tr.x[:, 0]).all()
+
+
+def test_simulate_vertex_noise_hits_the_bounds_and_is_seeded():
+    sys = linear_system()
+    a = sys.simulate(steps=4, batch=50, seed=3, noise="vertex")
+    b = sys.simulate(steps=4, batch=50, seed=3, noise="vertex")
+    assert torch.equal(a.x, b.x)
+    w = a.x[:, 1:] - sys.f(a.x[:, :-1], a.u, None)
+    assert torch.allclose(w.abs(), torch.full_like(w, 0.1))
+    with pytest.raises(ValueError, match="noise"):
+        sys.simulate(steps=2, noise="gaussian")
+
+
+def test_simulate_gaussian_parts_have_their_covariance():
+    Q = torch.tensor([[0.04, 0.01], [0.01, 0.09]])
+    sys = ds.System(
+        f=lambda x, u, th: x,
+        h=lambda x: x,
+        x0_set=ds.Interval(torch.zeros(2), torch.zeros(2)),
+        process_cov=Q,
+    )
+    tr = sys.simulate(steps=1, batch=20000, seed=0)
+    emp = torch.cov(tr.x[:, 1].T)
+    assert torch.allclose(emp, Q, atol=4e-3)
+    with pytest.raises(ValueError, match="process_cov"):
+        ds.System(lambda x, u, t: x, lambda x: x, ds.Interval(torch.zeros(2), torch.ones(2)),
+                  process_cov=-torch.eye(2))
+
+
+def test_system_rejects_bad_sets():
+    with pytest.raises(ValueError, match="x0_set"):
+        ds.System(lambda x, u, t: x, lambda x: x, x0_set=torch.zeros(2))
+    with pytest.raises(ValueError, match="measurement_noise"):
+        ds.System(lambda x, u, t: x, lambda x: x[..., :1],
+                  ds.Interval(torch.zeros(2), torch.ones(2)),
+                  measurement_noise=ds.Interval(torch.zeros(2), torch.ones(2)))
+
+
+class _Holder(torch.nn.Module):
+    bound = Positive()
+
+    def __init__(self, v):
+        super().__init__()
+        register_positive(self, "bound", v)
+
+
+def test_positive_parameter_roundtrip_and_gradient():
+    m = _Holder(torch.tensor([1e-3, 2.0, 0.0]))
+    assert torch.allclose(m.bound, torch.tensor([1e-3, 2.0, 0.0]))
+    m.bound.sum().backward()
+    assert m.raw_bound.grad is not None and torch.isfinite(m.raw_bound.grad).all()
+    m.bound = torch.tensor([5.0, 6.0, 7.0])
+    assert torch.allclose(m.bound, torch.tensor([5.0, 6.0, 7.0]))
+    with pytest.raises(ValueError, match="bound"):
+        m.bound = torch.tensor([-1.0, 1.0, 1.0])
+
+
+class _IntervalFilter(SetFilter):
+    """Exact box filter for the linear test system with H = [1, 0] (reference for the loop)."""
+
+    A = torch.tensor([[0.9, 0.2], [0.0, 0.8]])
+
+    def predict(self, state, u=None):
+        box = state.set.linear_map(self.A).interval_hull()
+        box = ds.Interval(box.lower + u, box.upper + u).minkowski_sum(self.process_noise_box())
+        return state.replace(set=box)
+
+    def _update(self, state, y):
+        box, v = state.set, self.measurement_noise_box()
+        lo = torch.maximum(box.lower[..., 0], y[..., 0] - v.upper[0])
+        hi = torch.minimum(box.upper[..., 0], y[..., 0] - v.lower[0])
+        ok = lo <= hi
+        lo, hi = torch.where(ok, lo, box.lower[..., 0]), torch.where(ok, hi, box.upper[..., 0])
+        new = ds.Interval(torch.stack([lo, box.lower[..., 1]], -1),
+                          torch.stack([hi, box.upper[..., 1]], -1))
+        return FilterState(set=new, consistent=ok)
+
+
+def test_filter_loop_contains_truth_and_handles_nan():
+    sys = linear_system()
+    tr = sys.simulate(steps=6, batch=64, seed=2, noise="vertex")
+    filt = _IntervalFilter(sys)
+    res = filt(tr.y, u=tr.u)
+    assert res.sets.batch_shape == (64, 7) and res.volume.shape == (64, 7)
+    assert res.sets.contains(tr.x).all() and res.consistent.all()
+    y = tr.y.clone()
+    y[3, 2] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        filt(y, u=tr.u)
+    res_skip = _IntervalFilter(sys, skip_nan=True)(y, u=tr.u)
+    assert res_skip.sets.contains(tr.x).all()
+    assert torch.equal(res_skip.volume[:3], res.volume[:3])
+    with pytest.raises(ValueError, match="y"):
+        filt(tr.y[..., :0], u=tr.u)
+
+
+def test_cli_help_and_unknown_command(capsys):
+    assert cli_main(["--help"]) == 0
+    assert "demo" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        cli_main(["no-such-command"])
