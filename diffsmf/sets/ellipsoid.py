@@ -1,4 +1,11 @@
-"""Ellipsoids ``{x : (x - c)' S^-1 (x - c) <= 1}`` (seed 001 eq. 10-17, seed 003 eq. 34-36)."""
+"""Ellipsoids ``{x : (x - c)' S^-1 (x - c) <= 1}`` (seed 001 eq. 10-17, seed 003 eq. 34-36).
+
+Outer bounds (Minkowski sum, intersections, covers) are inflated by the relative factor
+``1 + INFLATE`` (``INFLATE = 1e-10``) so that boundary points stay inside despite rounding.
+Every weight (Minkowski ``p``, intersection ``rho``) is found batched without gradient and then
+made differentiable by one Newton step on the optimality condition evaluated with autograd
+(implicit-function theorem), so gradients of the outputs are exact at the optimum.
+"""
 
 from __future__ import annotations
 
@@ -13,7 +20,9 @@ from diffsmf.sets.base import ConvexSet, as_tensor, check_finite
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
 
-__all__ = ["Ellipsoid"]
+__all__ = ["Ellipsoid", "minkowski_weight"]
+
+INFLATE = 1e-10
 
 
 def _sym(S: Tensor) -> Tensor:
@@ -182,3 +191,401 @@ class Ellipsoid(ConvexSet):
         u = self._unit_ball(k, generator, boundary=True)
         L = self.cholesky().unsqueeze(-3)
         return self.center_.unsqueeze(-2) + (L @ u.unsqueeze(-1)).squeeze(-1)
+
+    # ------------------------------------------------------------------ covers
+    @classmethod
+    def from_box(cls, box: Interval, min_radius: float = 1e-12) -> Ellipsoid:
+        """Covering ellipsoid ``diag(n r_i^2)`` of a box (seed 001 eq. 23/29, n-D erratum)."""
+        return box.to_ellipsoid(min_radius=min_radius)
+
+    @classmethod
+    def from_zonotope(cls, Z: Any, method: str = "auto", min_radius: float = 1e-12) -> Ellipsoid:
+        """Guaranteed covering ellipsoid of a Zonotope ``c + G [-1, 1]^m`` (or Parallelotope).
+
+        ``method``:
+          * ``"generators"``: box cover in generator coordinates, shape ``m G G'``
+            (``|xi|_2^2 <= m`` on the cube); needs ``G`` of full row rank.
+          * ``"hull"``: ``from_box(Z.interval_hull())`` = ``diag(n r_i^2)``.
+          * ``"auto"`` (default): the smaller-volume of the two per batch element
+            (``"hull"`` where ``G G'`` is singular).
+        """
+        from diffsmf.sets.interval import Interval
+
+        if isinstance(Z, Interval):
+            return cls.from_box(Z, min_radius)
+        if method not in ("auto", "generators", "hull"):
+            raise ValueError(f"method: expected 'auto', 'generators' or 'hull', got {method!r}")
+        hull = cls.from_box(Z.interval_hull(), min_radius)
+        if method == "hull":
+            return hull
+        G = Z.generators
+        m = G.shape[-1]
+        Sg = _sym(m * (G @ G.mT)) * (1.0 + INFLATE)
+        _, info = torch.linalg.cholesky_ex(Sg.detach())
+        ok = info == 0
+        if method == "generators":
+            if not bool(ok.all()):
+                raise ValueError("Z: generators are not of full row rank; use method='hull'")
+            return Ellipsoid._make(Z.center, Sg)
+        eye = torch.eye(Z.dim, dtype=Sg.dtype, device=Sg.device)
+        Sg_safe = torch.where(ok[..., None, None], Sg, hull.shape.detach() + eye)
+        ld_g = torch.linalg.cholesky(Sg_safe.detach()).diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        use_g = ok & (ld_g < hull.log_det_half().detach())
+        S = torch.where(use_g[..., None, None], Sg_safe, hull.shape)
+        return Ellipsoid._make(Z.center, S)
+
+    def to_ellipsoid(self) -> Ellipsoid:
+        return self
+
+    # ------------------------------------------------------------------ Minkowski sum
+    def minkowski_sum(self, other: Any, method: str = "trace", p: Any = None) -> Ellipsoid:
+        """Outer ellipsoid of ``self (+) other``: ``S(p) = (1 + 1/p) S1 + (1 + p) S2``.
+
+        (seed 001 eq. 14-17 with ``alpha = 1/(1+p)``; seed 003 eq. 34-36 with the erratum.)
+        ``method="trace"``: ``p = sqrt(tr S1 / tr S2)``; ``"volume"``: the root of
+        ``sum_i 1/(lambda_i + 1/p) = n p^2 / (p + 1)`` (``lambda`` eigenvalues of
+        ``S1^-1 S2``); or an explicit ``p > 0`` ``[...]``. An Interval / Zonotope /
+        Parallelotope operand is first covered by an ellipsoid (:meth:`from_zonotope`); a
+        tensor is a translation.
+        """
+        if isinstance(other, Tensor):
+            return self.translate(other)
+        E2 = other if isinstance(other, Ellipsoid) else Ellipsoid.from_zonotope(other)
+        if E2.dim != self.dim:
+            raise ValueError(f"other: dimension {E2.dim} != {self.dim}")
+        S1, S2 = self.shape, E2.shape
+        if p is None:
+            p = minkowski_weight(S1, S2, method)
+        else:
+            p = as_tensor("p", p, like=S1)
+            if (p.detach() <= 0).any():
+                raise ValueError("p: must be > 0")
+        pp = p[..., None, None]
+        S = _sym((1.0 + 1.0 / pp) * S1 + (1.0 + pp) * S2) * (1.0 + INFLATE)
+        return Ellipsoid._make(self.center_ + E2.center_, S)
+
+    # ------------------------------------------------------------------ intersections
+    def intersect_measurement(
+        self,
+        H: Tensor,
+        y: Tensor,
+        R: Tensor,
+        method: str = "volume",
+        rho: Any = None,
+    ) -> Ellipsoid:
+        """Outer ellipsoid of ``E ∩ {x : (y - H x)' R^-1 (y - H x) <= 1}`` (seed 001 eq. 36-39).
+
+        ``H [..., m, n]``, ``y [..., m]``, ``R [..., m, m]`` SPD. The family (eq. 10-11 written
+        for a degenerate second ellipsoid) is, for ``rho in [0, 1)``,
+        ``D = rho H P H' + (1 - rho) R``, ``K = rho P H' D^-1``, ``c+ = c + K e``,
+        ``xi = 1 - rho (1 - rho) e' D^-1 e``, ``P+ = xi / (1 - rho) (P - K H P)``
+        (``rho = 0`` returns the input). ``method``: ``"volume"`` / ``"trace"`` (1-D search
+        over rho), ``"fixed"`` (eq. 13 with ``P_2,max = sigma_max(R)/sigma_min(H H')``), or an
+        explicit ``rho``. An empty intersection (max over rho of
+        ``rho (1 - rho) e' D^-1 e`` > 1, a concave function) returns the input unchanged.
+        """
+        H = as_tensor("H", H, like=self.center_, min_dim=2)
+        y = as_tensor("y", y, like=self.center_, min_dim=1)
+        R = as_tensor("R", R, like=self.center_, min_dim=2)
+        if H.shape[-1] != self.dim or R.shape[-1] != H.shape[-2] or y.shape[-1] != H.shape[-2]:
+            raise ValueError("H: shapes of H [..., m, n], y [..., m], R [..., m, m] mismatch")
+        _chol("R", _sym(R).detach())
+        P, c = self.shape, self.center_
+        e = y - (H @ c.unsqueeze(-1)).squeeze(-1)
+        G = _sym(H @ P @ H.mT)
+        fam = _MeasFamily(P, H, G, _sym(R), e)
+        empty = fam.empty()
+        rho_t = self._pick_rho(fam, method, rho, H, R)
+        rho_t = torch.where(empty, torch.zeros_like(rho_t), rho_t)
+        c2, P2 = fam.evaluate(rho_t, c)
+        P2 = P2 * (1.0 + INFLATE)
+        keep = empty | (_logdet(P2) >= _logdet(P))  # never larger than the input
+        c2 = torch.where(keep[..., None], c, c2)
+        return Ellipsoid._make(c2, torch.where(keep[..., None, None], P, P2))
+
+    def _pick_rho(self, fam: _MeasFamily, method: str, rho: Any, H: Tensor, R: Tensor) -> Tensor:
+        if rho is not None:
+            r = as_tensor("rho", rho, like=self.center_)
+            if ((r.detach() < 0) | (r.detach() >= 1)).any():
+                raise ValueError("rho: must be in [0, 1)")
+            return r.expand(fam.batch)
+        if method == "fixed":
+            # seed 001 eq. 13: rho = sqrt(s1) / (sqrt(s1) + sqrt(s2)), s = largest singular value
+            s1 = torch.linalg.eigvalsh(self.shape)[..., -1]
+            HH = torch.linalg.eigvalsh(_sym(H @ H.mT))[..., 0].clamp(min=1e-300)
+            s2 = torch.linalg.eigvalsh(_sym(R))[..., -1] / HH
+            r = s1.sqrt() / (s1.sqrt() + s2.sqrt())
+            return r.clamp(max=1.0 - 1e-9).expand(fam.batch)
+        if method not in ("volume", "trace"):
+            raise ValueError(f"method: expected 'volume', 'trace' or 'fixed', got {method!r}")
+        obj = fam.log_volume if method == "volume" else fam.trace
+        return _minimize_rho(obj, fam.batch, self.center_, fam.requires_grad)
+
+    def intersect_strip(self, strip: Any, method: str = "volume", rho: Any = None) -> Ellipsoid:
+        """Outer ellipsoid of ``E ∩ {x : |a.x - o| <= h}`` (seed 001 eq. 10-13 / 36-39, m = 1).
+
+        The strip is first tightened to E's extent along ``a`` (same intersection). Emptiness
+        is decided exactly with :meth:`intersects_strip`; an empty intersection returns the
+        input unchanged (never NaN). ``method="volume"`` uses the Fogel-Huang closed form (root
+        of a quadratic in rho, differentiable); ``"trace"`` a 1-D search; ``"fixed"`` eq. 13.
+        A strip containing E returns E (rho = 0).
+        """
+        a, o, h = strip.normal, strip.offset, strip.halfwidth
+        if a.shape[-1] != self.dim:
+            raise ValueError(f"strip: normal has dim {a.shape[-1]}, set has {self.dim}")
+        empty = ~self.intersects_strip(strip)
+        P, c = self.shape, self.center_
+        Pa = (P @ a.unsqueeze(-1)).squeeze(-1)
+        g = (a * Pa).sum(-1)  # a' P a
+        mid = (a * c).sum(-1)
+        sg = torch.sqrt(g)
+        lo = torch.maximum(o - h, mid - sg)  # tightened strip (same intersection)
+        hi = torch.minimum(o + h, mid + sg)
+        hi = torch.maximum(hi, lo)  # empty case: harmless degenerate strip
+        o2, h2 = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        r = (h2 * h2).clamp(min=1e-24 * g)
+        e = o2 - mid
+        fam = _MeasFamily(
+            P, a.unsqueeze(-2), g[..., None, None], r[..., None, None], e.unsqueeze(-1)
+        )
+        if rho is not None or method != "volume":
+            rho_t = self._pick_rho(fam, method, rho, a.unsqueeze(-2), r[..., None, None])
+        else:
+            rho_t = _fogel_huang_rho(g, r, e, self.dim)
+        full = h2 >= sg * (1.0 - 1e-12)  # strip contains E: no update
+        rho_t = torch.where(empty | full, torch.zeros_like(rho_t), rho_t)
+        c2, P2 = fam.evaluate(rho_t, c)
+        P2 = P2 * (1.0 + INFLATE)
+        # both E and the result are outer bounds: never return something larger than E
+        keep = empty | full | (_logdet(P2) >= _logdet(P))
+        c2 = torch.where(keep[..., None], c, c2)
+        P2 = torch.where(keep[..., None, None], P, P2)
+        return Ellipsoid._make(c2, P2)
+
+    def intersect_ellipsoid(
+        self, other: Ellipsoid, method: str = "volume", rho: Any = None
+    ) -> Ellipsoid:
+        """Outer ellipsoid of ``E1 ∩ E2`` (seed 001 eq. 10-13; ``H = I``, ``y = c2``, ``R = P2``).
+
+        ``rho`` weights E2 (``rho = 0`` gives E1, ``rho -> 1`` gives E2). Erratum: eq. 11's
+        ``Psi`` must read ``1 - d' (P1/(1 - rho) + P2/rho)^-1 d`` (consistent with eq. 36), the
+        printed ``P1/rho + P2/(1 - rho)`` is not an outer bound. Methods as in
+        :meth:`intersect_measurement`; an empty intersection returns ``self`` unchanged.
+        """
+        if not isinstance(other, Ellipsoid):
+            raise ValueError("other: expected an Ellipsoid")
+        n = self.dim
+        eye = torch.eye(n, dtype=self.dtype, device=self.device)
+        out = self.intersect_measurement(eye, other.center_, other.shape, method=method, rho=rho)
+        # rho -> 1 limit is E2 itself: keep the smaller of {result, E2} (both outer bounds)
+        better = other.log_det_half() < out.log_det_half()
+        return Ellipsoid._make(
+            torch.where(better[..., None], other.center_, out.center_),
+            torch.where(better[..., None, None], other.shape, out.shape),
+        )
+
+
+# ---------------------------------------------------------------------------- helpers
+def _logdet(S: Tensor) -> Tensor:
+    """``log det`` of SPD matrices (detached; used for discrete choices only)."""
+    L, _ = torch.linalg.cholesky_ex(S.detach())
+    return 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+
+
+def _lambdas(S1: Tensor, S2: Tensor) -> Tensor:
+    """Eigenvalues of ``S1^-1 S2`` (generalised symmetric problem via Cholesky)."""
+    L = torch.linalg.cholesky(S1)
+    X = torch.linalg.solve_triangular(L, S2, upper=False)
+    M = torch.linalg.solve_triangular(L, X.mT, upper=False)
+    return torch.linalg.eigvalsh(_sym(M)).clamp(min=0.0)
+
+
+def _vol_condition(p: Tensor, lam: Tensor) -> Tensor:
+    """``F(p) = sum_i (lambda_i - 1/p^2) / (lambda_i + 1/p)``; increasing, root = min volume."""
+    q = (1.0 / p).unsqueeze(-1)
+    return ((lam - q * q) / (lam + q)).sum(-1)
+
+
+def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
+    """Weight ``p`` of ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` (seed 003 eq. 34-36, erratum).
+
+    ``"trace"``: ``p = sqrt(tr S1 / tr S2)``. ``"volume"``: unique positive root of
+    ``sum_i 1/(lambda_i + 1/p) = n p^2/(p + 1)`` (equivalently ``F(p) = 0`` with ``F``
+    increasing), bracketed in ``[1/sqrt(lambda_max), 1/sqrt(lambda_min)]`` and solved by
+    bisection in log p, then one differentiable Newton step (implicit function theorem).
+    """
+    if method == "trace":
+        t1 = torch.diagonal(S1, dim1=-2, dim2=-1).sum(-1)
+        t2 = torch.diagonal(S2, dim1=-2, dim2=-1).sum(-1)
+        return torch.sqrt(t1 / t2)
+    if method != "volume":
+        raise ValueError(f"method: expected 'trace' or 'volume', got {method!r}")
+    lam = _lambdas(S1, S2)
+    ld = lam.detach().clamp(min=1e-300)
+    lo = torch.log(1.0 / ld[..., -1].sqrt())
+    hi = torch.log(1.0 / ld[..., 0].sqrt())
+    for _ in range(80):  # bisection on the increasing function F(exp(t))
+        mid = 0.5 * (lo + hi)
+        pos = _vol_condition(mid.exp(), ld) > 0
+        hi = torch.where(pos, mid, hi)
+        lo = torch.where(pos, lo, mid)
+    p0 = (0.5 * (lo + hi)).exp()
+    # differentiable Newton step: p = p0 - F(p0)/F'(p0), F' analytic
+    q = (1.0 / p0).unsqueeze(-1)
+    dF = (((2 * q**3) * (lam + q) + (lam - q * q) * q * q) / (lam + q) ** 2).sum(-1)
+    return p0 - _vol_condition(p0, lam) / dF
+
+
+def _fogel_huang_rho(g: Tensor, r: Tensor, e: Tensor, n: int) -> Tensor:
+    """Minimal-volume rho for a strip (Fogel & Huang 1982), batched closed form.
+
+    ``log det P+(rho) = n log N - (n + 1) log D - (n - 1) log(1 - rho) + const`` with
+    ``D = rho g + (1 - rho) r``, ``N = D - e^2 rho (1 - rho)``; its stationarity condition
+    reduces to ``a rho^2 + b rho + c = 0`` (the cubic terms cancel). Candidates 0 and the roots
+    in (0, 1) are compared by the objective.
+    """
+    e2 = e * e
+    qa = n * (g - r) ** 2 - e2 * (g + n * r)
+    qb = e2 * (g + 2 * n * r) - g * g + 2 * g * n * r + g * r - 2 * n * r * r
+    qc = r * (n * r - g - n * e2)
+    disc = (qb * qb - 4 * qa * qc).clamp(min=0.0)
+    sq = torch.sqrt(disc)
+    sgn = torch.where(qb >= 0, torch.ones_like(qb), -torch.ones_like(qb))
+    qq = -0.5 * (qb + sgn * sq)
+    safe_a = torch.where(qa.abs() > 0, qa, torch.ones_like(qa))
+    safe_q = torch.where(qq.abs() > 0, qq, torch.ones_like(qq))
+    r1 = torch.where(qa.abs() > 0, qq / safe_a, -qc / torch.where(qb != 0, qb, 1.0))
+    r2 = torch.where(qq.abs() > 0, qc / safe_q, r1)
+    cand = torch.stack([torch.zeros_like(g), r1, r2], -1)
+    cand = torch.where((cand > 0) & (cand < 1), cand, torch.zeros_like(cand))
+    cand = cand.clamp(max=1.0 - 1e-9)
+
+    def obj(rho: Tensor) -> Tensor:
+        gg, rr, ee = g.unsqueeze(-1), r.unsqueeze(-1), e2.unsqueeze(-1)
+        D = rho * gg + (1 - rho) * rr
+        N = (D - ee * rho * (1 - rho)).clamp(min=1e-300)
+        return n * torch.log(N) - (n + 1) * torch.log(D) - (n - 1) * torch.log1p(-rho)
+
+    idx = obj(cand.detach()).argmin(-1, keepdim=True)
+    return torch.gather(cand, -1, idx).squeeze(-1)
+
+
+class _MeasFamily:
+    """The rho-family of outer ellipsoids of ``E(c, P) ∩ {(y - Hx)' R^-1 (y - Hx) <= 1}``."""
+
+    def __init__(self, P: Tensor, H: Tensor, G: Tensor, R: Tensor, e: Tensor) -> None:
+        self.P, self.H, self.G, self.R, self.e = P, H, G, R, e
+        self.PH = P @ H.mT  # [..., n, m]
+        self.batch = torch.broadcast_shapes(
+            P.shape[:-2], H.shape[:-2], G.shape[:-2], R.shape[:-2], e.shape[:-1]
+        )
+
+    @property
+    def requires_grad(self) -> bool:
+        return any(t.requires_grad for t in (self.P, self.H, self.G, self.R, self.e))
+
+    def _D(self, rho: Tensor) -> Tensor:
+        rr = rho[..., None, None]
+        return _sym(rr * self.G + (1 - rr) * self.R)
+
+    def _xi(self, rho: Tensor, L: Tensor) -> Tensor:
+        z = torch.linalg.solve_triangular(
+            L, self.e.unsqueeze(-1).expand(*L.shape[:-1], 1), upper=False
+        )
+        return 1.0 - rho * (1 - rho) * (z * z).sum((-2, -1))
+
+    def evaluate(self, rho: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
+        """Center and shape for ``rho [...]`` (eq. 36-39 in the rho-safe form)."""
+        D = self._D(rho)
+        L = torch.linalg.cholesky(D)
+        xi = self._xi(rho, L).clamp(min=1e-12)
+        De = torch.cholesky_solve(self.e.unsqueeze(-1), L)
+        rr = rho[..., None, None]
+        c2 = c + (rr * self.PH @ De).squeeze(-1)
+        PHt = self.PH.mT.expand(*L.shape[:-2], *self.PH.mT.shape[-2:])
+        W = torch.cholesky_solve(PHt, L)  # D^-1 H P
+        P2 = (xi / (1 - rho))[..., None, None] * (self.P - rr * self.PH @ W)
+        return c2, _sym(P2)
+
+    def log_volume(self, rho: Tensor) -> Tensor:
+        """``log det P+`` up to a constant: ``n log xi - (n - m) log(1 - rho) - log det D``."""
+        n, m = self.P.shape[-1], self.G.shape[-1]
+        L = torch.linalg.cholesky(self._D(rho))
+        xi = self._xi(rho, L).clamp(min=1e-300)
+        logdetD = 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+        return n * torch.log(xi) - (n - m) * torch.log1p(-rho) - logdetD
+
+    def trace(self, rho: Tensor) -> Tensor:
+        L = torch.linalg.cholesky(self._D(rho))
+        xi = self._xi(rho, L).clamp(min=1e-300)
+        PHt = self.PH.mT.expand(*L.shape[:-2], *self.PH.mT.shape[-2:])
+        W = torch.cholesky_solve(PHt, L)
+        tr = torch.diagonal(self.P, dim1=-2, dim2=-1).sum(-1) - rho * (self.PH * W.mT).sum((-2, -1))
+        return xi / (1 - rho) * tr
+
+    def empty(self) -> Tensor:
+        """True where the intersection is empty: ``max_rho rho(1-rho) e'D^-1 e > 1``."""
+
+        def phi(rho: Tensor) -> Tensor:
+            return 1.0 - self._xi(rho, torch.linalg.cholesky(self._D(rho)))
+
+        with torch.no_grad():
+            best = _golden_max(phi, self.batch, self.P, 0.0, 1.0)
+        return phi(best).detach() > 1.0
+
+
+def _golden_max(
+    fun: Any, batch: torch.Size, like: Tensor, lo: float, hi: float, iters: int = 60
+) -> Tensor:
+    """Batched golden-section maximisation of a unimodal ``fun(rho [...]) -> [...]``."""
+    a = torch.full(batch, lo, dtype=like.dtype, device=like.device)
+    b = torch.full(batch, hi, dtype=like.dtype, device=like.device)
+    gr = (math.sqrt(5.0) - 1.0) / 2.0
+    x1, x2 = b - gr * (b - a), a + gr * (b - a)
+    f1, f2 = fun(x1), fun(x2)
+    for _ in range(iters):
+        left = f1 >= f2  # maximum in [a, x2]
+        b = torch.where(left, x2, b)
+        a = torch.where(left, a, x1)
+        x1n, x2n = b - gr * (b - a), a + gr * (b - a)
+        x1, x2 = x1n, x2n
+        f1, f2 = fun(x1), fun(x2)
+    return 0.5 * (a + b)
+
+
+def _minimize_rho(
+    obj: Any, batch: torch.Size, like: Tensor, needs_grad: bool, grid: int = 24
+) -> Tensor:
+    """Minimise ``obj(rho)`` over ``[0, 1)``: coarse grid, golden refinement, then one
+    differentiable Newton step (autograd derivatives; implicit function theorem)."""
+    top = 1.0 - 1e-9
+    with torch.no_grad():
+        pts = torch.linspace(0.0, top, grid, dtype=like.dtype, device=like.device)
+        vals = torch.stack(
+            [obj(torch.full(batch, float(t), dtype=like.dtype, device=like.device)) for t in pts],
+            -1,
+        )
+        i = vals.argmin(-1)
+        lo = pts[(i - 1).clamp(min=0)]
+        hi = pts[(i + 1).clamp(max=grid - 1)]
+        a, b = lo.clone(), hi.clone()
+        gr = (math.sqrt(5.0) - 1.0) / 2.0
+        for _ in range(60):
+            x1, x2 = b - gr * (b - a), a + gr * (b - a)
+            left = obj(x1) <= obj(x2)
+            b = torch.where(left, x2, b)
+            a = torch.where(left, a, x1)
+        rho0 = (0.5 * (a + b)).clamp(0.0, top)
+        at_edge = (rho0 <= 1e-7) | (rho0 >= top - 1e-7)
+        rho0 = torch.where(rho0 <= 1e-7, torch.zeros_like(rho0), rho0)
+    if not (torch.is_grad_enabled() and needs_grad):
+        return rho0
+    with torch.enable_grad():
+        r = rho0.detach().clone().requires_grad_(True)
+        f = obj(r)
+        (g,) = torch.autograd.grad(f.sum(), r, create_graph=True)
+        (h,) = torch.autograd.grad(g.sum(), r, create_graph=True)
+    ok = (~at_edge) & (h.detach() > 0)
+    step = torch.where(ok, g / torch.where(ok, h, torch.ones_like(h)), torch.zeros_like(g))
+    # value rho0, derivative -d(obj')/d(theta) / obj'' through `step` (r itself is constant)
+    return rho0 - (step - step.detach())
