@@ -1,0 +1,197 @@
+"""Pieces shared by the linearising set-membership filters (HSNSMF, MSZM, CDSMF, ESMF).
+
+Nothing here is geometry or linearisation (those live in :mod:`diffsmf.sets` and
+:mod:`diffsmf.linearize`); these helpers only wire a :class:`~diffsmf.systems.System` to them:
+the step function at the nominal parameter, the guaranteed remainder box of a step (model
+remainder + parameter mismatch + float64 rounding margin), the measurement strips of seed 000
+Theorem 3, conversions of the initial set, and the sequential strip update with its
+consistency flag.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from diffsmf.sets.base import ConvexSet, where
+from diffsmf.sets.interval import Interval
+from diffsmf.systems.system import System
+
+# Relative outward margin for float64 rounding in the affine parts (centres f(c), F T products,
+# strip offsets). Rounding errors are ~1e-16 relative; 1e-12 covers accumulation with room.
+ROUND_REL = 1e-12
+
+
+def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor]:
+    """``x [..., n] -> f(x, u, theta_nom) [..., n]`` (the nominal model of one step).
+
+    ``u [B, p]`` is closed over; :mod:`diffsmf.linearize` puts extra point dims (stencils,
+    vertices) in *leading* positions, so ``u`` broadcasts against them.
+    """
+    theta = system.theta_nominal
+
+    def fn(x: Tensor) -> Tensor:
+        return system.f(x, u, theta)
+
+    return fn
+
+
+def rounding_margin(*terms: Tensor) -> Tensor:
+    """Outward margin ``ROUND_REL * (1 + sum |term|)`` broadcast over the given tensors."""
+    total = 1.0
+    for t in terms:
+        total = total + t.abs()
+    return ROUND_REL * total
+
+
+def widen(box: Interval, margin: Tensor) -> Interval:
+    """``box`` enlarged by ``margin`` on both sides."""
+    return Interval(box.lower - margin, box.upper + margin)
+
+
+def prediction_remainder(
+    system: System,
+    remainder: Callable[..., Interval],
+    fn: Callable[[Tensor], Tensor],
+    S: ConvexSet,
+    c: Tensor,
+    J: Tensor,
+    u: Tensor | None,
+) -> Interval:
+    """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``.
+
+    ``remainder`` is a :mod:`diffsmf.linearize` remainder bound (``dc_remainder`` for seed 000,
+    ``lagrange_remainder`` for seed 001); when the system has mismatched parameters the
+    deviation ``f(x, u, theta) - f(x, u, theta_nom)`` over ``S`` x ``parameters``
+    (``linearize.parameter_deviation``, seed 001 eq. 18-21, evaluated over the whole set, not
+    only at the centre as in the paper) is added.
+    """
+    from diffsmf.linearize import parameter_deviation
+
+    R = remainder(fn, S, c, J)
+    if system.parameters is not None:
+        D = parameter_deviation(system.f, S, system.parameters, system.theta_nominal, u)
+        R = Interval(R.lower + D.lower, R.upper + D.upper)
+    return R
+
+
+def measurement_strips(
+    h: Callable[[Tensor], Tensor],
+    remainder: Callable[..., Interval],
+    S: ConvexSet,
+    c: Tensor,
+    H: Tensor,
+    y: Tensor,
+    vbox: Interval,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Strips of seed 000 Theorem 3 (eq. 23-29), one per measurement component.
+
+    ``{x : |H_i x - (y_i - v_c,i - h_i(c) + H_i c - e_mid,i)| <= eps_v,i + e_rad,i}`` with
+    ``[e_min, e_max]`` the remainder of ``h`` about ``c`` over ``S``. Written un-normalised
+    (eq. 24-25 divide both sides by the half-width, the same set).
+
+    Returns normal ``[B, m, n]``, offset ``[B, m]``, halfwidth ``[B, m]``.
+    """
+    hc = h(c)
+    E = remainder(h, S, c, H)
+    Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
+    offset = y - vbox.center - hc + Hc - E.center
+    half = vbox.radius + E.radius
+    half = half + rounding_margin(y, hc, Hc, E.center, half)
+    return H, offset, half
+
+
+def sequential_strip_update(
+    S: ConvexSet,
+    normal: Tensor,
+    offset: Tensor,
+    half: Tensor,
+    intersect: Callable[[ConvexSet, object], ConvexSet],
+) -> tuple[ConvexSet, Tensor]:
+    """Intersect ``S`` with the m strips one by one (seed 000 sec. 3.3).
+
+    Returns the updated set and ``consistent [B]``. Where some strip misses the current set
+    (empty intersection: a fault, seed 000 eq. 31-32) the input set is returned unchanged for
+    that batch element and ``consistent`` is False.
+    """
+    from diffsmf.sets.strip import Strip
+
+    ok = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
+    cur = S
+    for i in range(normal.shape[-2]):
+        strip = Strip(normal[..., i, :], offset[..., i], half[..., i])
+        atol = rounding_margin(offset[..., i], half[..., i]).detach()
+        ok = ok & cur.intersects_strip(strip, atol=atol)
+        cur = intersect(cur, strip)
+    return where(ok, cur, _like(S, cur)), ok
+
+
+def _like(S: ConvexSet, ref: ConvexSet) -> ConvexSet:
+    """``S`` padded (zonotope generators) to the field shapes of ``ref``."""
+    if hasattr(S, "pad_generators") and S.generators.shape[-1] < ref.generators.shape[-1]:
+        return S.pad_generators(ref.generators.shape[-1])
+    return S
+
+
+def as_parallelotope(S: ConvexSet) -> ConvexSet:
+    """Outer parallelotope of a set (itself, box, Chisci bound of a zonotope, or hull box)."""
+    from diffsmf.sets.parallelotope import Parallelotope
+    from diffsmf.sets.zonotope import Zonotope
+
+    if isinstance(S, Parallelotope):
+        return S
+    if isinstance(S, (Interval, Zonotope)):
+        return S.to_parallelotope()
+    return S.interval_hull().to_parallelotope()
+
+
+def as_zonotope(S: ConvexSet) -> ConvexSet:
+    """Outer zonotope of a set (exact for boxes, parallelotopes, zonotopes; else hull box)."""
+    from diffsmf.sets.parallelotope import Parallelotope
+    from diffsmf.sets.zonotope import Zonotope
+
+    if isinstance(S, Zonotope):
+        return S
+    if isinstance(S, (Interval, Parallelotope)):
+        return S.to_zonotope()
+    return S.interval_hull().to_zonotope()
+
+
+def as_ellipsoid(S: ConvexSet) -> ConvexSet:
+    """Outer ellipsoid of a set (itself, ``diag(n r^2)`` cover of a box, zonotope cover)."""
+    from diffsmf.sets.ellipsoid import Ellipsoid
+
+    if isinstance(S, Ellipsoid):
+        return S
+    if isinstance(S, Interval):
+        return S.to_ellipsoid()
+    return as_zonotope(S).to_ellipsoid()
+
+
+def check_initial_set(name: str, S: ConvexSet | None, n: int) -> None:
+    """Validate an ``initial_set`` override."""
+    if S is not None and (not isinstance(S, ConvexSet) or S.dim != n or S.batch_shape != ()):
+        raise ValueError(f"{name}: must be a diffsmf set of dim {n} with empty batch shape")
+
+
+def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:
+    """``S`` (batch shape ``[]``) broadcast to ``[batch]`` (default 1)."""
+    return S.expand(1 if batch is None else batch)
+
+
+__all__ = [
+    "ROUND_REL",
+    "as_ellipsoid",
+    "as_parallelotope",
+    "as_zonotope",
+    "check_initial_set",
+    "expand_state_set",
+    "measurement_strips",
+    "prediction_remainder",
+    "rounding_margin",
+    "sequential_strip_update",
+    "step_function",
+    "widen",
+]

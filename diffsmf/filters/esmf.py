@@ -1,0 +1,140 @@
+"""ESMF: extended (ellipsoidal) set-membership filter with bounded parameter mismatch, seed 001.
+
+Prediction (sec. 4.2, eq. 18-35): autograd Jacobian A at the centre with the nominal parameter
+(eq. 25); Lagrange remainder by an interval Hessian over the interval hull of the ellipsoid
+(eq. 26-28); parameter-deviation box (eq. 18-21); each box covered by the diagonal ellipsoid
+``diag(n b_i^2)`` (eq. 23 and 29 with the n-D erratum: ``2 b^2`` covers a box only in 2-D);
+virtual process noise ``(Qbar (+) Q) (+) Delta`` and prior ``A P A' (+) Qhat``, each a
+trace-minimal outer Minkowski sum (eq. 30-35 = eq. 15-17).
+
+Update (sec. 4.3, eq. 36-40): intersection of the prior with the linearised observation set
+``{x : (y - h(c) - H (x - c))' Rhat^-1 (...) <= 1}``, ``Rhat`` the covering ellipsoid of the
+measurement-noise box plus the Lagrange remainder of ``h``.
+
+Deviations (guarantee fixes, also in docs/filters.md): the parameter deviation is bounded over
+the whole current box, not only at the centre (eq. 20 evaluates it at ``x_hat`` only, which does
+not contain ``f(x, theta) - f(x, theta_m)`` for the other x of the set); remainder and deviation
+boxes keep their centres (the paper centres the remainder ellipsoid at 0); the remainder of a
+nonlinear ``h`` is folded into ``Rhat``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from diffsmf.filters import _common as C
+from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.sets.base import ConvexSet, where
+from diffsmf.sets.interval import Interval
+from diffsmf.systems.system import System
+
+__all__ = ["ESMF"]
+
+SHAPE_MARGIN = 1e-10  # relative outward margin on shape matrices (float64 rounding)
+
+
+def _sym(P: Tensor) -> Tensor:
+    return 0.5 * (P + P.mT)
+
+
+def _max_sv(M: Tensor) -> Tensor:
+    """Largest singular value of symmetric PSD ``M [..., k, k]`` -> ``[...]``."""
+    return torch.linalg.eigvalsh(_sym(M))[..., -1].clamp_min(0.0)
+
+
+class ESMF(SetFilter):
+    """Extended set-membership filter of seed 001 (guaranteed, ellipsoidal).
+
+    Args:
+        system: the system to filter (``system.parameters`` = the mismatch interval, or None).
+        rho_rule: weight of the update, ``"eq40"`` (seed 001 eq. 40 as printed:
+            ``rho = sqrt(d1) / (sqrt(d1) + sqrt(d2))``, d1 from ``Rhat``, d2 from ``H P H'``) or
+            ``"eq13"`` (the intersection rule eq. 13 with the prior as ellipsoid 1, i.e. d1 and
+            d2 swapped). Both are guaranteed; see docs/filters.md for the difference.
+        initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
+
+    State set: ``Ellipsoid`` with batch shape ``[B]``.
+    """
+
+    def __init__(
+        self,
+        system: System,
+        *,
+        rho_rule: str = "eq40",
+        initial_set: ConvexSet | None = None,
+        **kw,
+    ) -> None:
+        super().__init__(system, **kw)
+        C.check_initial_set("initial_set", initial_set, system.n)
+        if rho_rule not in ("eq40", "eq13"):
+            raise ValueError(f"rho_rule: expected 'eq40' or 'eq13', got {rho_rule!r}")
+        self.rho_rule = rho_rule
+        self._x0 = C.as_ellipsoid(initial_set if initial_set is not None else system.x0_set)
+
+    def initial_state(self, batch: int | None = None) -> FilterState:
+        S = C.expand_state_set(self._x0, batch)
+        return FilterState(set=S, consistent=torch.ones(S.batch_shape, dtype=torch.bool))
+
+    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+        """Eq. 24-35: ``E(f(c) + a, A P A') (+) [(Qbar (+) Q) (+) Delta]``."""
+        from diffsmf.linearize import jacobian, lagrange_remainder, parameter_deviation
+        from diffsmf.sets.ellipsoid import Ellipsoid
+
+        E = state.set
+        c = E.center
+        box = E.interval_hull()  # eq. 27
+        fn = C.step_function(self.system, u)
+        A = jacobian(fn, c)  # eq. 25
+        R = lagrange_remainder(fn, box, c, A)  # eq. 26-28
+        fc = fn(c)
+        R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
+        Qhat = R.to_ellipsoid().minkowski_sum(  # eq. 29-31
+            self.process_noise_box().to_ellipsoid(), method="trace"
+        )
+        if self.system.parameters is not None:  # eq. 18-23, 30, 32
+            D = parameter_deviation(
+                self.system.f, box, self.system.parameters, self.system.theta_nominal, u
+            )
+            Qhat = Qhat.minkowski_sum(D.to_ellipsoid(), method="trace")
+        lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
+        new = lin.minkowski_sum(Qhat, method="trace")  # eq. 34-35
+        new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
+        return state.replace(set=new)
+
+    def _update(self, state: FilterState, y: Tensor) -> FilterState:
+        """Eq. 36-40: ellipsoid ∩ linearised observation set (Schweppe / Fogel-Huang)."""
+        from diffsmf.linearize import jacobian, lagrange_remainder
+        from diffsmf.sets.ellipsoid import Ellipsoid
+
+        E = state.set
+        c, P = E.center, E.shape
+        h = self.system.h
+        H = jacobian(h, c)
+        hc = h(c)
+        V = self.measurement_noise_box()
+        Rh = lagrange_remainder(h, E.interval_hull(), c, H)
+        noise = Interval(V.lower + Rh.lower, V.upper + Rh.upper)
+        noise = C.widen(noise, C.rounding_margin(y, hc, noise.center, noise.radius))
+        m = noise.radius.shape[-1]
+        Rhat = torch.diag_embed(m * noise.radius**2)  # covering ellipsoid of the box (erratum)
+        nu = y - hc - noise.center  # innovation
+        HPH = _sym(H @ P @ H.mT)
+        d1, d2 = _max_sv(Rhat), _max_sv(HPH)
+        if self.rho_rule == "eq13":
+            d1, d2 = d2, d1
+        rho = (d1.sqrt() / (d1.sqrt() + d2.sqrt()).clamp_min(1e-300)).clamp(1e-12, 1 - 1e-12)
+        r1 = (1 - rho).unsqueeze(-1).unsqueeze(-1)
+        r2 = rho.unsqueeze(-1).unsqueeze(-1)
+        Pr = P / r1
+        Smat = _sym(H @ Pr @ H.mT + Rhat / r2)  # eq. 36-37
+        L = torch.linalg.cholesky(Smat)
+        Sinv_nu = torch.cholesky_solve(nu.unsqueeze(-1), L)
+        xi = 1 - (nu.unsqueeze(-1) * Sinv_nu).sum((-2, -1))  # eq. 36
+        K = torch.cholesky_solve(H @ Pr, L).mT  # eq. 37: Pr H' S^-1
+        ctr = c + (K @ nu.unsqueeze(-1)).squeeze(-1)  # eq. 38
+        Pn = _sym(Pr - K @ H @ Pr)  # (I - K H) P / (1 - rho)
+        ok = xi > 0
+        xi_c = torch.where(ok, xi, torch.ones_like(xi)).unsqueeze(-1).unsqueeze(-1)
+        new = Ellipsoid(ctr, Pn * xi_c * (1 + SHAPE_MARGIN))  # eq. 39
+        return state.replace(set=where(ok, new, E), consistent=ok)
