@@ -64,7 +64,7 @@ class FilterResult:
 
 def _pad_and_stack(sets: list[ConvexSet]) -> ConvexSet:
     """Stack along a new dim 1; zonotopes with differing generator counts are zero-padded."""
-    if hasattr(sets[0], "generators"):
+    if hasattr(sets[0], "pad_generators"):
         m = max(s.generators.shape[-1] for s in sets)
         sets = [s.pad_generators(m) for s in sets]
     return stack(sets, dim=1)
