@@ -430,32 +430,25 @@ def _strip_fields(strip: Any, ref: ConvexSet) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _outer_parallelotope(G: Tensor) -> Tensor:
-    """Chisci 1996 minimal-volume outer parallelotope ``T [..., n, n]`` of ``{G xi}``."""
-    n, m = G.shape[-2], G.shape[-1]
+    """Chisci 1996 minimal-volume outer parallelotope ``T [..., n, n]`` of ``{G xi}``.
+
+    Elements without a regular basis (rank-deficient G) get axis generators of size
+    1e-9 x max|G| appended (outward); the other elements get zero columns (no change).
+    """
+    n = G.shape[-2]
+    eye = torch.eye(n, dtype=G.dtype, device=G.device)
     with torch.no_grad():
         Gd = G.detach()
-        scale = Gd.abs().amax((-1, -2), keepdim=True).clamp_min(1e-300)
+        scale = Gd.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
         best, ok = _best_basis(Gd / scale)
-        needs_aug = ~ok
-        if needs_aug.any():
-            aug = torch.eye(n, dtype=G.dtype, device=G.device) * 1e-9
-            Ga = torch.cat([Gd / scale, aug.expand(*G.shape[:-2], n, n)], -1)
-            best_a, _ = _best_basis(Ga)
-    if needs_aug.any():
-        Gaug = torch.cat(
-            [
-                G,
-                (1e-9 * scale)
-                * torch.eye(n, dtype=G.dtype, device=G.device).expand(*G.shape[:-2], n, n),
-            ],
-            -1,
-        )
-        T_a = _basis_T(Gaug, best_a)
-        T = _basis_T(G, best.clamp(max=m - 1))
-        T = torch.where(needs_aug.reshape(*needs_aug.shape, 1, 1), T_a, T)
-    else:
-        T = _basis_T(G, best)
-    return T
+    if bool(ok.all()):
+        return _basis_T(G, best)
+    aug = torch.where(ok.reshape(*ok.shape, 1, 1), 0.0 * eye, (1e-9 * scale) * eye)
+    Gaug = torch.cat([G, aug.expand(*G.shape[:-2], n, n)], -1)
+    with torch.no_grad():
+        best_a, _ = _best_basis(Gaug.detach() / scale)
+    best = torch.where(ok.unsqueeze(-1), best, best_a)
+    return _basis_T(Gaug, best)
 
 
 def _basis_T(G: Tensor, basis: Tensor) -> Tensor:
@@ -482,7 +475,6 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
         return torch.zeros(*batch, n, dtype=torch.long, device=G.device), torch.zeros(
             batch, dtype=torch.bool, device=G.device
         )
-    cols = torch.arange(m, device=G.device).expand(*batch, m)
     if math.comb(m, n) > MAX_BASES:
         L = n
         while math.comb(L + 1, n) <= MAX_BASES:
@@ -497,20 +489,15 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
     best_val = G.new_full(batch, float("inf"))
     best_k = torch.zeros(batch, dtype=torch.long, device=G.device)
     colnorm = Gc.norm(dim=-2)  # [..., L]
+    eye = torch.eye(n, dtype=G.dtype, device=G.device)
     for s in starts:
         sub = idx[s : s + step]
         B = Gc[..., sub].movedim(-2, -3)  # [..., k, n, n]
         detB = torch.linalg.det(B).abs()
-        hada = colnorm[..., sub].prod(-1)
-        regular = detB > 1e-12 * hada
-        Bs = torch.where(
-            regular.unsqueeze(-1).unsqueeze(-1), B, torch.eye(n, dtype=G.dtype, device=G.device)
-        )
-        X = torch.linalg.solve(Bs, Gc.unsqueeze(-3).expand(*batch, sub.shape[0], n, L))
-        # |det T| = |det B| prod_i sum_j |X_ij|; all m generators must be covered, not only
-        # the L candidates: solve against the full G when L < m.
-        if L < m:
-            X = torch.linalg.solve(Bs, G.unsqueeze(-3).expand(*batch, sub.shape[0], n, m))
+        regular = detB > 1e-12 * colnorm[..., sub].prod(-1)  # vs the Hadamard bound
+        Bs = torch.where(regular.unsqueeze(-1).unsqueeze(-1), B, eye)
+        # |det T| = |det B| prod_i sum_j |(B^-1 G)_ij| over ALL m generators
+        X = torch.linalg.solve(Bs, G.unsqueeze(-3).expand(*batch, sub.shape[0], n, m))
         val = detB * X.abs().sum(-1).prod(-1)
         val = torch.where(regular, val, torch.full_like(val, float("inf")))
         v, k = val.min(-1)

@@ -1,0 +1,373 @@
+"""Zonotope: exactness against scipy references, outer bounds, tightness, batching, gradients."""
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import linprog
+from scipy.spatial import ConvexHull
+
+import diffsmf as ds
+from diffsmf.sets.zonotope import Zonotope
+
+
+def rand_zono(n, m, batch=(), seed=0):
+    g = torch.Generator().manual_seed(seed)
+    c = torch.randn(*batch, n, generator=g)
+    G = torch.randn(*batch, n, m, generator=g)
+    return Zonotope(c, G)
+
+
+def all_vertices(Z):
+    """c + G s over all sign vectors s (superset of the vertices), numpy [2^m, n]."""
+    m = Z.num_generators
+    s = np.array(list(itertools.product((-1.0, 1.0), repeat=m)))
+    return Z.center.detach().numpy() + s @ Z.generators.detach().numpy().T
+
+
+def lp_member(c, G, x, tol=1e-9):
+    """Independent membership oracle: exists xi in [-1,1]^m with G xi = x - c."""
+    m = G.shape[1]
+    res = linprog(np.zeros(m), A_eq=G, b_eq=x - c, bounds=[(-1, 1)] * m, method="highs")
+    return res.status == 0
+
+
+def strip_vertices(c, G, a, y, h):
+    """Vertices of Z cap S on the strip boundary: points of Z's edges (all xi_i = +-1
+    except one) with a.x = y +- h. numpy [k, n]."""
+    m = G.shape[1]
+    out = []
+    for j in range(m):
+        others = [i for i in range(m) if i != j]
+        for s in itertools.product((-1.0, 1.0), repeat=m - 1):
+            base = c + G[:, others] @ np.array(s)
+            aj = a @ G[:, j]
+            if abs(aj) < 1e-12:
+                continue
+            for level in (y - h, y + h):
+                t = (level - a @ base) / aj
+                if abs(t) <= 1:
+                    out.append(base + t * G[:, j])
+    return np.array(out).reshape(-1, len(c))
+
+
+# ---------------------------------------------------------------------- seed 000 example
+def test_seed000_worked_example_outer_parallelotope():
+    """seed 000, under eq. 22: T = [[0.1992, 0.1042], [0.1195, 0.2345]] (4 decimals)."""
+    Z = ds.Zonotope([0.4, 0.15], [[0.15, 0.08, 0.025, 0], [0.09, 0.18, 0, 0.025]])
+    P = Z.to_parallelotope()
+    ref = torch.tensor([[0.1992, 0.1042], [0.1195, 0.2345]])
+    assert torch.allclose(P.T, ref, atol=5e-5)
+    assert torch.allclose(P.center, torch.tensor([0.4, 0.15]))
+    assert P.contains(torch.as_tensor(all_vertices(Z))).all()
+
+
+# ---------------------------------------------------------------------- exact operations
+@pytest.mark.parametrize("n,m,seed", [(2, 1, 0), (2, 5, 1), (2, 7, 2), (3, 3, 3), (3, 6, 4)])
+def test_volume_matches_convex_hull(n, m, seed):
+    Z = rand_zono(n, m, seed=seed)
+    V = all_vertices(Z)
+    ref = ConvexHull(V).volume if m >= n else 0.0
+    assert Z.volume().item() == pytest.approx(ref, rel=1e-9, abs=1e-12)
+
+
+def test_volume_rank_deficient_and_few_generators():
+    Z = ds.Zonotope(torch.zeros(3), torch.tensor([[1.0, 2.0, 0.0], [1.0, 2.0, 0.0], [0, 0, 1.0]]))
+    assert Z.volume().item() == pytest.approx(0.0, abs=1e-12)
+    assert rand_zono(3, 2).volume().item() == 0.0
+
+
+def test_vertices_2d_are_the_hull():
+    Z = rand_zono(2, 6, seed=5)
+    V = Z.vertices_2d().numpy()
+    hull = ConvexHull(all_vertices(Z))
+    assert ConvexHull(V).volume == pytest.approx(hull.volume, rel=1e-12)
+    # counter-clockwise: positive shoelace area
+    x, y = V[:, 0], V[:, 1]
+    area = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+    assert area == pytest.approx(hull.volume, rel=1e-12)
+
+
+@pytest.mark.parametrize("n,m", [(2, 4), (3, 5), (3, 2), (4, 6)])
+def test_contains_matches_lp_oracle(n, m):
+    Z = rand_zono(n, m, seed=10 + n + m)
+    g = torch.Generator().manual_seed(1)
+    xi = 1.3 * (2 * torch.rand(60, m, generator=g) - 1)
+    x = Z.center + xi @ Z.generators.T
+    if m < n:  # points off the subspace too
+        x = torch.cat([x, x[:20] + 0.1 * torch.randn(20, n, generator=g)])
+    ours = Z.contains(x).numpy()
+    c, G = Z.center.numpy(), Z.generators.numpy()
+    ref = np.array([lp_member(c, G, xx) for xx in x.numpy()])
+    assert (ours == ref).all()
+    assert ours.any() and (~ours).any()
+
+
+def test_support_and_interval_hull_exact():
+    Z = rand_zono(3, 5, seed=7)
+    V = all_vertices(Z)
+    d = torch.randn(10, 3, generator=torch.Generator().manual_seed(0))
+    assert torch.allclose(Z.support(d), torch.as_tensor((d.numpy() @ V.T).max(1)))
+    box = Z.interval_hull()
+    assert np.allclose(box.lower.numpy(), V.min(0)) and np.allclose(box.upper.numpy(), V.max(0))
+    assert torch.equal(Z.to_interval().upper, box.upper)
+
+
+def test_linear_map_translate_minkowski_exact():
+    Z = rand_zono(3, 4, seed=8)
+    A = torch.randn(2, 3, generator=torch.Generator().manual_seed(2))
+    b = torch.tensor([1.0, -2.0])
+    W = Z.linear_map(A, b)
+    V = all_vertices(Z) @ A.numpy().T + b.numpy()
+    assert W.volume().item() == pytest.approx(ConvexHull(V).volume, rel=1e-9)
+    assert torch.allclose(Z.translate(torch.ones(3)).center, Z.center + 1)
+    box = ds.Interval(-torch.ones(3), 2 * torch.ones(3))
+    S = Z.minkowski_sum(box)
+    assert S.num_generators == 7
+    assert torch.allclose(S.center, Z.center + 0.5)
+    VS = (
+        all_vertices(Z)[:, None, :] + np.array(list(itertools.product((-1, 2), repeat=3)))[None]
+    ).reshape(-1, 3)
+    assert S.volume().item() == pytest.approx(ConvexHull(VS).volume, rel=1e-9)
+    P = ds.Parallelotope(torch.zeros(3), torch.eye(3))
+    assert Z.minkowski_sum(P).num_generators == 7
+
+
+def test_minkowski_broadcasts_batch():
+    Z = rand_zono(2, 3, batch=(4,), seed=1)
+    Z2 = rand_zono(2, 2, seed=2)
+    S = Z.minkowski_sum(Z2)
+    assert S.batch_shape == (4,) and S.num_generators == 5
+    assert torch.allclose(S[1].volume(), Z[1].minkowski_sum(Z2).volume())
+
+
+# ---------------------------------------------------------------------- outer bounds
+@pytest.mark.parametrize("method", ["girard", "combastel", "pca", "chisci"])
+def test_reduce_is_outer_and_of_target_order(method):
+    Z = rand_zono(3, 12, batch=(5,), seed=3)
+    R = Z.reduce(2, method=method)
+    assert R.num_generators <= 6
+    x = torch.cat([Z.sample(200), Z.sample_extreme(200)], -2).transpose(0, 1)
+    assert R.contains(x).all()
+    assert (R.volume() >= Z.volume() * (1 - 1e-12)).all()
+
+
+@pytest.mark.parametrize("method", ["girard", "combastel", "pca", "chisci"])
+def test_reduce_within_order_is_identity(method):
+    Z = rand_zono(3, 6, seed=4)
+    assert Z.reduce(2, method=method) is Z
+    assert Z.reduce(2.5, method=method) is Z
+
+
+def test_to_parallelotope_is_minimal_over_bases():
+    Z = rand_zono(3, 6, seed=11)
+    G = Z.generators.numpy()
+    best = np.inf
+    for S in itertools.combinations(range(6), 3):  # independent brute force (Chisci 1996)
+        B = G[:, S]
+        if abs(np.linalg.det(B)) < 1e-12:
+            continue
+        T = B @ np.diag(np.abs(np.linalg.solve(B, G)).sum(1))
+        best = min(best, 8 * abs(np.linalg.det(T)))
+    P = Z.to_parallelotope()
+    assert P.volume().item() == pytest.approx(best, rel=1e-9)
+    assert P.contains(torch.as_tensor(all_vertices(Z))).all()
+
+
+def test_to_parallelotope_of_parallelotope_is_itself():
+    P = ds.Parallelotope(torch.tensor([1.0, 2.0, 3.0]), torch.randn(3, 3))
+    Q = P.to_zonotope().to_parallelotope()
+    assert torch.allclose(Q.T, P.T, rtol=1e-12, atol=1e-14)
+    assert torch.allclose(Q.center, P.center)
+
+
+def test_to_parallelotope_degenerate_is_outer_and_regular():
+    G = torch.tensor([[1.0, 2.0], [1.0, 2.0], [0.0, 0.0]])
+    Z = ds.Zonotope(torch.zeros(3), G)
+    P = Z.to_parallelotope()
+    assert torch.linalg.matrix_rank(P.T) == 3
+    assert P.contains(torch.as_tensor(all_vertices(Z))).all()
+
+
+def test_conversions_cover():
+    Z = rand_zono(3, 5, seed=12)
+    V = torch.as_tensor(all_vertices(Z))
+    assert Z.to_interval().contains(V).all()
+    E = Z.to_ellipsoid()
+    assert E.contains(V).all()
+
+
+# ---------------------------------------------------------------------- strips
+@pytest.mark.parametrize("method", ["fradius", "volume"])
+@pytest.mark.parametrize("n,m", [(2, 4), (3, 5)])
+def test_intersect_strip_outer(method, n, m):
+    Z = rand_zono(n, m, seed=20 + n)
+    g = torch.Generator().manual_seed(3)
+    a = torch.randn(n, generator=g)
+    y = (a @ Z.center).item() + 0.7
+    S = ds.Strip(a, y, 0.8)
+    R = Z.intersect_strip(S, method=method)
+    assert R.num_generators == m + 1
+    x = Z.sample(4000, generator=g)
+    keep = S.contains(x)
+    Vs = torch.as_tensor(strip_vertices(Z.center.numpy(), Z.generators.numpy(), a.numpy(), y, 0.8))
+    Vz = torch.as_tensor(all_vertices(Z))
+    Vz = Vz[S.contains(Vz)]
+    assert keep.any() and len(Vs) > 0
+    assert R.contains(x[keep]).all() and R.contains(Vs).all() and R.contains(Vz).all()
+    assert R.volume() < Z.volume()
+
+
+def test_intersect_strip_volume_method_beats_fradius_and_random_lambdas():
+    Z = rand_zono(2, 5, seed=30)
+    S = ds.Strip(torch.tensor([1.0, -0.5]), (torch.tensor([1.0, -0.5]) @ Z.center).item(), 0.4)
+    Rv = Z.intersect_strip(S, "volume")
+    Rf = Z.intersect_strip(S, "fradius")
+    assert Rv.volume() <= Rf.volume() * (1 + 1e-12)
+    # independent: volume of the Alamo family at random lambdas via ConvexHull
+    c, G, p = Z.center.numpy(), Z.generators.numpy(), S.normal.numpy()
+    rng = np.random.default_rng(0)
+    for lam in rng.normal(scale=1.0, size=(40, 2)):
+        Gl = np.concatenate([G - np.outer(lam, p @ G), 0.4 * lam[:, None]], 1)
+        s = np.array(list(itertools.product((-1.0, 1.0), repeat=Gl.shape[1])))
+        assert Rv.volume().item() <= ConvexHull(s @ Gl.T).volume * (1 + 1e-9)
+
+
+@pytest.mark.parametrize("method", ["fradius", "volume"])
+def test_intersect_strip_containing_and_empty(method):
+    Z = rand_zono(3, 4, seed=40)
+    a = torch.tensor([1.0, 0.0, 0.0])
+    wide = ds.Strip(a, Z.center[0], 100.0)
+    R = Z.intersect_strip(wide, method)
+    assert torch.equal(R.generators[..., :4], Z.generators) and torch.equal(R.center, Z.center)
+    assert (R.generators[..., 4] == 0).all()
+    far = ds.Strip(a, Z.center[0] + 1e3, 1.0)
+    E = Z.intersect_strip(far, method)
+    assert torch.isfinite(E.generators).all()
+    assert torch.equal(E.generators[..., :4], Z.generators) and not Z.intersects_strip(far)
+
+
+@pytest.mark.parametrize("method", ["fradius", "volume"])
+def test_intersect_strip_batched_equals_per_element(method):
+    Z = rand_zono(3, 5, batch=(6,), seed=50)
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(6, 3, generator=g)
+    S = ds.Strip(a, (a * Z.center).sum(-1) + torch.randn(6, generator=g), torch.rand(6) + 0.2)
+    R = Z.intersect_strip(S, method)
+    for i in range(6):
+        Ri = Z[i].intersect_strip(S[i], method)
+        assert torch.allclose(R.generators[i], Ri.generators, atol=1e-14)
+        assert torch.allclose(R.center[i], Ri.center, atol=1e-14)
+
+
+def test_batched_equals_per_element_volume_reduce_parallelotope():
+    Z = rand_zono(3, 7, batch=(2, 3), seed=60)
+    vol, P, R = Z.volume(), Z.to_parallelotope(), Z.reduce(1.5, "chisci")
+    for i, j in itertools.product(range(2), range(3)):
+        assert torch.allclose(vol[i, j], Z[i, j].volume())
+        assert torch.allclose(P.T[i, j], Z[i, j].to_parallelotope().T)
+        assert torch.allclose(R.generators[i, j], Z[i, j].reduce(1.5, "chisci").generators)
+
+
+# ---------------------------------------------------------------------- gradients
+def test_gradcheck_volume_of_linear_map():
+    g = torch.Generator().manual_seed(0)
+    c = torch.randn(3, generator=g)
+    G = torch.randn(3, 5, generator=g, requires_grad=True)
+    A = torch.randn(3, 3, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda G, A: Zonotope(c, G).linear_map(A).volume(), (G, A))
+
+
+def test_gradcheck_minkowski_sum():
+    g = torch.Generator().manual_seed(1)
+    G1 = torch.randn(2, 3, generator=g, requires_grad=True)
+    r = (torch.rand(2, generator=g) + 0.1).requires_grad_()
+
+    def f(G1, r):
+        S = Zonotope(torch.zeros(2), G1).minkowski_sum(ds.Interval(-r, r))
+        return S.volume(), S.support(torch.tensor([0.3, -1.0]))
+
+    assert torch.autograd.gradcheck(f, (G1, r))
+
+
+@pytest.mark.parametrize("method", ["fradius", "volume"])
+def test_gradcheck_intersect_strip(method):
+    g = torch.Generator().manual_seed(2)
+    c = torch.randn(2, generator=g, requires_grad=True)
+    G = torch.randn(2, 4, generator=g, requires_grad=True)
+    a = torch.tensor([1.0, 0.5])
+    y = ((a @ c).detach() + 0.3).requires_grad_()
+    h = torch.tensor(0.5, requires_grad=True)
+
+    def f(c, G, y, h):
+        R = Zonotope(c, G).intersect_strip(ds.Strip(a, y, h), method)
+        return R.center, R.generators, R.volume()
+
+    assert torch.autograd.gradcheck(f, (c, G, y, h))
+
+
+def test_gradcheck_to_parallelotope_and_reduce():
+    g = torch.Generator().manual_seed(3)
+    G = torch.randn(2, 5, generator=g, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda G: (
+            Zonotope(torch.zeros(2), G).to_parallelotope().volume(),
+            Zonotope(torch.zeros(2), G).reduce(1.5, "girard").generators,
+        ),
+        (G,),
+    )
+
+
+# ---------------------------------------------------------------------- bad input
+def test_bad_input_names_argument():
+    with pytest.raises(ValueError, match="generators"):
+        ds.Zonotope([0.0, 0.0], [[1.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="center"):
+        ds.Zonotope([0.0, float("nan")], torch.eye(2))
+    with pytest.raises(ValueError, match="generators"):
+        ds.Zonotope([0.0, 0.0], [[float("inf"), 0.0], [0.0, 1.0]])
+    Z = rand_zono(2, 3)
+    with pytest.raises(ValueError, match="order"):
+        Z.reduce(0.5)
+    with pytest.raises(ValueError, match="method"):
+        Z.reduce(1, method="magic")
+    with pytest.raises(ValueError, match="method"):
+        Z.intersect_strip(ds.Strip([1.0, 0.0], 0.0, 1.0), method="magic")
+    with pytest.raises(ValueError, match="A"):
+        Z.linear_map(torch.eye(3))
+    with pytest.raises(ValueError, match="m"):
+        Z.pad_generators(1)
+    with pytest.raises(ValueError, match="x"):
+        Z.contains(torch.zeros(3))
+
+
+def test_pad_generators_same_set():
+    Z = rand_zono(2, 3)
+    P = Z.pad_generators(5)
+    assert P.num_generators == 5 and torch.allclose(P.volume(), Z.volume())
+
+
+# ---------------------------------------------------------------------- plotting
+def test_plot_helpers_draw_every_set(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from diffsmf.plot import plot_set, polygon_2d
+
+    Z = rand_zono(2, 4)
+    fig, ax = plt.subplots()
+    for S in (Z, Z.to_parallelotope(), Z.interval_hull(), Z.to_ellipsoid()):
+        plot_set(ax, S)
+    Z3 = rand_zono(3, 4)
+    plot_set(ax, Z3, dims=(0, 2), edgecolor="C1")
+    xy = polygon_2d(Z3, dims=(0, 2))
+    assert ConvexHull(xy[:-1]).volume == pytest.approx(
+        Z3.linear_map(torch.eye(3)[[0, 2]]).volume().item()
+    )
+    fig.savefig(tmp_path / "sets.png")
+    plt.close(fig)
+    with pytest.raises(ValueError, match="dims"):
+        polygon_2d(Z3)
