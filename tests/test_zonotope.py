@@ -226,7 +226,7 @@ def test_intersect_strip_volume_method_beats_fradius_and_random_lambdas():
     Rf = Z.intersect_strip(S, "fradius")
     assert Rv.volume() <= Rf.volume() * (1 + 1e-12)
     # independent: volume of the Alamo family at random lambdas via ConvexHull
-    c, G, p = Z.center.numpy(), Z.generators.numpy(), S.normal.numpy()
+    G, p = Z.generators.numpy(), S.normal.numpy()
     rng = np.random.default_rng(0)
     for lam in rng.normal(scale=1.0, size=(40, 2)):
         Gl = np.concatenate([G - np.outer(lam, p @ G), 0.4 * lam[:, None]], 1)
