@@ -29,7 +29,8 @@ Design (two LMIs, documented in docs/observers.md):
    P = diag(P1, P2) > 0, W = P2 K, minimising g = gamma_w^2::
 
        [[-P, 0, (PΦ)', C_z'], [0, -g I, (P B_w)', 0], [PΦ, P B_w, -P, 0], [C_z, 0, 0, -I]] < 0,
-       PΦ = [[P1 (A - L C), P1 F], [-W C (A - L C), P2 - W C F]],  P B_w = [[P1, -P1 L, 0], [-W C, W C L, -W]],  C_z = [0 I],
+       PΦ = [[P1 (A - L C), P1 F], [-W C (A - L C), P2 - W C F]],  C_z = [0 I],
+       P B_w = [[P1, -P1 L, 0], [-W C, W C L, -W]],
    and -P in the top-left block replaced by -rho^2 P (guaranteed contraction rho per step of
    the 2-D Lyapunov function V = e'P1 e + Δf'P2 Δf); rho is found by bisection.
 
@@ -53,7 +54,13 @@ from torch import nn
 
 from diffsmf.observers.lmi import design_lipschitz_observer
 
-__all__ = ["ILCDesign", "ILCFaultEstimator", "RepeatedSystem", "design_ilc", "intermittent_fault_example"]
+__all__ = [
+    "ILCDesign",
+    "ILCFaultEstimator",
+    "RepeatedSystem",
+    "design_ilc",
+    "intermittent_fault_example",
+]
 
 
 @dataclass
@@ -185,7 +192,7 @@ def design_ilc(
     Returns an :class:`ILCDesign`; infeasible -> status "infeasible".
     """
     A, C, F = (np.atleast_2d(np.asarray(M, float)) for M in (A, C, F))
-    n, l, q = A.shape[0], C.shape[0], F.shape[1]
+    n, q = A.shape[0], F.shape[1]
     if A.shape != (n, n) or C.shape[1] != n or F.shape[0] != n:
         raise ValueError(f"shapes of A {A.shape}, C {C.shape}, F {F.shape} do not match")
     if np.linalg.matrix_rank(C @ F) < q:
@@ -311,11 +318,15 @@ class ILCFaultEstimator(nn.Module):
         xs, rs = [xh], [y[..., 0, :] - xh @ self.C.T]
         for t in range(N):  # observer, time loop only
             innov = y[..., t, :] - xh @ self.C.T
-            xh = xh @ self.A.T + u[..., t, :] @ self.B.T + fhat[..., t, :] @ self.F.T + innov @ self.L.T
+            xh = (
+                xh @ self.A.T + u[..., t, :] @ self.B.T + fhat[..., t, :] @ self.F.T
+                + innov @ self.L.T
+            )
             xs.append(xh)
             rs.append(y[..., t + 1, :] - xh @ self.C.T)
         xhat, r = torch.stack(xs, -2), torch.stack(rs, -2)
-        return xhat, r, fhat + r[..., 1:, :] @ self.K.T  # learning law f̂_{k+1}(t) = f̂_k(t) + K r_k(t+1)
+        # learning law f̂_{k+1}(t) = f̂_k(t) + K r_k(t+1)  (Shi-He-Zhou style, P-type)
+        return xhat, r, fhat + r[..., 1:, :] @ self.K.T
 
     def run(self, system: RepeatedSystem, trials: int, batch: int = 1):
         """Run ``trials`` trials on a :class:`RepeatedSystem`. Returns fhat [trials, batch, N, q]
