@@ -2,6 +2,7 @@
 
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.filters.cdsmf import CDSMF
+from diffsmf.filters.combined import CombinedFilter
 from diffsmf.filters.ekf import EKF
 from diffsmf.filters.esmf import ESMF
 from diffsmf.filters.hsnsmf import HSNSMF
@@ -9,6 +10,7 @@ from diffsmf.filters.mszm import MSZM
 
 __all__ = [
     "CDSMF",
+    "CombinedFilter",
     "EKF",
     "ESMF",
     "HSNSMF",

@@ -98,7 +98,7 @@ def axis_points(
         )
     M = _axes_matrix(shape, axes)
     z = _unit_points(center.shape[-1], lv, center)
-    points = center + torch.einsum("...ij,kj->k...i", M, z)
+    points = center + (z @ M.mT).movedim(-2, 0)  # [K, ..., n]
     return points, z, M
 
 
@@ -148,13 +148,13 @@ def statistical_linearization(
     w = _weight_vector(weights, K, len(tuple(levels)), z)
     Z1 = torch.cat([z, torch.ones(K, 1, dtype=z.dtype, device=z.device)], -1)  # [K, n+1]
     normal = Z1.mT @ (w.unsqueeze(-1) * Z1)  # eq. 54: F L F'
-    if torch.linalg.matrix_rank(normal) < n + 1:
+    if bool(torch.linalg.cholesky_ex(normal)[1] != 0):
         raise ValueError("weights: the weighted points do not determine an affine fit")
     Y = fn(points)  # [K, ..., k]
     if Y.dim() != points.dim() or Y.shape[0] != K:
         raise ValueError(f"fn: expected output [{K}, ..., k], got {tuple(Y.shape)}")
-    rhs = torch.einsum("kj,k,k...i->...ji", Z1, w, Y)  # eq. 54: F L beta'
-    theta = torch.linalg.solve(normal, rhs)  # [..., n+1, k]
+    rhs = torch.tensordot(w.unsqueeze(-1) * Z1, Y, dims=([0], [0])).movedim(0, -2)  # F L beta'
+    theta = torch.linalg.solve(normal, rhs)  # eq. 54: [..., n+1, k]
     G, g0 = theta[..., :n, :].mT, theta[..., n, :]  # fn(c + M z) ~ G z + g0
     A = torch.linalg.solve(M.mT, G.mT).mT  # A = G M^-1
     b = g0 - (A @ center.unsqueeze(-1)).squeeze(-1)

@@ -1,0 +1,363 @@
+"""Combined Kalman + set-membership filter for Gaussian plus bounded noise (seed 003).
+
+Model (seed 003 eq. 1-4, in diffsmf's convention, noise added in state space)::
+
+    x_k = f(x_{k-1}, u_{k-1}) + w_k + d_k,   w ~ N(0, Q),  d in F(d_c, D)
+    y_k = h(x_k) + v_k + e_k,                v ~ N(0, R),  e in F(e_c, E)
+
+The filter carries the *set of conditional means* ``F(a, S)`` (an :class:`Ellipsoid`) and one
+covariance ``P``: the centre and ``P`` follow the Kalman equations, the shape ``S`` follows the
+outer-bounding Minkowski sums of an ellipsoidal set-membership filter (seed 003 eq. 39-47).
+Nonlinear ``f`` and ``h`` are replaced by affine maps fitted by statistical linearisation over
+the current ellipsoid (seed 003 eq. 48-55, :func:`diffsmf.linearize.statistical_linearization`),
+the centre being propagated through the nonlinear maps (eq. 56-57).
+
+Guarantee: for affine ``f`` and ``h`` and zero Gaussian noise, the true state stays in ``F(a, S)``
+whatever gain is used (x = (I - K H) x + K (y - e) exactly); with Gaussian noise the set bounds
+the conditional mean, and ``confidence_region`` adds a k-sigma ellipsoid of ``P``. For nonlinear
+maps the paper ignores the linearisation error, so the set is an approximation there.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+from diffsmf.filters.base import FilterResult, FilterState, SetFilter
+from diffsmf.linearize.statistical import statistical_linearization
+from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.ellipsoid import Ellipsoid
+from diffsmf.systems.system import System
+from diffsmf.utils import Positive, register_positive
+
+__all__ = ["CombinedFilter", "CombinedResult", "outer_sum_shape"]
+
+_WEIGHTS = ("trace", "volume")
+_GAINS = ("auto", "kalman", "set")
+
+
+def _sym(M: Tensor) -> Tensor:
+    return 0.5 * (M + M.mT)
+
+
+def _trace(M: Tensor) -> Tensor:
+    return torch.diagonal(M, dim1=-2, dim2=-1).sum(-1)
+
+
+def _volume_weight(S1: Tensor, S2: Tensor) -> Tensor:
+    """Minimal-volume weight p ``[...]`` (seed 003 eq. 35 as corrected in seeds/README.md).
+
+    Positive root of ``sum_i 1 / (p l_i + 1) = n p / (p + 1)``, ``l_i`` the eigenvalues of
+    ``S1^-1 S2`` (the erratum's equation divided by p). The left side decreases and the right
+    side increases in p, so bisection in log p brackets the unique root; one Newton step with
+    gradient attached then gives the implicit-function derivative of p. Needs ``tr S2 > 0``.
+    """
+    n = S1.shape[-1]
+    L = torch.linalg.cholesky(S1)
+    X = torch.linalg.solve_triangular(L, S2, upper=False)
+    lam = torch.linalg.eigvalsh(_sym(torch.linalg.solve_triangular(L, X.mT, upper=False)))
+    lam = lam.clamp_min(0)
+
+    def phi(p: Tensor, lam: Tensor) -> Tensor:
+        return (1.0 / (p.unsqueeze(-1) * lam + 1.0)).sum(-1) - n * p / (p + 1.0)
+
+    with torch.no_grad():
+        lo = torch.full(lam.shape[:-1], -40.0, dtype=lam.dtype, device=lam.device)
+        hi = torch.full_like(lo, 40.0)
+        for _ in range(90):
+            mid = 0.5 * (lo + hi)
+            pos = phi(mid.exp(), lam.detach()) > 0
+            lo, hi = torch.where(pos, mid, lo), torch.where(pos, hi, mid)
+        p0 = (0.5 * (lo + hi)).exp()
+    dphi = -(lam / (p0.unsqueeze(-1) * lam + 1.0) ** 2).sum(-1) - n / (p0 + 1.0) ** 2
+    return p0 - phi(p0, lam) / dphi  # = p0 at the root; carries dp/d(S1, S2)
+
+
+def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
+    """Shape of the outer ellipsoid of ``F(0, S1) + F(0, S2)`` (seed 003 eq. 34-36, erratum).
+
+    ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` with ``p = sqrt(tr S1 / tr S2)`` (minimal trace) or the
+    minimal-volume root (:func:`_volume_weight`). ``S1 [..., n, n]`` positive definite; ``S2``
+    only positive semidefinite (a degenerate or zero ellipsoid); ``S2 = 0`` gives ``S1``.
+    Any ``p > 0`` gives an outer bound (eq. 25-33), so the guarantee never depends on the root's
+    accuracy.
+    """
+    if method not in _WEIGHTS:
+        raise ValueError(f"weight: expected one of {_WEIGHTS}, got {method!r}")
+    t1, t2 = _trace(S1), _trace(S2)
+    zero = t2 <= 0
+    t2s = torch.where(zero, torch.ones_like(t2), t2)
+    if method == "trace":
+        p = torch.sqrt(t1 / t2s)
+    else:
+        S2s = torch.where(zero.unsqueeze(-1).unsqueeze(-1), S1, S2)
+        p = _volume_weight(S1, S2s)
+    p = p.unsqueeze(-1).unsqueeze(-1)
+    S = (1.0 + 1.0 / p) * S1 + (1.0 + p) * S2
+    return _sym(torch.where(zero.unsqueeze(-1).unsqueeze(-1), S1, S))
+
+
+def _scaled(M0: Tensor, v: Tensor, v0: Tensor) -> Tensor:
+    """``diag(v / v0) M0 diag(v / v0)`` (components with ``v0 = 0`` have zero rows in M0)."""
+    r = v / torch.where(v0 > 0, v0, torch.ones_like(v0))
+    return r.unsqueeze(-1) * M0 * r.unsqueeze(-2)
+
+
+def _psd(name: str, M: Tensor | None, dim: int) -> Tensor:
+    """Validated symmetric PSD matrix ``[dim, dim]`` (zeros for ``None``)."""
+    if M is None:
+        return torch.zeros(dim, dim, dtype=torch.float64)
+    M = torch.as_tensor(M, dtype=torch.float64)
+    if M.shape != (dim, dim):
+        raise ValueError(f"{name}: expected shape ({dim}, {dim}), got {tuple(M.shape)}")
+    if not torch.isfinite(M).all():
+        raise ValueError(f"{name}: contains NaN or inf")
+    scale = M.abs().max().clamp_min(1e-300)
+    if (M - M.mT).abs().max() > 1e-10 * scale:
+        raise ValueError(f"{name}: must be symmetric")
+    if torch.linalg.eigvalsh(_sym(M)).min() < -1e-10 * scale:
+        raise ValueError(f"{name}: must be positive semidefinite")
+    return _sym(M)
+
+
+def _cover_shape(s: ConvexSet | None, dim: int) -> Tensor:
+    """Shape ``[dim, dim]`` of an ellipsoid covering a bounded noise set (centre excluded)."""
+    if s is None:
+        return torch.zeros(dim, dim, dtype=torch.float64)
+    if isinstance(s, Ellipsoid):
+        return s.shape.detach()
+    return s.interval_hull().to_ellipsoid().shape.detach()  # box cover diag(n r^2)
+
+
+@dataclass(frozen=True)
+class CombinedResult(FilterResult):
+    """:class:`FilterResult` of :class:`CombinedFilter`.
+
+    ``sets``: the mean sets ``F(a_k, S_k)``, batch ``[B, T+1]``; ``covariance [B, T+1, n, n]``.
+    """
+
+    def confidence_region(self, k: float = 3.0, weight: str = "trace") -> Ellipsoid:
+        """Probabilistic-plus-bounded region ``F(a, S) (+) F(0, k^2 P)`` ``[B, T+1]``.
+
+        Outer ellipsoid of the mean set plus the k-sigma ellipsoid of the covariance: if the
+        conditional mean lies in the mean set and the error about it is N(0, P), the state lies
+        in the region with probability at least ``chi2_n(k^2)`` (n the state dimension; 0.989
+        for k = 3 in a 2-D projection). Project with ``.linear_map(C)`` for plotting.
+        """
+        if not k > 0:
+            raise ValueError(f"k: must be positive, got {k}")
+        S = self.sets.shape
+        return Ellipsoid._make(self.center, outer_sum_shape(S, k * k * self.covariance, weight))
+
+
+class CombinedFilter(SetFilter):
+    """Combined Kalman + ellipsoidal set-membership filter (seed 003 eq. 39-57).
+
+    Args:
+        system: the system; ``x0_set`` (an Ellipsoid, or a box covered by one) is the initial
+            mean set ``F(a_0, S_0)``. Bounded noise ``D``/``E``: the system's ``process_noise`` /
+            ``measurement_noise`` (ellipsoids used as they are, other sets covered by the
+            ellipsoid of their interval hull); Gaussian ``Q``/``R``: ``process_cov`` /
+            ``measurement_cov``. Any of them may be ``None`` (zero).
+        initial_cov: ``P_0 [n, n]`` (symmetric PSD), required.
+        weight: Minkowski weights p, q by ``"trace"`` (minimal trace, the paper's choice) or
+            ``"volume"`` (minimal volume), seed 003 eq. 34-36 (erratum).
+        gain: ``"kalman"`` (eq. 44, ``K = P H' (H P H' + R)^-1``, needs R positive definite),
+            ``"set"`` (``K = S H' (H S H' + E)^-1``, a pure ellipsoidal set-membership filter
+            that ignores P), or ``"auto"`` (``"kalman"`` when R is positive definite, else
+            ``"set"``).
+        levels, point_weights, axes: statistical linearisation options (point count
+            ``2 len(levels) n + 1``, weights l_i of eq. 52-53, semi-axes), see
+            :func:`diffsmf.linearize.statistical_linearization`.
+        process_shape, measurement_shape: override D ``[n, n]`` / E ``[m, m]`` (PSD; a
+            degenerate ellipsoid such as ``Gamma D Gamma'`` is allowed; it must cover the noise).
+        process_cov, measurement_cov: override Q / R.
+
+    Learnable (softplus-positive): ``process_noise [n]``, ``measurement_noise [m]`` (interval
+    hull half-widths of D, E: ``D = diag(r/r0) D0 diag(r/r0)``), ``process_std [n]``,
+    ``measurement_std [m]`` (square roots of the diagonals of Q, R, scaled the same way).
+
+    State: ``set = Ellipsoid(a, S)`` ``[B]``, ``extras["covariance"] = P [B, n, n]``.
+    """
+
+    process_std = Positive()
+    measurement_std = Positive()
+
+    def __init__(
+        self,
+        system: System,
+        *,
+        initial_cov: Tensor,
+        weight: str = "trace",
+        gain: str = "auto",
+        levels: Sequence[float] = (0.5, 1.0),
+        point_weights: Tensor | Sequence[float] | None = None,
+        axes: str = "principal",
+        process_shape: Tensor | None = None,
+        measurement_shape: Tensor | None = None,
+        process_cov: Tensor | None = None,
+        measurement_cov: Tensor | None = None,
+        skip_nan: bool = False,
+        learn_noise: bool = True,
+    ) -> None:
+        if not isinstance(system, System):
+            raise ValueError("system: must be a diffsmf.System")
+        n, m = system.n, system.m
+        D0 = (
+            _cover_shape(system.process_noise, n)
+            if process_shape is None
+            else _psd("process_shape", process_shape, n)
+        )
+        E0 = (
+            _cover_shape(system.measurement_noise, m)
+            if measurement_shape is None
+            else _psd("measurement_shape", measurement_shape, m)
+        )
+        super().__init__(
+            system,
+            process_noise=None if process_shape is None else _diag_sqrt(D0),
+            measurement_noise=None if measurement_shape is None else _diag_sqrt(E0),
+            skip_nan=skip_nan,
+            learn_noise=learn_noise,
+        )
+        if weight not in _WEIGHTS:
+            raise ValueError(f"weight: expected one of {_WEIGHTS}, got {weight!r}")
+        if gain not in _GAINS:
+            raise ValueError(f"gain: expected one of {_GAINS}, got {gain!r}")
+        if process_cov is None:
+            process_cov = system.process_cov
+        if measurement_cov is None:
+            measurement_cov = system.measurement_cov
+        Q0 = _psd("process_cov", process_cov, n)
+        R0 = _psd("measurement_cov", measurement_cov, m)
+        r_pd = bool(torch.linalg.cholesky_ex(R0)[1] == 0)
+        if gain == "kalman" and not r_pd:
+            raise ValueError(
+                "measurement_cov: gain='kalman' needs a positive definite R (seed 003 eq. 2); "
+                "use gain='set' for a pure set-membership gain"
+            )
+        self.gain = ("kalman" if r_pd else "set") if gain == "auto" else gain
+        self.weight = weight
+        self.levels = tuple(levels)
+        self.point_weights = point_weights
+        self.axes = axes
+        self.register_buffer("initial_cov", _psd("initial_cov", initial_cov, n))
+        self.register_buffer("D0", D0)
+        self.register_buffer("E0", E0)
+        self.register_buffer("Q0", Q0)
+        self.register_buffer("R0", R0)
+        self.register_buffer("r_w0", self.process_noise.detach().clone())
+        self.register_buffer("r_v0", self.measurement_noise.detach().clone())
+        register_positive(self, "process_std", _diag_sqrt(Q0), learnable=learn_noise)
+        register_positive(self, "measurement_std", _diag_sqrt(R0), learnable=learn_noise)
+        self._x0 = _initial_ellipsoid(system.x0_set)
+        self._gaussian_meas = bool((R0 != 0).any())
+
+    # ------------------------------------------------------------------ noise matrices
+    def process_bound(self) -> Tensor:
+        """Bounded process-noise shape ``D [n, n]`` (differentiable in ``process_noise``)."""
+        return _scaled(self.D0, self.process_noise, self.r_w0)
+
+    def measurement_bound(self) -> Tensor:
+        """Bounded measurement-noise shape ``E [m, m]`` (differentiable)."""
+        return _scaled(self.E0, self.measurement_noise, self.r_v0)
+
+    def process_covariance(self) -> Tensor:
+        """Gaussian process covariance ``Q [n, n]`` (differentiable in ``process_std``)."""
+        return _scaled(self.Q0, self.process_std, _diag_sqrt(self.Q0))
+
+    def measurement_covariance(self) -> Tensor:
+        """Gaussian measurement covariance ``R [m, m]`` (differentiable)."""
+        return _scaled(self.R0, self.measurement_std, _diag_sqrt(self.R0))
+
+    # ------------------------------------------------------------------ contract
+    def initial_state(self, batch: int | None = None) -> FilterState:
+        """``F(a_0, S_0) = x0_set`` and ``P_0 = initial_cov``, batch ``[batch]``."""
+        b = 1 if batch is None else batch
+        n = self.system.n
+        return FilterState(
+            set=self._x0.expand(b),
+            consistent=torch.ones(b, dtype=torch.bool, device=self._x0.device),
+            extras={"covariance": self.initial_cov.expand(b, n, n)},
+        )
+
+    def _linearize(self, fn, a: Tensor, S: Tensor) -> Tensor:
+        A, _ = statistical_linearization(
+            fn, a, S, levels=self.levels, weights=self.point_weights, axes=self.axes
+        )
+        return A
+
+    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+        """Time update, seed 003 eq. 39-42 (linear) / eq. 54, 56 (nonlinear)."""
+        a, S, P = state.set.center, state.set.shape, state.extras["covariance"]
+        theta = self.system.theta_nominal
+
+        def fn(x: Tensor) -> Tensor:
+            return self.system.f(x, u, theta)
+
+        A = self._linearize(fn, a, S)  # eq. 54
+        a_new = fn(a) + self.process_noise_center  # eq. 56 (= eq. 40 for linear f)
+        S_new = outer_sum_shape(_sym(A @ S @ A.mT), self.process_bound(), self.weight)  # eq. 41
+        P_new = _sym(A @ P @ A.mT + self.process_covariance())  # eq. 42
+        return FilterState(
+            set=Ellipsoid._make(a_new, S_new),
+            consistent=state.consistent,
+            extras={"covariance": P_new},
+        )
+
+    def _update(self, state: FilterState, y: Tensor) -> FilterState:
+        """Measurement update, seed 003 eq. 43-47 (linear) / eq. 55, 57 (nonlinear)."""
+        a, S, P = state.set.center, state.set.shape, state.extras["covariance"]
+        h = self.system.h
+        H = self._linearize(h, a, S)  # eq. 55
+        R, E = self.measurement_covariance(), self.measurement_bound()
+        nu = y - h(a) - self.measurement_noise_center  # innovation of eq. 57
+        G = P if self.gain == "kalman" else S
+        W = R if self.gain == "kalman" else E
+        K = torch.linalg.solve(_sym(H @ G @ H.mT + W), H @ G).mT  # eq. 44: G H' (H G H' + W)^-1
+        a_new = a + (K @ nu.unsqueeze(-1)).squeeze(-1)  # eq. 57 (= eq. 45 for linear h)
+        I_KH = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device) - K @ H
+        S_new = outer_sum_shape(
+            _sym(I_KH @ S @ I_KH.mT), _sym(K @ E @ K.mT), self.weight
+        )  # eq. 46
+        P_new = _sym(I_KH @ P @ I_KH.mT + K @ R @ K.mT)  # eq. 47 in Joseph form
+        return FilterState(
+            set=Ellipsoid._make(a_new, S_new),
+            consistent=self._consistent(nu, H, S, E),
+            extras={"covariance": P_new},
+        )
+
+    def _consistent(self, nu: Tensor, H: Tensor, S: Tensor, E: Tensor) -> Tensor:
+        """Is ``y`` in the (linearised) predicted output set ``H F(a, S) + F(e_c, E)``?
+
+        Only decided when the measurement has no Gaussian part (a Gaussian error is unbounded,
+        so no measurement is then inconsistent). For nonlinear ``h`` the test uses the fitted
+        ``H`` and is approximate.
+        """
+        if self._gaussian_meas:
+            return torch.ones(nu.shape[:-1], dtype=torch.bool, device=nu.device)
+        Sy = outer_sum_shape(_sym(H @ S @ H.mT), E, "trace")
+        d2 = (nu.unsqueeze(-2) @ torch.linalg.solve(Sy, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
+        return d2 <= 1.0 + 1e-9
+
+    def collect(self, states: list[FilterState]) -> CombinedResult:
+        """Stack the states into a :class:`CombinedResult` (adds ``confidence_region``)."""
+        res = super().collect(states)
+        return CombinedResult(**{f.name: getattr(res, f.name) for f in fields(res)})
+
+
+def _diag_sqrt(M: Tensor) -> Tensor:
+    return torch.diagonal(M, dim1=-2, dim2=-1).clamp_min(0).sqrt()
+
+
+def _initial_ellipsoid(x0: ConvexSet) -> Ellipsoid:
+    if isinstance(x0, Ellipsoid):
+        return x0
+    hull = x0.interval_hull()
+    if not math.isfinite(float(hull.radius.max())):
+        raise ValueError("system: x0_set must be bounded")
+    return hull.to_ellipsoid()  # covering ellipsoid of the box (diag n r^2)
