@@ -1,7 +1,26 @@
 """Linearisation: point Jacobians (autograd, Stirling), interval jets and remainder bounds."""
 
 from diffsmf.linearize.jacobians import hessian, jacobian, stirling_jacobian
+from diffsmf.linearize.jets import Jet, interval_hessian, interval_jacobian, jet_eval
+from diffsmf.linearize.remainders import (
+    dc_remainder,
+    hessian_eig_lower_bound,
+    lagrange_remainder,
+    parameter_deviation,
+)
 from diffsmf.linearize.statistical import axis_points, statistical_linearization
 
-__all__ = ["hessian", "jacobian", "stirling_jacobian"]
+__all__ = [
+    "Jet",
+    "dc_remainder",
+    "hessian",
+    "hessian_eig_lower_bound",
+    "interval_hessian",
+    "interval_jacobian",
+    "jacobian",
+    "jet_eval",
+    "lagrange_remainder",
+    "parameter_deviation",
+    "stirling_jacobian",
+]
 __all__ += ["axis_points", "statistical_linearization"]

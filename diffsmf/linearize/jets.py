@@ -1,0 +1,451 @@
+"""Second-order forward-mode interval "jets": guaranteed Jacobian / Hessian enclosures over a box.
+
+A :class:`Jet` carries, for every entry of a tensor-valued intermediate quantity ``q(x)`` of a
+user function, three :class:`~diffsmf.sets.Interval` arrays enclosing, over all ``x`` in the
+input box, its value ``q [...]``, its gradient ``dq/dx [..., n]`` and its Hessian
+``d2q/dx2 [..., n, n]``. The propagation rules are the ordinary first/second-order chain, sum
+and product rules, evaluated in the outward-rounded Moore arithmetic of ``Interval``
+(seed 001 sec. 3 interval extensions, used here for the interval Hessian of seed 001 eq. 26-28
+and for the DC parameter of seed 000 eq. 15-16, erratum). For a unary ``phi``::
+
+    grad phi(q) = phi'(Q) grad q,   hess phi(q) = phi'(Q) hess q + phi''(Q) grad q grad q'
+
+with ``Q`` the value enclosure, so ``phi'`` and ``phi''`` are bounded over everything the
+argument can take. Supported: ``+ - * /``, powers, ``exp log sqrt sin cos tanh sigmoid atan
+square reciprocal abs`` (abs only away from 0 for Hessians), indexing, ``torch.stack/cat``,
+``sum``, ``@`` / ``F.linear`` with constant matrices, mixing with constant tensors, numbers.
+Anything else raises ``NotImplementedError`` naming the operation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from diffsmf.sets.interval import Interval
+
+__all__ = ["Jet", "interval_hessian", "interval_jacobian", "jet_eval"]
+
+Const = Tensor | Interval | float | int
+
+
+def _point(t: Any, like: Tensor) -> Interval:
+    t = torch.as_tensor(t, dtype=like.dtype, device=like.device)
+    return Interval(t, t)
+
+
+def _unsq(c: Any, k: int) -> Any:
+    """Append ``k`` singleton dims to a tensor / Interval (numbers unchanged)."""
+    if isinstance(c, (Tensor, Interval)):
+        for _ in range(k):
+            c = c.unsqueeze(-1)
+    return c
+
+
+def _outer(a: Interval, b: Interval) -> Interval:
+    """``a_i b_j`` -> ``[..., n, n]``."""
+    return a.unsqueeze(-1) * b.unsqueeze(-2)
+
+
+def _outer_sym(g: Interval) -> Interval:
+    """``g_i g_j`` with the exact squares on the diagonal (tighter than products)."""
+    o = _outer(g, g)
+    n = g.shape[-1]
+    sq = g.square()
+    diag = Interval(torch.diag_embed(sq.lower), torch.diag_embed(sq.upper))
+    eye = torch.eye(n, dtype=torch.bool, device=g.lower.device)
+    return torch.where(eye, diag, o)
+
+
+class Jet:
+    """Interval enclosures of a value ``[...]``, gradient ``[..., n]`` and Hessian ``[..., n, n]``.
+
+    ``hess`` is ``None`` in first-order mode (interval Jacobians only).
+    """
+
+    __slots__ = ("grad", "hess", "val")
+
+    def __init__(self, val: Interval, grad: Interval, hess: Interval | None) -> None:
+        self.val = val
+        shape = val.shape
+        n = grad.shape[-1]
+        self.grad = grad if grad.shape[:-1] == shape else grad.broadcast_to((*shape, n))
+        if hess is not None and hess.shape[:-2] != shape:
+            hess = hess.broadcast_to((*shape, n, n))
+        self.hess = hess
+
+    # ---------------------------------------------------------------- structure
+    @property
+    def shape(self) -> torch.Size:
+        return self.val.shape
+
+    @property
+    def ndim(self) -> int:
+        return self.val.ndim
+
+    def dim(self) -> int:
+        return self.val.ndim
+
+    def size(self, d: int | None = None) -> Any:
+        return self.shape if d is None else self.shape[d]
+
+    @property
+    def n(self) -> int:
+        return self.grad.shape[-1]
+
+    @property
+    def order(self) -> int:
+        return 1 if self.hess is None else 2
+
+    def __repr__(self) -> str:
+        return f"Jet(shape={tuple(self.shape)}, n={self.n}, order={self.order})"
+
+    def _const(self, c: Const) -> Jet:
+        """Lift a constant (tensor, number or Interval) to a jet with zero derivatives."""
+        like = self.val.lower
+        v = c if isinstance(c, Interval) else _point(c, like)
+        z = torch.zeros((*v.shape, self.n), dtype=like.dtype, device=like.device)
+        h = None
+        if self.hess is not None:
+            zh = torch.zeros((*v.shape, self.n, self.n), dtype=like.dtype, device=like.device)
+            h = Interval(zh, zh)
+        return Jet(v, Interval(z, z), h)
+
+    def __getitem__(self, idx: Any) -> Jet:
+        if not isinstance(idx, tuple):
+            idx = (idx,)
+        s = slice(None)
+        hess = None if self.hess is None else self.hess[idx + (s, s)]
+        return Jet(self.val[idx], self.grad[idx + (s,)], hess)
+
+    # ---------------------------------------------------------------- arithmetic
+    def __neg__(self) -> Jet:
+        return Jet(-self.val, -self.grad, None if self.hess is None else -self.hess)
+
+    def __pos__(self) -> Jet:
+        return self
+
+    def __add__(self, other: Any) -> Jet:
+        if isinstance(other, Jet):
+            hess = None if self.hess is None else self.hess + other.hess
+            return Jet(self.val + other.val, self.grad + other.grad, hess)
+        return Jet(self.val + other, self.grad, self.hess)
+
+    __radd__ = __add__
+
+    def __sub__(self, other: Any) -> Jet:
+        return self + (-other)
+
+    def __rsub__(self, other: Any) -> Jet:
+        return (-self) + other
+
+    def __mul__(self, other: Any) -> Jet:
+        if isinstance(other, Jet):
+            return _mul(self, other)
+        hess = None if self.hess is None else self.hess * _unsq(other, 2)
+        return Jet(self.val * other, self.grad * _unsq(other, 1), hess)
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, other: Any) -> Jet:
+        if isinstance(other, Jet):
+            return self * other.reciprocal()
+        hess = None if self.hess is None else self.hess / _unsq(other, 2)
+        return Jet(self.val / other, self.grad / _unsq(other, 1), hess)
+
+    def __rtruediv__(self, other: Any) -> Jet:
+        return self.reciprocal() * other
+
+    def __pow__(self, p: Any) -> Jet:
+        if isinstance(p, Jet) or (isinstance(p, (Tensor, Interval)) and p.numel() != 1):
+            return (self.log() * p).exp()
+        pv = float(p.item() if isinstance(p, Tensor) else p)
+        if pv == 0:
+            return self._const(torch.ones(self.shape, dtype=self.val.lower.dtype))
+        if pv == 1:
+            return self
+        if pv == 2:
+            return _mul(self, self)
+        x = self.val
+        d2 = x ** (pv - 2) * (pv * (pv - 1)) if self.hess is not None else None
+        return _chain(self, x**pv, x ** (pv - 1) * pv, d2)
+
+    def __rpow__(self, base: Any) -> Jet:
+        return (self * torch.log(torch.as_tensor(base, dtype=self.val.lower.dtype))).exp()
+
+    def __matmul__(self, A: Any) -> Jet:
+        return _matmul(self, A)
+
+    def __rmatmul__(self, A: Any) -> Jet:
+        return _rmatmul(A, self)
+
+    # ---------------------------------------------------------------- elementary functions
+    def square(self) -> Jet:
+        return _mul(self, self)
+
+    def exp(self) -> Jet:
+        v = self.val.exp()
+        return _chain(self, v, v, v)
+
+    def log(self) -> Jet:
+        r = self.val.reciprocal()
+        return _chain(self, self.val.log(), r, -r.square())
+
+    def sqrt(self) -> Jet:
+        v = self.val.sqrt()
+        d1 = v.reciprocal() * 0.5
+        return _chain(self, v, d1, -(d1 * self.val.reciprocal()) * 0.5)
+
+    def sin(self) -> Jet:
+        v = self.val.sin()
+        return _chain(self, v, self.val.cos(), -v)
+
+    def cos(self) -> Jet:
+        v = self.val.cos()
+        return _chain(self, v, -self.val.sin(), -v)
+
+    def tanh(self) -> Jet:
+        v = self.val.tanh()
+        d1 = 1.0 - v.square()
+        return _chain(self, v, d1, v * d1 * (-2.0))
+
+    def sigmoid(self) -> Jet:
+        v = self.val.sigmoid()
+        d1 = v * (1.0 - v)
+        return _chain(self, v, d1, d1 * (1.0 - v * 2.0))
+
+    def atan(self) -> Jet:
+        d1 = (self.val.square() + 1.0).reciprocal()
+        return _chain(self, self.val.atan(), d1, self.val * d1.square() * (-2.0))
+
+    def reciprocal(self) -> Jet:
+        v = self.val.reciprocal()
+        return _chain(self, v, -v.square(), (v**3) * 2.0)
+
+    def abs(self) -> Jet:
+        lo, hi = self.val.lower, self.val.upper
+        straddle = (lo < 0) & (hi > 0)
+        if self.hess is not None and bool(straddle.detach().any()):
+            raise NotImplementedError(
+                "abs: interval Hessian of |q| is undefined where q's range contains 0"
+            )
+        one = torch.ones_like(lo)
+        d1 = Interval(torch.where(lo >= 0, one, -one), torch.where(hi <= 0, -one, one))
+        zero = Interval(torch.zeros_like(lo), torch.zeros_like(lo))
+        return _chain(self, self.val.abs(), d1, zero)
+
+    def sum(self, dim: Any = None, keepdim: bool = False) -> Jet:
+        nd = self.ndim
+        dims = tuple(range(nd)) if dim is None else (dim,) if isinstance(dim, int) else dim
+        dims = tuple(d % nd for d in dims)
+        hess = None if self.hess is None else self.hess.sum(dims, keepdim)
+        return Jet(self.val.sum(dims, keepdim), self.grad.sum(dims, keepdim), hess)
+
+    # ---------------------------------------------------------------- torch hook
+    @classmethod
+    def __torch_function__(
+        cls, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None
+    ) -> Any:
+        impl = _TABLE.get(func)
+        if impl is None:
+            name = getattr(func, "__name__", repr(func))
+            raise NotImplementedError(
+                f"interval jets: torch operation {name!r} is not supported (supported: + - * / "
+                "**, exp log sqrt sin cos tanh sigmoid atan square reciprocal abs, indexing, "
+                "stack, cat, sum, matmul / linear with constant matrices)"
+            )
+        return impl(*args, **(kwargs or {}))
+
+
+# -------------------------------------------------------------------- rules
+def _mul(a: Jet, b: Jet) -> Jet:
+    """Product rule, first and second order (``a is b`` uses exact squares)."""
+    if a is b:
+        grad = a.grad * _unsq(a.val, 1) * 2.0
+        hess = None
+        if a.hess is not None:
+            hess = (a.hess * _unsq(a.val, 2) + _outer_sym(a.grad)) * 2.0
+        return Jet(a.val.square(), grad, hess)
+    grad = a.grad * _unsq(b.val, 1) + b.grad * _unsq(a.val, 1)
+    hess = None
+    if a.hess is not None:
+        o = _outer(a.grad, b.grad)
+        hess = a.hess * _unsq(b.val, 2) + b.hess * _unsq(a.val, 2) + o + o.mT
+    return Jet(a.val * b.val, grad, hess)
+
+
+def _chain(a: Jet, v: Interval, d1: Interval, d2: Interval | None) -> Jet:
+    """``phi(a)`` from enclosures of ``phi``, ``phi'``, ``phi''`` over ``a.val``."""
+    grad = a.grad * _unsq(d1, 1)
+    hess = None
+    if a.hess is not None:
+        hess = a.hess * _unsq(d1, 2) + _outer_sym(a.grad) * _unsq(d2, 2)
+    return Jet(v, grad, hess)
+
+
+def _as_matrix(A: Any, like: Tensor) -> Tensor:
+    if isinstance(A, (Jet, Interval)):
+        raise NotImplementedError("interval jets: matmul supports constant (tensor) matrices only")
+    return torch.as_tensor(A, dtype=like.dtype, device=like.device)
+
+
+def _matmul(x: Jet, A: Any) -> Jet:
+    """``x @ A`` with ``x [..., m]`` and a constant ``A [m, k]`` or ``[m]``."""
+    A = _as_matrix(A, x.val.lower)
+    if A.dim() > 2:
+        raise NotImplementedError("interval jets: x @ A needs a 1-D or 2-D constant A")
+    At = A.mT if A.dim() == 2 else A  # [k, m] or [m]
+    n = x.n
+    grad = At @ x.grad  # [..., k, n]
+    hess = None
+    if x.hess is not None:
+        Hf = x.hess.reshape(*x.hess.shape[:-2], n * n)  # [..., m, n*n]
+        hess = At @ Hf
+        hess = hess.reshape(*hess.shape[:-1], n, n)
+    return Jet(x.val @ A, grad, hess)
+
+
+def _rmatmul(A: Any, x: Jet) -> Jet:
+    """``A @ x`` with a constant ``A [k, m]`` and an unbatched jet ``x [m]``."""
+    A = _as_matrix(A, x.val.lower)
+    if x.ndim != 1:
+        raise NotImplementedError("interval jets: A @ x needs a 1-D x; write x @ A.T instead")
+    return _matmul(x, A.mT if A.dim() == 2 else A)
+
+
+def _linear(x: Jet, weight: Tensor, bias: Tensor | None = None) -> Jet:
+    out = _matmul(x, weight.mT)
+    return out if bias is None else out + bias
+
+
+def _lift_all(items: Sequence[Any]) -> list[Jet]:
+    ref = next(t for t in items if isinstance(t, Jet))
+    jets = [t if isinstance(t, Jet) else ref._const(t) for t in items]
+    shape = torch.broadcast_shapes(*[j.shape for j in jets])
+    return [j if j.shape == shape else j + ref._const(torch.zeros(shape)) for j in jets]
+
+
+def _stack(items: Sequence[Any], dim: int = 0, *, out: Any = None) -> Jet:
+    jets = _lift_all(items)
+    d = dim % (jets[0].ndim + 1)
+    hess = None
+    if jets[0].hess is not None:
+        hess = torch.stack([j.hess for j in jets], d)
+    return Jet(
+        torch.stack([j.val for j in jets], d), torch.stack([j.grad for j in jets], d), hess
+    )
+
+
+def _cat(items: Sequence[Any], dim: int = 0, *, out: Any = None) -> Jet:
+    jets = [t if isinstance(t, Jet) else None for t in items]
+    ref = next(j for j in jets if j is not None)
+    jets = [t if isinstance(t, Jet) else ref._const(t) for t in items]
+    d = dim % jets[0].ndim
+    hess = None
+    if jets[0].hess is not None:
+        hess = torch.cat([j.hess for j in jets], d)
+    return Jet(torch.cat([j.val for j in jets], d), torch.cat([j.grad for j in jets], d), hess)
+
+
+def _binary(op: Callable[[Any, Any], Any], swap: bool = False) -> Callable[..., Any]:
+    def f(x: Any, y: Any, *args: Any, **kwargs: Any) -> Any:
+        if args or kwargs:
+            raise NotImplementedError(f"interval jets: extra arguments {args} {kwargs}")
+        return op(y, x) if swap else op(x, y)
+
+    return f
+
+
+def _unary(name: str) -> Callable[..., Jet]:
+    def f(x: Jet, *args: Any, **kwargs: Any) -> Jet:
+        return getattr(x, name)(*args, **kwargs)
+
+    return f
+
+
+def _build_table() -> dict[Any, Callable[..., Any]]:
+    T = torch.Tensor
+    table: dict[Any, Callable[..., Any]] = {}
+    groups: list[tuple[tuple[Any, ...], Callable[..., Any]]] = [
+        ((torch.add, T.add, T.__add__, T.__radd__), _binary(lambda a, b: a + b)),
+        ((torch.sub, torch.subtract, T.sub, T.__sub__), _binary(lambda a, b: a - b)),
+        ((T.__rsub__, torch.rsub), _binary(lambda a, b: a - b, swap=True)),
+        ((torch.mul, torch.multiply, T.mul, T.__mul__, T.__rmul__), _binary(lambda a, b: a * b)),
+        ((torch.div, torch.divide, torch.true_divide, T.div, T.__truediv__),
+         _binary(lambda a, b: a / b)),
+        ((T.__rtruediv__,), _binary(lambda a, b: a / b, swap=True)),
+        ((torch.matmul, T.matmul, T.__matmul__), _binary(lambda a, b: a @ b)),
+        ((T.__rmatmul__,), _binary(lambda a, b: a @ b, swap=True)),
+        ((torch.pow, T.pow, T.__pow__), _binary(lambda a, b: a**b)),
+        ((T.__rpow__,), _binary(lambda a, b: a**b, swap=True)),
+        ((torch.neg, torch.negative, T.neg, T.__neg__), lambda x: -x),
+        ((torch.stack,), _stack),
+        ((torch.cat, torch.concat), _cat),
+        ((torch.sum, T.sum), _unary("sum")),
+        ((F.linear,), _linear),
+    ]
+    for fns, impl in groups:
+        for fn in fns:
+            table[fn] = impl
+    for name in ("sin", "cos", "exp", "log", "sqrt", "tanh", "sigmoid", "atan", "square",
+                 "reciprocal", "abs"):
+        table[getattr(torch, name)] = _unary(name)
+        table[getattr(T, name)] = _unary(name)
+    table[torch.arctan] = _unary("atan")
+    table[torch.absolute] = _unary("abs")
+    table[T.__abs__] = _unary("abs")
+    return table
+
+
+_TABLE = _build_table()
+
+
+# -------------------------------------------------------------------- entry points
+def _seed(box: Interval, order: int) -> Jet:
+    """The identity jet of the input box ``[..., n]``: grad = I, hess = 0."""
+    lo = box.lower
+    n = box.shape[-1]
+    eye = torch.eye(n, dtype=lo.dtype, device=lo.device).expand(*box.shape, n)
+    hess = None
+    if order == 2:
+        z = torch.zeros((*box.shape, n, n), dtype=lo.dtype, device=lo.device)
+        hess = Interval(z, z)
+    return Jet(box, Interval(eye, eye), hess)
+
+
+def jet_eval(fn: Callable[[Any], Any], box: Interval, order: int = 2) -> Jet:
+    """Evaluate ``fn`` on the box ``[..., n]`` in jet arithmetic -> Jet of shape ``[..., k]``.
+
+    ``out.val`` encloses ``fn`` over the box, ``out.grad`` its Jacobian ``[..., k, n]`` and
+    (order 2) ``out.hess`` the Hessians ``[..., k, n, n]``.
+    """
+    if not isinstance(box, Interval) or box.ndim < 1:
+        raise ValueError("box: expected an Interval of shape [..., n]")
+    if order not in (1, 2):
+        raise ValueError(f"order: expected 1 or 2, got {order}")
+    x = _seed(box, order)
+    out = fn(x)
+    if not isinstance(out, Jet):  # fn does not depend on x
+        out = x._const(out)
+    if out.ndim < 1:
+        raise ValueError("fn: must return shape [..., k]")
+    return out
+
+
+def interval_jacobian(fn: Callable[[Any], Any], box: Interval) -> Interval:
+    """Guaranteed enclosure of the Jacobian of ``fn`` over ``box [..., n]`` -> ``[..., k, n]``."""
+    return jet_eval(fn, box, order=1).grad
+
+
+def interval_hessian(fn: Callable[[Any], Any], box: Interval) -> Interval:
+    """Guaranteed enclosure of the Hessians of ``fn`` over ``box`` -> ``[..., k, n, n]``.
+
+    Interval Hessian of seed 001 eq. 26-28 (there written for the Lagrange remainder).
+    """
+    out = jet_eval(fn, box, order=2)
+    assert out.hess is not None
+    return out.hess
