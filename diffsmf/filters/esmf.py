@@ -103,9 +103,8 @@ class ESMF(SetFilter):
         return state.replace(set=new)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
-        """Eq. 36-40: ellipsoid ∩ linearised observation set (Schweppe / Fogel-Huang)."""
+        """Eq. 36-40: prior ∩ linearised observation set (``Ellipsoid.intersect_measurement``)."""
         from diffsmf.linearize import jacobian, lagrange_remainder
-        from diffsmf.sets.ellipsoid import Ellipsoid
 
         E = state.set
         c, P = E.center, E.shape
@@ -116,25 +115,17 @@ class ESMF(SetFilter):
         Rh = lagrange_remainder(h, E.interval_hull(), c, H)
         noise = Interval(V.lower + Rh.lower, V.upper + Rh.upper)
         noise = C.widen(noise, C.rounding_margin(y, hc, noise.center, noise.radius))
-        m = noise.radius.shape[-1]
-        Rhat = torch.diag_embed(m * noise.radius**2)  # covering ellipsoid of the box (erratum)
+        Rhat = noise.to_ellipsoid().shape  # diag(m r^2): covering ellipsoid of the box
         nu = y - hc - noise.center  # innovation
         HPH = _sym(H @ P @ H.mT)
         d1, d2 = _max_sv(Rhat), _max_sv(HPH)
         if self.rho_rule == "eq13":
             d1, d2 = d2, d1
-        rho = (d1.sqrt() / (d1.sqrt() + d2.sqrt()).clamp_min(1e-300)).clamp(1e-12, 1 - 1e-12)
-        r1 = (1 - rho).unsqueeze(-1).unsqueeze(-1)
-        r2 = rho.unsqueeze(-1).unsqueeze(-1)
-        Pr = P / r1
-        Smat = _sym(H @ Pr @ H.mT + Rhat / r2)  # eq. 36-37
-        L = torch.linalg.cholesky(Smat)
-        Sinv_nu = torch.cholesky_solve(nu.unsqueeze(-1), L)
-        xi = 1 - (nu.unsqueeze(-1) * Sinv_nu).sum((-2, -1))  # eq. 36
-        K = torch.cholesky_solve(H @ Pr, L).mT  # eq. 37: Pr H' S^-1
-        ctr = c + (K @ nu.unsqueeze(-1)).squeeze(-1)  # eq. 38
-        Pn = _sym(Pr - K @ H @ Pr)  # (I - K H) P / (1 - rho)
-        ok = xi > 0
-        xi_c = torch.where(ok, xi, torch.ones_like(xi)).unsqueeze(-1).unsqueeze(-1)
-        new = Ellipsoid(ctr, Pn * xi_c * (1 + SHAPE_MARGIN))  # eq. 39
+        rho = (d1.sqrt() / (d1.sqrt() + d2.sqrt())).clamp(1e-12, 1 - 1e-12)  # eq. 40
+        D = _sym(rho[..., None, None] * HPH + (1 - rho)[..., None, None] * Rhat)
+        Dnu = torch.linalg.solve(D, nu.unsqueeze(-1)).squeeze(-1)
+        xi = 1 - rho * (1 - rho) * (nu * Dnu).sum(-1)  # eq. 36 (times rho (1 - rho))
+        ok = xi > 0  # seed 001: xi <= 0 means the bounds are violated (a fault)
+        ylin = nu + (H @ c.unsqueeze(-1)).squeeze(-1)  # y' = H x + v', v' in E(0, Rhat)
+        new = E.intersect_measurement(H, ylin, Rhat, rho=torch.where(ok, rho, 0.5 * rho))
         return state.replace(set=where(ok, new, E), consistent=ok)

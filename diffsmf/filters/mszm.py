@@ -71,10 +71,26 @@ class MSZM(SetFilter):
         return self.order * self.system.n
 
     def _fit(self, Z: ConvexSet) -> ConvexSet:
-        """Reduce to ``order`` then zero-pad to exactly ``order * n`` generators."""
-        if Z.generators.shape[-1] > self.n_generators:
-            Z = Z.reduce(self.order, method=self.reduce_method)
-        return Z.pad_generators(self.n_generators)
+        """Per batch element: reduce to ``order`` only if its *non-zero* generators exceed
+        ``order * n`` (zero columns are padding), then zero-pad to exactly ``order * n``.
+
+        Zero generators are moved last (stable, detached choice) so that the padding never
+        triggers or takes part in a reduction; batch elements then behave as if run alone.
+        """
+        from diffsmf.sets.zonotope import Zonotope
+
+        q = self.n_generators
+        G = Z.generators
+        if G.shape[-1] <= q:
+            return Z.pad_generators(q)
+        with torch.no_grad():
+            nonzero = (G != 0).any(-2)  # [..., M]
+            order = torch.sort((~nonzero).to(torch.int8), dim=-1, stable=True).indices
+            count = nonzero.sum(-1)  # [...]
+        Gc = torch.gather(G, -1, order.unsqueeze(-2).expand_as(G))
+        small = Zonotope(Z.center, Gc[..., :q])  # exact where count <= q
+        red = Zonotope(Z.center, Gc).reduce(self.order, method=self.reduce_method)
+        return where(count > q, red.pad_generators(q), small)
 
     def initial_state(self, batch: int | None = None) -> FilterState:
         S = self._fit(C.expand_state_set(self._x0, batch))
