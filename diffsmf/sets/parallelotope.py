@@ -162,12 +162,20 @@ class Parallelotope(ConvexSet):
         return self
 
     def to_ellipsoid(self) -> Ellipsoid:
-        """Covering ellipsoid ``shape = n T T' (1 + 1e-12)`` (``||eta||^2 <= n``; guaranteed)."""
+        """Covering ellipsoid ``shape = n T T' (1 + 1e-12) + 1e-10 tr(n T T') / n I``.
+
+        ``||eta||_2^2 <= n`` on the cube, so ``n T T'`` covers P; the added multiple of I
+        (Loewner-larger, hence still a cover) keeps the condition number <= ~1e10 so that a
+        nearly flat P (e.g. from a rank-deficient zonotope) still gives a usable ellipsoid.
+        """
         from diffsmf.sets.ellipsoid import Ellipsoid
 
         n = self.dim
         Q = n * (self.T @ self.T.transpose(-1, -2)) * (1 + 1e-12)
-        return Ellipsoid(self._c, (Q + Q.transpose(-1, -2)) / 2)
+        Q = (Q + Q.transpose(-1, -2)) / 2
+        tr = torch.diagonal(Q, dim1=-2, dim2=-1).sum(-1)
+        eye = torch.eye(n, dtype=Q.dtype, device=Q.device)
+        return Ellipsoid(self._c, Q + (1e-10 * tr / n).reshape(*tr.shape, 1, 1) * eye)
 
     def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` points uniform in P -> ``[..., k, n]``."""

@@ -14,6 +14,8 @@ References: Kuehn 1998 / Girard 2005 / Combastel 2003 (reduction), Chisci, Garul
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -41,14 +43,19 @@ _CHUNK_ELEMS = 4_000_000
 _EPS = torch.finfo(torch.float64).eps
 
 
-def _combinations(m: int, r: int, device: torch.device | None = None) -> Tensor:
-    """All r-subsets of range(m) as ``[C(m, r), r]`` long tensor (lexicographic)."""
-    if r == 0:
-        return torch.zeros(1, 0, dtype=torch.long, device=device)
+@functools.lru_cache(maxsize=64)
+def _combinations_cpu(m: int, r: int) -> Tensor:
     if r > m:
-        return torch.zeros(0, r, dtype=torch.long, device=device)
-    idx = torch.combinations(torch.arange(m, device=device), r=r)
-    return idx.reshape(-1, r)
+        return torch.zeros(0, r, dtype=torch.long)
+    if r == 0:
+        return torch.zeros(1, 0, dtype=torch.long)
+    flat = list(itertools.chain.from_iterable(itertools.combinations(range(m), r)))
+    return torch.tensor(flat, dtype=torch.long).reshape(-1, r)
+
+
+def _combinations(m: int, r: int, device: torch.device | None = None) -> Tensor:
+    """All r-subsets of range(m) as ``[C(m, r), r]`` long tensor (lexicographic, cached)."""
+    return _combinations_cpu(m, r).to(device)
 
 
 def _chunks(k: int, per_item: int) -> tuple[range, int]:
@@ -274,12 +281,8 @@ class Zonotope(ConvexSet):
         return Parallelotope._make(self._c, T)
 
     def to_ellipsoid(self) -> Ellipsoid:
-        """Covering ellipsoid ``shape = n T T'`` of the outer parallelotope ``c + T[-1,1]^n``.
-
-        Guaranteed: ``||eta||_2^2 <= n`` for ``eta`` in the cube; a relative margin of 1e-12
-        covers rounding.
-        """
-
+        """Covering ellipsoid of the outer parallelotope ``c + T[-1,1]^n``
+        (:meth:`Parallelotope.to_ellipsoid`: ``n T T'`` plus a 1e-10 relative ridge)."""
         return self.to_parallelotope().to_ellipsoid()
 
     def vertices_2d(self) -> Tensor:
@@ -559,7 +562,10 @@ def _zonotope_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> Tensor:
     if n == 2:
         dirs.append(torch.stack([-G[..., 1, :], G[..., 0, :]], -1))
     elif n > 2 and m >= n - 1 and math.comb(m, n - 1) <= MAX_VOLUME_SUBSETS:
-        dirs.append(_cofactor_normals(G, _combinations(m, n - 1, G.device)))
+        # facet normals: a unit vector orthogonal to each (n-1)-subset (complete QR); for a
+        # rank-deficient subset it is some orthogonal direction (still a valid constraint)
+        sub = G[..., _combinations(m, n - 1, G.device)].movedim(-2, -3)  # [..., K, n, n-1]
+        dirs.append(torch.linalg.qr(sub, mode="complete")[0][..., -1])
         lp_needed = (
             torch.linalg.matrix_rank(G) < n
             if m >= n
@@ -572,7 +578,7 @@ def _zonotope_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> Tensor:
     D = D / norm.clamp_min(1e-300).unsqueeze(-1)
     D = torch.where((norm > 0).unsqueeze(-1), D, torch.zeros_like(D))
     h = (D @ G).abs().sum(-1)  # [..., K]
-    dx = ((x - c).unsqueeze(-2) * D).sum(-1)  # [..., K]
+    dx = ((x - c).unsqueeze(-2) @ D.transpose(-1, -2)).squeeze(-2)  # [..., K]
     tol = atol + 1e-12 * (h.abs() + (D * c.unsqueeze(-2)).sum(-1).abs())
     ok = (dx.abs() <= h + tol).all(-1)
     if lp_needed is not None:
