@@ -12,13 +12,15 @@ and for the DC parameter of seed 000 eq. 15-16, erratum). For a unary ``phi``::
 
 with ``Q`` the value enclosure, so ``phi'`` and ``phi''`` are bounded over everything the
 argument can take. Supported: ``+ - * /``, powers, ``exp log sqrt sin cos tanh sigmoid atan
-square reciprocal abs`` (abs only away from 0 for Hessians), indexing, ``torch.stack/cat``,
+square reciprocal abs atan2`` (abs only away from 0 for Hessians, atan2 away from its cut),
+indexing, ``torch.stack/cat``,
 ``sum``, ``@`` / ``F.linear`` with constant matrices, mixing with constant tensors, numbers.
 Anything else raises ``NotImplementedError`` naming the operation.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -255,7 +257,7 @@ class Jet:
             name = getattr(func, "__name__", repr(func))
             raise NotImplementedError(
                 f"interval jets: torch operation {name!r} is not supported (supported: + - * / "
-                "**, exp log sqrt sin cos tanh sigmoid atan square reciprocal abs, indexing, "
+                "**, exp log sqrt sin cos tanh sigmoid atan atan2 square reciprocal abs, indexing, "
                 "stack, cat, sum, matmul / linear with constant matrices)"
             )
         return impl(*args, **(kwargs or {}))
@@ -351,7 +353,48 @@ def _cat(items: Sequence[Any], dim: int = 0, *, out: Any = None) -> Jet:
     return Jet(torch.cat([j.val for j in jets], d), torch.cat([j.grad for j in jets], d), hess)
 
 
-def _binary(op: Callable[[Any, Any], Any], swap: bool = False) -> Callable[..., Any]:
+def _where(cond: Tensor, a: Jet, b: Jet) -> Jet:
+    """Elementwise select between two jets of one shape (``cond`` over the value dims)."""
+    hess = None
+    if a.hess is not None:
+        hess = torch.where(cond[..., None, None], a.hess, b.hess)
+    return Jet(torch.where(cond, a.val, b.val), torch.where(cond[..., None], a.grad, b.grad), hess)
+
+
+def _atan2(y: Any, x: Any) -> Jet:
+    """``atan2(y, x)`` away from its branch cut: ``atan(y/x)`` where ``x > 0`` on the box,
+    ``+-pi/2 - atan(x/y)`` where ``y > 0`` / ``y < 0``; boxes meeting the cut (x <= 0, y
+    straddling 0) raise (the function is discontinuous there)."""
+    y, x = _lift_all([y, x])
+    lo = y.val.lower
+    xpos = x.val.lower > 0
+    ypos = y.val.lower > 0
+    yneg = y.val.upper < 0
+    if not bool((xpos | ypos | yneg).all()):
+        raise NotImplementedError("atan2: the box meets the branch cut (x <= 0, y = 0)")
+    h = math.pi / 2
+    inf = torch.full_like(lo, math.inf)
+    half_pi = Interval(torch.nextafter(torch.full_like(lo, h), -inf),
+                       torch.nextafter(torch.full_like(lo, h), inf))
+    right = (y / x).atan()
+    side = -((x / y).atan())
+    upper = side + half_pi
+    lower = side - half_pi
+    return _where(xpos, right, _where(ypos, upper, lower))
+
+
+def _dispatch(name: str, rname: str) -> Callable[[Any, Any], Any]:
+    """``x <op> y`` calling the Jet's own (reflected) method, never back into torch."""
+
+    def op(x: Any, y: Any) -> Any:
+        return getattr(x, name)(y) if isinstance(x, Jet) else getattr(y, rname)(x)
+
+    return op
+
+
+def _binary(name: str, rname: str, swap: bool = False) -> Callable[..., Any]:
+    op = _dispatch(name, rname)
+
     def f(x: Any, y: Any, *args: Any, **kwargs: Any) -> Any:
         if args or kwargs:
             raise NotImplementedError(f"interval jets: extra arguments {args} {kwargs}")
@@ -371,22 +414,23 @@ def _build_table() -> dict[Any, Callable[..., Any]]:
     T = torch.Tensor
     table: dict[Any, Callable[..., Any]] = {}
     groups: list[tuple[tuple[Any, ...], Callable[..., Any]]] = [
-        ((torch.add, T.add, T.__add__, T.__radd__), _binary(lambda a, b: a + b)),
-        ((torch.sub, torch.subtract, T.sub, T.__sub__), _binary(lambda a, b: a - b)),
-        ((T.__rsub__, torch.rsub), _binary(lambda a, b: a - b, swap=True)),
-        ((torch.mul, torch.multiply, T.mul, T.__mul__, T.__rmul__), _binary(lambda a, b: a * b)),
+        ((torch.add, T.add, T.__add__, T.__radd__), _binary("__add__", "__radd__")),
+        ((torch.sub, torch.subtract, T.sub, T.__sub__), _binary("__sub__", "__rsub__")),
+        ((T.__rsub__, torch.rsub), _binary("__sub__", "__rsub__", swap=True)),
+        ((torch.mul, torch.multiply, T.mul, T.__mul__, T.__rmul__), _binary("__mul__", "__rmul__")),
         ((torch.div, torch.divide, torch.true_divide, T.div, T.__truediv__),
-         _binary(lambda a, b: a / b)),
-        ((T.__rtruediv__,), _binary(lambda a, b: a / b, swap=True)),
-        ((torch.matmul, T.matmul, T.__matmul__), _binary(lambda a, b: a @ b)),
-        ((T.__rmatmul__,), _binary(lambda a, b: a @ b, swap=True)),
-        ((torch.pow, T.pow, T.__pow__), _binary(lambda a, b: a**b)),
-        ((T.__rpow__,), _binary(lambda a, b: a**b, swap=True)),
+         _binary("__truediv__", "__rtruediv__")),
+        ((T.__rtruediv__,), _binary("__truediv__", "__rtruediv__", swap=True)),
+        ((torch.matmul, T.matmul, T.__matmul__), _binary("__matmul__", "__rmatmul__")),
+        ((T.__rmatmul__,), _binary("__matmul__", "__rmatmul__", swap=True)),
+        ((torch.pow, T.pow, T.__pow__), _binary("__pow__", "__rpow__")),
+        ((T.__rpow__,), _binary("__pow__", "__rpow__", swap=True)),
         ((torch.neg, torch.negative, T.neg, T.__neg__), lambda x: -x),
         ((torch.stack,), _stack),
         ((torch.cat, torch.concat), _cat),
         ((torch.sum, T.sum), _unary("sum")),
         ((F.linear,), _linear),
+        ((torch.atan2, torch.arctan2, T.atan2), _atan2),
     ]
     for fns, impl in groups:
         for fn in fns:

@@ -223,6 +223,9 @@ def fermenter(
     return s
 
 
+_B_VDP = torch.tensor([0.0, 1.0], dtype=_F64)
+
+
 @register("vdp")
 def vdp(dt: float = 0.05, w: float = 1e-3, v: float = 1e-2, horizon: int = 400) -> System:
     """Seed 004 eq. 23 (Van der Pol type), explicit Euler with step ``dt`` (s):
@@ -237,10 +240,8 @@ def vdp(dt: float = 0.05, w: float = 1e-3, v: float = 1e-2, horizon: int = 400) 
 
     def f(x: Tensor, u: Tensor | None, theta: Tensor | None = None) -> Tensor:
         x1, x2 = x[..., 0], x[..., 1]
-        drive = x2 - x1 - x1**2 * x2
-        if u is not None:
-            drive = drive + u[..., 0]
-        return torch.stack([x1 + dt * x2, x2 + dt * drive], -1)
+        out = torch.stack([x1 + dt * x2, x2 + dt * (x2 - x1 - x1**2 * x2)], -1)
+        return out if u is None else out + dt * u[..., 0:1] * _B_VDP  # B u, B = [0, 1]
 
     def h(x: Tensor) -> Tensor:
         return x[..., 0:1]

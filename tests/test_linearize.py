@@ -1,0 +1,287 @@
+"""diffsmf.linearize: point Jacobians, interval jets and guaranteed remainder bounds.
+
+References are independent: central finite differences, analytic derivatives of quadratics,
+autograd Hessians sampled over the box, dense sampling plus the vertices of each set.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+import diffsmf as ds
+from diffsmf.linearize import (
+    dc_remainder,
+    hessian,
+    hessian_eig_lower_bound,
+    interval_hessian,
+    interval_jacobian,
+    jacobian,
+    jet_eval,
+    lagrange_remainder,
+    parameter_deviation,
+    stirling_jacobian,
+)
+from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
+
+GEN = torch.Generator().manual_seed(1234)
+U = torch.tensor([[0.3], [-0.2], [0.5]])  # a batched closure, as filters build fn
+
+
+def smooth(x: torch.Tensor) -> torch.Tensor:
+    """A smooth R^2 -> R^3 test map closing over a batched tensor U [3, 1]."""
+    a, b = x[..., 0], x[..., 1]
+    return torch.stack(
+        [a * b**2 + U[..., 0], torch.sin(a) * torch.exp(0.5 * b), a / (2.0 + b**2) - b**3], -1
+    )
+
+
+def fd_jacobian(fn, x: torch.Tensor, h: float = 1e-6) -> torch.Tensor:
+    cols = []
+    for j in range(x.shape[-1]):
+        e = torch.zeros_like(x)
+        e[..., j] = h
+        cols.append((fn(x + e) - fn(x - e)) / (2 * h))
+    return torch.stack(cols, -1)
+
+
+def test_jacobian_matches_finite_differences_with_batched_closure():
+    x = torch.randn(3, 2, generator=GEN)
+    J = jacobian(smooth, x)
+    assert J.shape == (3, 3, 2)
+    torch.testing.assert_close(J, fd_jacobian(smooth, x), atol=1e-8, rtol=1e-7)
+
+
+def test_jacobian_broadcasts_unbatched_x_against_closure():
+    x = torch.randn(2, generator=GEN)
+
+    def fn(z):
+        return torch.sin(z) * U  # broadcasts z [2] against U [3, 1] -> [3, 2]
+
+    J = jacobian(fn, x)
+    assert J.shape == (3, 2, 2)
+    torch.testing.assert_close(J, torch.diag_embed(torch.cos(x) * U))
+
+
+def test_hessian_matches_finite_differences_of_jacobian_and_is_symmetric():
+    x = torch.randn(3, 2, generator=GEN)
+    H = hessian(smooth, x)
+    assert H.shape == (3, 3, 2, 2)
+    ref = fd_jacobian(lambda z: jacobian(smooth, z), x)  # [3, k, n, n]
+    torch.testing.assert_close(H, ref, atol=1e-7, rtol=1e-6)
+    torch.testing.assert_close(H, H.mT)
+
+
+def test_jacobian_and_hessian_are_differentiable():
+    x = torch.randn(3, 2, generator=GEN, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda z: jacobian(smooth, z), (x,))
+    assert torch.autograd.gradcheck(lambda z: hessian(smooth, z).sum(-1), (x,))
+
+
+def test_stirling_exact_on_quadratics_for_any_step():
+    A = torch.randn(2, 3, 3, generator=GEN)
+    b = torch.randn(2, 3, generator=GEN)
+
+    def quad(x):  # fn_i = x' A_i x + b_i . x
+        return torch.einsum("...i,kij,...j->...k", x, A, x) + x @ b.T
+
+    x = torch.randn(4, 3, generator=GEN)
+    analytic = torch.einsum("kij,...j->...ki", A + A.mT, x) + b  # [4, 2, 3]
+    for h in (1e-3, 0.7, torch.tensor([0.1, 2.0, 5.0])):
+        torch.testing.assert_close(stirling_jacobian(quad, x, h), analytic, atol=1e-9, rtol=1e-9)
+
+
+def test_stirling_differentiable_in_step_and_batched_steps():
+    x = torch.randn(3, 2, generator=GEN)
+    h = torch.tensor([0.3, 0.2], requires_grad=True)
+    assert torch.autograd.gradcheck(lambda s: stirling_jacobian(smooth, x, s), (h,))
+    hb = torch.rand(3, 2, generator=GEN) + 0.1  # one step per batch element
+
+    def g(z):
+        return torch.stack([z[..., 0] * z[..., 1] ** 2, torch.sin(z[..., 0]) * z[..., 1]], -1)
+
+    S = stirling_jacobian(g, x, hb)
+    for i in range(3):
+        torch.testing.assert_close(S[i], stirling_jacobian(g, x[i], hb[i]))
+    with pytest.raises(ValueError, match="h"):
+        stirling_jacobian(smooth, x, 0.0)
+
+
+# ------------------------------------------------------------------------- interval jets
+def _encloses(I: Interval, pts: torch.Tensor) -> bool:
+    return bool(((pts >= I.lower) & (pts <= I.upper)).all())
+
+
+def all_ops(x):
+    """Exercises every supported jet rule."""
+    a, b = x[..., 0], x[..., 1]
+    W = torch.tensor([[1.0, -2.0], [0.5, 3.0]])
+    lin = F.linear(x, W, torch.tensor([0.1, 0.2])) + (x @ W.T) * 0.5
+    parts = [
+        torch.exp(a) - torch.log(b) * 2.0,
+        torch.sqrt(b) / (1.0 + a**2) + torch.tanh(a) * torch.sigmoid(b),
+        torch.atan(a * b) + torch.cos(b) ** 3 - (-a).abs() * b.reciprocal(),
+        2.0**a + a**-2 + b**1.5 - torch.square(a - b),
+    ]
+    return torch.cat([torch.stack(parts, -1), lin, (x * x).sum(-1, keepdim=True)], -1)
+
+
+def test_interval_jets_enclose_every_supported_op():
+    c = torch.tensor([[0.7, 1.5], [1.2, 0.8]])
+    box = Interval(c - 0.2, c + 0.25)
+    out = jet_eval(all_ops, box)
+    pts = box.sample(400, generator=GEN).movedim(-2, 0)  # [400, 2, 2]
+    assert _encloses(out.val, all_ops(pts))
+    assert _encloses(out.grad, jacobian(all_ops, pts))
+    assert _encloses(out.hess, hessian(all_ops, pts))
+
+
+def test_unsupported_op_raises_naming_it():
+    box = Interval(torch.zeros(2), torch.ones(2))
+    with pytest.raises(NotImplementedError, match="erf"):
+        interval_hessian(lambda x: torch.erf(x), box)
+    with pytest.raises(NotImplementedError, match="abs"):
+        interval_hessian(lambda x: x.abs(), Interval(-torch.ones(2), torch.ones(2)))
+
+
+def _system_fns(sys):
+    u = sys.input_at(0, 1)
+    th = sys.theta_nominal
+    return [lambda x: sys.f(x, u, th), sys.h]
+
+
+@pytest.mark.parametrize("name", ["bilinear", "spring_damper", "mismatch_quadratic",
+                                  "fermenter", "vdp", "radar"])
+def test_interval_hessian_encloses_sampled_hessians_of_builtin_systems(name):
+    sys = ds.systems.get(name)
+    box = sys.x0_set.interval_hull()
+    if name == "radar":  # range/bearing: keep the box away from the origin
+        box = Interval(box.center - 0.1 * box.radius, box.center + 0.1 * box.radius)
+    pts = box.sample(300, generator=GEN)  # [300, n]
+    for fn in _system_fns(sys):
+        H = interval_hessian(fn, box)
+        J = interval_jacobian(fn, box)
+        assert _encloses(H, hessian(fn, pts))
+        assert _encloses(J, jacobian(fn, pts))
+
+
+def test_eig_lower_bound_below_sampled_matrices():
+    c = torch.randn(5, 3, 3, generator=GEN)
+    c = c + c.mT
+    r = torch.rand(5, 3, 3, generator=GEN)
+    r = r + r.mT
+    H = Interval(c - r, c + r)
+    lam = hessian_eig_lower_bound(H)
+    for _ in range(50):
+        t = torch.rand(5, 3, 3, generator=GEN)
+        M = H.lower + (H.upper - H.lower) * (t + t.mT) / 2
+        assert (torch.linalg.eigvalsh(M)[..., 0] >= lam).all()
+
+
+# ------------------------------------------------------------------------- remainders
+def bilin(x):
+    """Seed 000 eq. 42 map plus a transcendental term; closes over a batched input."""
+    u = torch.tensor([[0.6, 0.6]]).expand(4, 2)
+    return torch.stack([0.5 * x[..., 0] * x[..., 1], 0.2 * x[..., 1] ** 2 + torch.sin(
+        x[..., 0])], -1) + u
+
+
+def _sets():
+    c = torch.randn(4, 2, generator=GEN) * 0.5
+    G = torch.randn(4, 2, 3, generator=GEN) * 0.2
+    return {
+        "interval": Interval(c - 0.2, c + 0.3),
+        "zonotope": Zonotope(c, G),
+        "parallelotope": Parallelotope(c, G[..., :2]),
+        "ellipsoid": Ellipsoid(c, G @ G.mT + 0.01 * torch.eye(2)),
+    }
+
+
+METHODS = {
+    "dc": dc_remainder,
+    "lagrange": lagrange_remainder,
+    "dc+lagrange": lambda *a: dc_remainder(*a, with_lagrange=True),
+}
+
+
+@pytest.mark.parametrize("set_name", ["interval", "zonotope", "parallelotope", "ellipsoid"])
+def test_remainders_contain_sampled_and_vertex_errors(set_name):
+    S = _sets()[set_name]
+    pts = torch.cat([S.sample(2000, generator=GEN), S.sample_extreme(300, generator=GEN)], -2)
+    if hasattr(S, "vertices"):
+        pts = torch.cat([pts, S.vertices()], -2)
+    pts = pts.movedim(-2, 0)  # [K, 4, 2]
+    c = S.center + 0.02  # an expansion point off the centre
+    for J in (jacobian(bilin, c), stirling_jacobian(bilin, c, 0.1)):
+        err = bilin(pts) - bilin(c) - ((pts - c).unsqueeze(-2) * J).sum(-1)
+        for name, rem in METHODS.items():
+            R = rem(bilin, S, c, J)
+            assert R.shape == (4, 2), name
+            assert _encloses(R, err), f"{name} misses a point on {set_name}"
+
+
+def test_dc_is_exact_at_vertices_for_a_convex_quadratic_upper_bound():
+    # r(x) = |x - c|^2 on a box: alpha = 0 and the DC upper bound is the max over vertices
+    S = Interval(torch.tensor([0.0, 0.0]), torch.tensor([1.0, 2.0]))
+    c = S.center
+    R = dc_remainder(lambda x: (x**2).sum(-1, keepdim=True), S, c, None)
+    torch.testing.assert_close(R.upper, torch.tensor([0.5**2 + 1.0**2]), atol=1e-12, rtol=0)
+    torch.testing.assert_close(R.lower, torch.tensor([0.0]), atol=1e-12, rtol=0)
+
+
+def test_linear_functions_give_zero_remainders():
+    A = torch.randn(3, 2, generator=GEN)
+    b = torch.randn(3, generator=GEN)
+
+    def lin(x):
+        return x @ A.T + b
+
+    for S in _sets().values():
+        c = S.center
+        J = jacobian(lin, c)
+        for rem in METHODS.values():
+            R = rem(lin, S, c, J)
+            assert R.lower.abs().max() < 1e-12 and R.upper.abs().max() < 1e-12
+        dev = parameter_deviation(lambda x, u, th: x @ A[:2].T, S, Interval(torch.zeros(1),
+                                                                             torch.ones(1)))
+        assert dev.lower.abs().max() < 1e-12 and dev.upper.abs().max() < 1e-12
+
+
+def test_remainders_gradcheck_wrt_zonotope_fields():
+    c0 = torch.tensor([[0.3, -0.2]], requires_grad=True)
+    G0 = torch.tensor([[[0.2, 0.05, 0.01], [-0.04, 0.15, 0.03]]], requires_grad=True)
+
+    def fn(x):
+        return torch.stack([x[..., 0] * x[..., 1] + torch.sin(x[..., 1]),
+                            torch.exp(0.3 * x[..., 0]) * x[..., 1] ** 2], -1)
+
+    for rem in (dc_remainder, lagrange_remainder):
+        def bounds(c, G, rem=rem):
+            R = rem(fn, Zonotope(c, G), c, stirling_jacobian(fn, c, 0.05))
+            return torch.cat([R.lower, R.upper], -1)
+
+        assert torch.autograd.gradcheck(bounds, (c0, G0))
+
+
+def test_parameter_deviation_contains_switching_mismatch():
+    for name in ("mismatch_quadratic", "fermenter"):
+        sys = ds.systems.get(name)
+        box = sys.x0_set.interval_hull()
+        S = Interval(box.center - 0.5 * box.radius, box.center + 0.5 * box.radius)
+        P = sys.parameters
+        dev = parameter_deviation(sys.f, S, P)
+        xs = S.sample(500, generator=GEN)
+        th = torch.cat([P.vertices(), P.sample(50, generator=GEN)], 0)  # [T, q]
+        d = sys.f(xs.unsqueeze(0), None, th.unsqueeze(1)) - sys.f(xs, None, P.center)
+        assert _encloses(dev, d), name
+        # the mean-value form is close to the exact range (tight in the parameter direction)
+        assert (dev.width <= 1.5 * (d.amax((0, 1)) - d.amin((0, 1))) + 1e-9).all(), name
+
+
+def test_remainder_bad_input():
+    S = Interval(torch.zeros(2), torch.ones(2))
+    with pytest.raises(ValueError, match="c"):
+        dc_remainder(bilin, S, torch.zeros(3), None)
+    with pytest.raises(ValueError, match="params"):
+        parameter_deviation(lambda x, u, th: x, S, torch.zeros(1))
