@@ -22,21 +22,26 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.linearize.statistical import statistical_linearization
-from diffsmf.sets.base import ConvexSet
-from diffsmf.sets.ellipsoid import Ellipsoid
+from diffsmf.sets.base import ConvexSet, stack
+from diffsmf.sets.ellipsoid import Ellipsoid, unit_ball_volume
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive, register_positive
 
 __all__ = ["CombinedFilter", "CombinedResult", "outer_sum_shape"]
 
 _WEIGHTS = ("trace", "volume")
+# Statistical linearisation is done over F(a, S + LIN_P_WEIGHT * P): the paper's F(a, S) up to a
+# relative 1e-6 whenever the mean set is full-dimensional, and still well defined when the mean
+# set degenerates (no bounded noise: it collapses to the Kalman estimate, and the fit becomes a
+# small-step central difference, i.e. the EKF's Jacobian).
+LIN_P_WEIGHT = 1e-6
 _GAINS = ("auto", "kalman", "set")
 
 
@@ -54,10 +59,13 @@ def _volume_weight(S1: Tensor, S2: Tensor) -> Tensor:
     Positive root of ``sum_i 1 / (p l_i + 1) = n p / (p + 1)``, ``l_i`` the eigenvalues of
     ``S1^-1 S2`` (the erratum's equation divided by p). The left side decreases and the right
     side increases in p, so bisection in log p brackets the unique root; one Newton step with
-    gradient attached then gives the implicit-function derivative of p. Needs ``tr S2 > 0``.
+    gradient attached then gives the implicit-function derivative of p. Needs ``tr S2 > 0`` and
+    ``S1`` positive definite (elements where it is not get NaN; the caller replaces them).
     """
     n = S1.shape[-1]
-    L = torch.linalg.cholesky(S1)
+    L, info = torch.linalg.cholesky_ex(S1)
+    eye = torch.eye(n, dtype=S1.dtype, device=S1.device)
+    L = torch.where((info != 0).unsqueeze(-1).unsqueeze(-1), eye, L)
     X = torch.linalg.solve_triangular(L, S2, upper=False)
     lam = torch.linalg.eigvalsh(_sym(torch.linalg.solve_triangular(L, X.mT, upper=False)))
     lam = lam.clamp_min(0)
@@ -68,34 +76,35 @@ def _volume_weight(S1: Tensor, S2: Tensor) -> Tensor:
     with torch.no_grad():
         lo = torch.full(lam.shape[:-1], -40.0, dtype=lam.dtype, device=lam.device)
         hi = torch.full_like(lo, 40.0)
-        for _ in range(90):
+        for _ in range(64):  # bracket width 80 / 2^64 in log p
             mid = 0.5 * (lo + hi)
             pos = phi(mid.exp(), lam.detach()) > 0
             lo, hi = torch.where(pos, mid, lo), torch.where(pos, hi, mid)
         p0 = (0.5 * (lo + hi)).exp()
     dphi = -(lam / (p0.unsqueeze(-1) * lam + 1.0) ** 2).sum(-1) - n / (p0 + 1.0) ** 2
-    return p0 - phi(p0, lam) / dphi  # = p0 at the root; carries dp/d(S1, S2)
+    p = p0 - phi(p0, lam) / dphi  # = p0 at the root; carries dp/d(S1, S2)
+    return torch.where(info == 0, p, torch.full_like(p, float("nan")))
 
 
 def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     """Shape of the outer ellipsoid of ``F(0, S1) + F(0, S2)`` (seed 003 eq. 34-36, erratum).
 
     ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` with ``p = sqrt(tr S1 / tr S2)`` (minimal trace) or the
-    minimal-volume root (:func:`_volume_weight`). ``S1 [..., n, n]`` positive definite; ``S2``
-    only positive semidefinite (a degenerate or zero ellipsoid); ``S2 = 0`` gives ``S1``.
-    Any ``p > 0`` gives an outer bound (eq. 25-33), so the guarantee never depends on the root's
-    accuracy.
+    minimal-volume root (:func:`_volume_weight`). ``S1``, ``S2 [..., n, n]`` positive
+    semidefinite (degenerate or zero ellipsoids allowed); ``S2 = 0`` gives ``S1``. Where the
+    volume rule is undefined (``S1`` singular) the trace weight is used. Any ``p > 0`` gives an
+    outer bound (eq. 25-33), so the guarantee never depends on the root's accuracy.
     """
     if method not in _WEIGHTS:
         raise ValueError(f"weight: expected one of {_WEIGHTS}, got {method!r}")
     t1, t2 = _trace(S1), _trace(S2)
     zero = t2 <= 0
     t2s = torch.where(zero, torch.ones_like(t2), t2)
-    if method == "trace":
-        p = torch.sqrt(t1 / t2s)
-    else:
+    p = torch.sqrt(t1 / t2s).clamp_min(1e-300)
+    if method == "volume":
         S2s = torch.where(zero.unsqueeze(-1).unsqueeze(-1), S1, S2)
-        p = _volume_weight(S1, S2s)
+        pv = _volume_weight(S1, S2s)
+        p = torch.where(torch.isnan(pv), p, pv)
     p = p.unsqueeze(-1).unsqueeze(-1)
     S = (1.0 + 1.0 / p) * S1 + (1.0 + p) * S2
     return _sym(torch.where(zero.unsqueeze(-1).unsqueeze(-1), S1, S))
@@ -285,9 +294,15 @@ class CombinedFilter(SetFilter):
             extras={"covariance": self.initial_cov.expand(b, n, n)},
         )
 
-    def _linearize(self, fn, a: Tensor, S: Tensor) -> Tensor:
+    def _linearize(self, fn, a: Tensor, S: Tensor, P: Tensor) -> Tensor:
+        """Fitted matrix of ``fn`` over ``F(a, S + LIN_P_WEIGHT P)`` (seed 003 eq. 54-55)."""
         A, _ = statistical_linearization(
-            fn, a, S, levels=self.levels, weights=self.point_weights, axes=self.axes
+            fn,
+            a,
+            S + LIN_P_WEIGHT * P,
+            levels=self.levels,
+            weights=self.point_weights,
+            axes=self.axes,
         )
         return A
 
@@ -299,7 +314,7 @@ class CombinedFilter(SetFilter):
         def fn(x: Tensor) -> Tensor:
             return self.system.f(x, u, theta)
 
-        A = self._linearize(fn, a, S)  # eq. 54
+        A = self._linearize(fn, a, S, P)  # eq. 54
         a_new = fn(a) + self.process_noise_center  # eq. 56 (= eq. 40 for linear f)
         S_new = outer_sum_shape(_sym(A @ S @ A.mT), self.process_bound(), self.weight)  # eq. 41
         P_new = _sym(A @ P @ A.mT + self.process_covariance())  # eq. 42
@@ -313,7 +328,7 @@ class CombinedFilter(SetFilter):
         """Measurement update, seed 003 eq. 43-47 (linear) / eq. 55, 57 (nonlinear)."""
         a, S, P = state.set.center, state.set.shape, state.extras["covariance"]
         h = self.system.h
-        H = self._linearize(h, a, S)  # eq. 55
+        H = self._linearize(h, a, S, P)  # eq. 55
         R, E = self.measurement_covariance(), self.measurement_bound()
         nu = y - h(a) - self.measurement_noise_center  # innovation of eq. 57
         G = P if self.gain == "kalman" else S
@@ -345,9 +360,25 @@ class CombinedFilter(SetFilter):
         return d2 <= 1.0 + 1e-9
 
     def collect(self, states: list[FilterState]) -> CombinedResult:
-        """Stack the states into a :class:`CombinedResult` (adds ``confidence_region``)."""
-        res = super().collect(states)
-        return CombinedResult(**{f.name: getattr(res, f.name) for f in fields(res)})
+        """Stack the states into a :class:`CombinedResult` (adds ``confidence_region``).
+
+        The volume is computed from the eigenvalues (clamped at 0) so that a degenerate mean
+        set (no bounded noise: the set collapses towards the Kalman estimate) has volume 0
+        instead of failing a Cholesky factorisation.
+        """
+        sets = stack([s.set for s in states], dim=1)
+        hull = sets.interval_hull()
+        lam = torch.linalg.eigvalsh(sets.shape).clamp_min(0)
+        volume = unit_ball_volume(sets.dim) * lam.prod(-1).sqrt()
+        return CombinedResult(
+            sets=sets,
+            center=sets.center,
+            lower=hull.lower,
+            upper=hull.upper,
+            volume=volume,
+            consistent=torch.stack([s.consistent for s in states], 1),
+            extras={"covariance": torch.stack([s.extras["covariance"] for s in states], 1)},
+        )
 
 
 def _diag_sqrt(M: Tensor) -> Tensor:
