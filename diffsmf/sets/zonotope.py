@@ -339,11 +339,13 @@ class Zonotope(ConvexSet):
         keep_k = target - n
         Gp = torch.gather(G, -1, perm.unsqueeze(-2).expand_as(G))
         kept, rest = Gp[..., :keep_k], Gp[..., keep_k:]
+        # outward margin (4 (m + n) eps, relative) for the rounding of the sums / products
+        marg = 1 + 4 * (m + n) * _EPS
         if method in ("girard", "combastel"):
-            box = torch.diag_embed(rest.abs().sum(-1))
+            box = torch.diag_embed(rest.abs().sum(-1) * marg)
         elif method == "pca":
             U = torch.linalg.svd(rest.detach(), full_matrices=False)[0]  # [..., n, n]
-            box = U * (U.transpose(-1, -2) @ rest).abs().sum(-1).unsqueeze(-2)
+            box = U * ((U.transpose(-1, -2) @ rest).abs().sum(-1) * marg).unsqueeze(-2)
         else:
             box = _outer_parallelotope(rest)
         return Zonotope._make(self._c, torch.cat([kept, box], -1))
@@ -531,6 +533,8 @@ def _alamo_lambda(c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, metho
         bad = torch.cat(
             [torch.zeros_like(Gp[..., :2], dtype=torch.bool), Gp.detach().abs() == 0], -1
         )
+        if m >= n and math.comb(m, n) > MAX_VOLUME_SUBSETS:
+            return lam_f  # too many subsets for the exact volume: F-radius lambda
         V0 = (
             _sum_abs_det(G.detach(), _combinations(m, n, G.device))
             if m >= n
