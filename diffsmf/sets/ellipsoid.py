@@ -187,8 +187,11 @@ class Ellipsoid(ConvexSet):
         return self.center_.unsqueeze(-2) + (L @ u.unsqueeze(-1)).squeeze(-1)
 
     def sample_extreme(self, k: int, generator: torch.Generator | None = None) -> Tensor:
-        """``k`` random boundary points -> ``[*batch_shape, k, n]``."""
-        u = self._unit_ball(k, generator, boundary=True)
+        """``k`` random boundary points -> ``[*batch_shape, k, n]``.
+
+        Pulled inside by the relative factor ``1 - 1e-13`` so that rounding never puts them
+        outside the ellipsoid itself."""
+        u = self._unit_ball(k, generator, boundary=True) * (1.0 - 1e-13)
         L = self.cholesky().unsqueeze(-3)
         return self.center_.unsqueeze(-2) + (L @ u.unsqueeze(-1)).squeeze(-1)
 
@@ -298,10 +301,17 @@ class Ellipsoid(ConvexSet):
         rho_t = self._pick_rho(fam, method, rho, H, R)
         rho_t = torch.where(empty, torch.zeros_like(rho_t), rho_t)
         c2, P2 = fam.evaluate(rho_t, c)
-        P2 = P2 * (1.0 + INFLATE)
-        keep = empty | (_logdet(P2) >= _logdet(P))  # never larger than the input
-        c2 = torch.where(keep[..., None], c, c2)
-        return Ellipsoid._make(c2, torch.where(keep[..., None, None], P, P2))
+        return self._finish(c2, P2, rho_t, empty)
+
+    def _finish(self, c2: Tensor, P2: Tensor, rho: Tensor, keep: Tensor) -> Ellipsoid:
+        """Inflate for rounding (``INFLATE + 64 n eps / (1 - rho)``: the update cancels as
+        rho -> 1) and never return something larger than ``self`` (both are outer bounds)."""
+        eps = torch.finfo(P2.dtype).eps
+        infl = INFLATE + 64 * self.dim * eps / (1.0 - rho.detach())
+        P2 = P2 * (1.0 + infl)[..., None, None]
+        keep = keep | (_logdet(P2) >= _logdet(self.shape))
+        c2 = torch.where(keep[..., None], self.center_, c2)
+        return Ellipsoid._make(c2, torch.where(keep[..., None, None], self.shape, P2))
 
     def _pick_rho(self, fam: _MeasFamily, method: str, rho: Any, H: Tensor, R: Tensor) -> Tensor:
         if rho is not None:
@@ -315,11 +325,15 @@ class Ellipsoid(ConvexSet):
             HH = torch.linalg.eigvalsh(_sym(H @ H.mT))[..., 0].clamp(min=1e-300)
             s2 = torch.linalg.eigvalsh(_sym(R))[..., -1] / HH
             r = s1.sqrt() / (s1.sqrt() + s2.sqrt())
-            return r.clamp(max=1.0 - 1e-9).expand(fam.batch)
+            return r.clamp(max=1.0 - 1e-6).expand(fam.batch)
         if method not in ("volume", "trace"):
             raise ValueError(f"method: expected 'volume', 'trace' or 'fixed', got {method!r}")
-        obj = fam.log_volume if method == "volume" else fam.trace
-        return _minimize_rho(obj, fam.batch, self.center_, fam.requires_grad)
+        if method == "volume":
+            red, full = fam.red_log_volume, fam.log_volume
+        else:
+            red, full = fam.red_trace, fam.trace
+        top = 1.0 - 1e-9 if fam.m == self.dim else 1.0 - 1e-6
+        return _minimize_rho(red, full, fam.batch, self.center_, fam.requires_grad, top)
 
     def intersect_strip(self, strip: Any, method: str = "volume", rho: Any = None) -> Ellipsoid:
         """Outer ellipsoid of ``E ∩ {x : |a.x - o| <= h}`` (seed 001 eq. 10-13 / 36-39, m = 1).
@@ -355,12 +369,7 @@ class Ellipsoid(ConvexSet):
         full = h2 >= sg * (1.0 - 1e-12)  # strip contains E: no update
         rho_t = torch.where(empty | full, torch.zeros_like(rho_t), rho_t)
         c2, P2 = fam.evaluate(rho_t, c)
-        P2 = P2 * (1.0 + INFLATE)
-        # both E and the result are outer bounds: never return something larger than E
-        keep = empty | full | (_logdet(P2) >= _logdet(P))
-        c2 = torch.where(keep[..., None], c, c2)
-        P2 = torch.where(keep[..., None, None], P, P2)
-        return Ellipsoid._make(c2, P2)
+        return self._finish(c2, P2, rho_t, empty | full)
 
     def intersect_ellipsoid(
         self, other: Ellipsoid, method: str = "volume", rho: Any = None
@@ -374,11 +383,25 @@ class Ellipsoid(ConvexSet):
         """
         if not isinstance(other, Ellipsoid):
             raise ValueError("other: expected an Ellipsoid")
+        if other.dim != self.dim:
+            raise ValueError(f"other: dimension {other.dim} != {self.dim}")
         n = self.dim
         eye = torch.eye(n, dtype=self.dtype, device=self.device)
-        out = self.intersect_measurement(eye, other.center_, other.shape, method=method, rho=rho)
+        P1, P2, c1, c2 = self.shape, other.shape, self.center_, other.center_
+        fam = _MeasFamily(P1, eye, P1, P2, c2 - c1)
+        empty = fam.empty()
+        rho_t = self._pick_rho(fam, method, rho, eye, P2)
+        rho_t = torch.where(empty, torch.zeros_like(rho_t), rho_t)
+        # same set written from E2's side (rho' = 1 - rho): no cancellation for rho > 1/2
+        fam_b = _MeasFamily(P2, eye, P2, P1, c1 - c2)
+        ca, Pa = fam.evaluate(torch.clamp(rho_t, max=0.5), c1)
+        cb, Pb = fam_b.evaluate(torch.clamp(1.0 - rho_t, max=0.5), c2)
+        swap = rho_t > 0.5
+        c = torch.where(swap[..., None], cb, ca)
+        P = torch.where(swap[..., None, None], Pb, Pa)
+        out = self._finish(c, P, torch.minimum(rho_t, 1.0 - rho_t), empty)
         # rho -> 1 limit is E2 itself: keep the smaller of {result, E2} (both outer bounds)
-        better = other.log_det_half() < out.log_det_half()
+        better = (~empty) & (other.log_det_half() < out.log_det_half())
         return Ellipsoid._make(
             torch.where(better[..., None], other.center_, out.center_),
             torch.where(better[..., None, None], other.shape, out.shape),
@@ -471,7 +494,16 @@ def _fogel_huang_rho(g: Tensor, r: Tensor, e: Tensor, n: int) -> Tensor:
 
 
 class _MeasFamily:
-    """The rho-family of outer ellipsoids of ``E(c, P) ∩ {(y - Hx)' R^-1 (y - Hx) <= 1}``."""
+    """The rho-family of outer ellipsoids of ``E(c, P) ∩ {(y - Hx)' R^-1 (y - Hx) <= 1}``.
+
+    For the (non-differentiable) search over rho the family is reduced to scalars by the
+    simultaneous diagonalisation of ``G = H P H'`` and ``R``: with ``R = L L'``,
+    ``L^-1 G L^-T = V diag(gamma) V'``, ``e~ = V' L^-1 e``, ``u_i = |P H' L^-T v_i|^2``,
+    ``D_i = rho gamma_i + 1 - rho``:
+    ``xi = 1 - rho (1 - rho) sum e~_i^2 / D_i``,
+    ``log det P+ = n log xi - (n - m) log(1 - rho) - sum log D_i + const``,
+    ``tr P+ = xi / (1 - rho) (tr P - rho sum u_i / D_i)``.
+    """
 
     def __init__(self, P: Tensor, H: Tensor, G: Tensor, R: Tensor, e: Tensor) -> None:
         self.P, self.H, self.G, self.R, self.e = P, H, G, R, e
@@ -479,19 +511,64 @@ class _MeasFamily:
         self.batch = torch.broadcast_shapes(
             P.shape[:-2], H.shape[:-2], G.shape[:-2], R.shape[:-2], e.shape[:-1]
         )
+        self.n, self.m = P.shape[-1], G.shape[-1]
+        with torch.no_grad():
+            L = torch.linalg.cholesky(R)
+            X = torch.linalg.solve_triangular(L, G, upper=False)
+            Gt = _sym(torch.linalg.solve_triangular(L, X.mT, upper=False))
+            gam, V = torch.linalg.eigh(Gt)
+            et = V.mT @ torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False)
+            U = torch.linalg.solve_triangular(L, self.PH.mT, upper=False)  # L^-1 H P
+            U = V.mT @ U
+            bs = self.batch
+            self.gam = gam.clamp(min=0.0).expand(*bs, self.m)
+            self.e2 = (et.squeeze(-1) ** 2).expand(*bs, self.m)
+            self.u = (U * U).sum(-1).expand(*bs, self.m)
+            self.trP = torch.diagonal(P, dim1=-2, dim2=-1).sum(-1).expand(bs)
 
     @property
     def requires_grad(self) -> bool:
         return any(t.requires_grad for t in (self.P, self.H, self.G, self.R, self.e))
 
+    # ---------------------------------------------------------------- reduced (search only)
+    def _Di(self, rho: Tensor) -> Tensor:
+        r = rho.unsqueeze(-1)
+        return r * self.gam.unsqueeze(-2) + (1 - r)  # rho [..., K] -> [..., K, m]
+
+    def _xi_r(self, rho: Tensor, Di: Tensor) -> Tensor:
+        return 1.0 - rho * (1 - rho) * (self.e2.unsqueeze(-2) / Di).sum(-1)
+
+    def red_log_volume(self, rho: Tensor) -> Tensor:
+        Di = self._Di(rho)
+        xi = self._xi_r(rho, Di).clamp(min=1e-300)
+        return (
+            self.n * torch.log(xi) - (self.n - self.m) * torch.log1p(-rho) - torch.log(Di).sum(-1)
+        )
+
+    def red_trace(self, rho: Tensor) -> Tensor:
+        Di = self._Di(rho)
+        xi = self._xi_r(rho, Di).clamp(min=1e-300)
+        tr = self.trP.unsqueeze(-1) - rho * (self.u.unsqueeze(-2) / Di).sum(-1)
+        return xi / (1 - rho) * tr
+
+    def empty(self) -> Tensor:
+        """True where the intersection is empty: ``max_rho rho(1-rho) e'D^-1 e > 1``
+        (the maximand is concave in rho: a minimum over x of functions affine in rho)."""
+
+        def phi(rho: Tensor) -> Tensor:
+            return 1.0 - self._xi_r(rho, self._Di(rho))
+
+        best = _golden(phi, self.batch, self.P, maximize=True)
+        return phi(best.unsqueeze(-1)).squeeze(-1) > 1.0
+
+    # ---------------------------------------------------------------- full (differentiable)
     def _D(self, rho: Tensor) -> Tensor:
         rr = rho[..., None, None]
         return _sym(rr * self.G + (1 - rr) * self.R)
 
     def _xi(self, rho: Tensor, L: Tensor) -> Tensor:
-        z = torch.linalg.solve_triangular(
-            L, self.e.unsqueeze(-1).expand(*L.shape[:-1], 1), upper=False
-        )
+        ee = self.e.unsqueeze(-1).expand(*L.shape[:-1], 1)
+        z = torch.linalg.solve_triangular(L, ee, upper=False)
         return 1.0 - rho * (1 - rho) * (z * z).sum((-2, -1))
 
     def evaluate(self, rho: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
@@ -499,7 +576,8 @@ class _MeasFamily:
         D = self._D(rho)
         L = torch.linalg.cholesky(D)
         xi = self._xi(rho, L).clamp(min=1e-12)
-        De = torch.cholesky_solve(self.e.unsqueeze(-1), L)
+        ee = self.e.unsqueeze(-1).expand(*L.shape[:-1], 1)
+        De = torch.cholesky_solve(ee, L)
         rr = rho[..., None, None]
         c2 = c + (rr * self.PH @ De).squeeze(-1)
         PHt = self.PH.mT.expand(*L.shape[:-2], *self.PH.mT.shape[-2:])
@@ -508,84 +586,91 @@ class _MeasFamily:
         return c2, _sym(P2)
 
     def log_volume(self, rho: Tensor) -> Tensor:
-        """``log det P+`` up to a constant: ``n log xi - (n - m) log(1 - rho) - log det D``."""
-        n, m = self.P.shape[-1], self.G.shape[-1]
+        """``log det P+`` up to a constant (differentiable, Cholesky based)."""
         L = torch.linalg.cholesky(self._D(rho))
         xi = self._xi(rho, L).clamp(min=1e-300)
         logdetD = 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-        return n * torch.log(xi) - (n - m) * torch.log1p(-rho) - logdetD
+        return self.n * torch.log(xi) - (self.n - self.m) * torch.log1p(-rho) - logdetD
 
     def trace(self, rho: Tensor) -> Tensor:
         L = torch.linalg.cholesky(self._D(rho))
         xi = self._xi(rho, L).clamp(min=1e-300)
         PHt = self.PH.mT.expand(*L.shape[:-2], *self.PH.mT.shape[-2:])
         W = torch.cholesky_solve(PHt, L)
-        tr = torch.diagonal(self.P, dim1=-2, dim2=-1).sum(-1) - rho * (self.PH * W.mT).sum((-2, -1))
-        return xi / (1 - rho) * tr
-
-    def empty(self) -> Tensor:
-        """True where the intersection is empty: ``max_rho rho(1-rho) e'D^-1 e > 1``."""
-
-        def phi(rho: Tensor) -> Tensor:
-            return 1.0 - self._xi(rho, torch.linalg.cholesky(self._D(rho)))
-
-        with torch.no_grad():
-            best = _golden_max(phi, self.batch, self.P, 0.0, 1.0)
-        return phi(best).detach() > 1.0
+        trP = torch.diagonal(self.P, dim1=-2, dim2=-1).sum(-1)
+        return xi / (1 - rho) * (trP - rho * (self.PH * W.mT).sum((-2, -1)))
 
 
-def _golden_max(
-    fun: Any, batch: torch.Size, like: Tensor, lo: float, hi: float, iters: int = 60
+_GR = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def _golden(
+    fun: Any,
+    batch: torch.Size,
+    like: Tensor,
+    maximize: bool = False,
+    lo: Tensor | None = None,
+    hi: Tensor | None = None,
+    iters: int = 48,
+    top: float = 1.0 - 1e-9,
 ) -> Tensor:
-    """Batched golden-section maximisation of a unimodal ``fun(rho [...]) -> [...]``."""
-    a = torch.full(batch, lo, dtype=like.dtype, device=like.device)
-    b = torch.full(batch, hi, dtype=like.dtype, device=like.device)
-    gr = (math.sqrt(5.0) - 1.0) / 2.0
-    x1, x2 = b - gr * (b - a), a + gr * (b - a)
-    f1, f2 = fun(x1), fun(x2)
-    for _ in range(iters):
-        left = f1 >= f2  # maximum in [a, x2]
-        b = torch.where(left, x2, b)
-        a = torch.where(left, a, x1)
-        x1n, x2n = b - gr * (b - a), a + gr * (b - a)
-        x1, x2 = x1n, x2n
-        f1, f2 = fun(x1), fun(x2)
-    return 0.5 * (a + b)
+    """Batched golden-section search of a unimodal ``fun(rho [..., K]) -> [..., K]`` on
+    ``[lo, hi]`` (default ``[0, 1)``); one new evaluation per iteration (no gradient)."""
+    with torch.no_grad():
+        a = torch.zeros(batch, dtype=like.dtype, device=like.device) if lo is None else lo
+        b = torch.full(batch, top, dtype=like.dtype, device=like.device)
+        b = b if hi is None else hi
+        sign = -1.0 if maximize else 1.0
+
+        def f(x: Tensor) -> Tensor:
+            return sign * fun(x.unsqueeze(-1)).squeeze(-1)
+
+        x1, x2 = b - _GR * (b - a), a + _GR * (b - a)
+        f1, f2 = f(x1), f(x2)
+        for _ in range(iters):
+            left = f1 <= f2  # minimum in [a, x2]
+            b = torch.where(left, x2, b)
+            a = torch.where(left, a, x1)
+            xn = torch.where(left, b - _GR * (b - a), a + _GR * (b - a))
+            fn = f(xn)
+            x2, f2, x1, f1 = (
+                torch.where(left, x1, xn),
+                torch.where(left, f1, fn),
+                torch.where(left, xn, x2),
+                torch.where(left, fn, f2),
+            )
+        return 0.5 * (a + b)
 
 
 def _minimize_rho(
-    obj: Any, batch: torch.Size, like: Tensor, needs_grad: bool, grid: int = 24
+    red_obj: Any,
+    full_obj: Any,
+    batch: torch.Size,
+    like: Tensor,
+    needs_grad: bool,
+    top: float = 1.0 - 1e-9,
+    grid: int = 33,
 ) -> Tensor:
-    """Minimise ``obj(rho)`` over ``[0, 1)``: coarse grid, golden refinement, then one
-    differentiable Newton step (autograd derivatives; implicit function theorem)."""
-    top = 1.0 - 1e-9
+    """Minimise the family objective over ``rho in [0, 1)``: coarse grid and golden refinement
+    on the reduced (scalar) objective without gradient, then one differentiable Newton step on
+    the full objective (autograd derivatives; implicit function theorem)."""
     with torch.no_grad():
         pts = torch.linspace(0.0, top, grid, dtype=like.dtype, device=like.device)
-        vals = torch.stack(
-            [obj(torch.full(batch, float(t), dtype=like.dtype, device=like.device)) for t in pts],
-            -1,
-        )
+        vals = red_obj(pts.expand(*batch, grid))
         i = vals.argmin(-1)
         lo = pts[(i - 1).clamp(min=0)]
         hi = pts[(i + 1).clamp(max=grid - 1)]
-        a, b = lo.clone(), hi.clone()
-        gr = (math.sqrt(5.0) - 1.0) / 2.0
-        for _ in range(60):
-            x1, x2 = b - gr * (b - a), a + gr * (b - a)
-            left = obj(x1) <= obj(x2)
-            b = torch.where(left, x2, b)
-            a = torch.where(left, a, x1)
-        rho0 = (0.5 * (a + b)).clamp(0.0, top)
+        rho0 = _golden(red_obj, batch, like, lo=lo, hi=hi, top=top).clamp(0.0, top)
         at_edge = (rho0 <= 1e-7) | (rho0 >= top - 1e-7)
         rho0 = torch.where(rho0 <= 1e-7, torch.zeros_like(rho0), rho0)
     if not (torch.is_grad_enabled() and needs_grad):
         return rho0
     with torch.enable_grad():
         r = rho0.detach().clone().requires_grad_(True)
-        f = obj(r)
+        f = full_obj(r)
         (g,) = torch.autograd.grad(f.sum(), r, create_graph=True)
         (h,) = torch.autograd.grad(g.sum(), r, create_graph=True)
     ok = (~at_edge) & (h.detach() > 0)
     step = torch.where(ok, g / torch.where(ok, h, torch.ones_like(h)), torch.zeros_like(g))
-    # value rho0, derivative -d(obj')/d(theta) / obj'' through `step` (r itself is constant)
-    return rho0 - (step - step.detach())
+    # value: the Newton-polished root; derivative: -d(obj')/d(theta) / obj'' (r is constant)
+    return (rho0 - step).detach().clamp(0.0, top) - (step - step.detach())
