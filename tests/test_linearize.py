@@ -13,6 +13,7 @@ import torch.nn.functional as F
 import diffsmf as ds
 from diffsmf.linearize import (
     dc_remainder,
+    diagonal_shift,
     hessian,
     hessian_eig_lower_bound,
     interval_hessian,
@@ -173,10 +174,13 @@ def test_eig_lower_bound_below_sampled_matrices():
     r = r + r.mT
     H = Interval(c - r, c + r)
     lam = hessian_eig_lower_bound(H)
+    w = diagonal_shift(H)
+    assert (w >= 0).all()
     for _ in range(50):
         t = torch.rand(5, 3, 3, generator=GEN)
         M = H.lower + (H.upper - H.lower) * (t + t.mT) / 2
         assert (torch.linalg.eigvalsh(M)[..., 0] >= lam).all()
+        assert (torch.linalg.eigvalsh(M + 2 * torch.diag_embed(w))[..., 0] >= -1e-12).all()
 
 
 # ------------------------------------------------------------------------- remainders

@@ -4,6 +4,7 @@ from diffsmf.linearize.jacobians import hessian, jacobian, stirling_jacobian
 from diffsmf.linearize.jets import Jet, interval_hessian, interval_jacobian, jet_eval
 from diffsmf.linearize.remainders import (
     dc_remainder,
+    diagonal_shift,
     hessian_eig_lower_bound,
     lagrange_remainder,
     parameter_deviation,
@@ -13,6 +14,7 @@ from diffsmf.linearize.statistical import axis_points, statistical_linearization
 __all__ = [
     "Jet",
     "dc_remainder",
+    "diagonal_shift",
     "hessian",
     "hessian_eig_lower_bound",
     "interval_hessian",

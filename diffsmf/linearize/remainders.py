@@ -28,6 +28,7 @@ from diffsmf.sets.interval import Interval, interval_eval
 __all__ = [
     "MAX_VERTICES",
     "dc_remainder",
+    "diagonal_shift",
     "hessian_eig_lower_bound",
     "lagrange_remainder",
     "parameter_deviation",
@@ -172,6 +173,48 @@ def _front(V: Tensor) -> Tensor:
     return V.movedim(-2, 0)
 
 
+def diagonal_shift(H: Interval) -> Tensor:
+    """Weights ``w [..., n] >= 0`` with ``M + 2 diag(w)`` PSD for every symmetric M in ``H``.
+
+    Row-wise Gershgorin: ``2 w_j >= -(lower(H_jj) - sum_{l != j} max|H_jl|)`` makes every
+    member diagonally dominant with a non-negative diagonal. Padded for rounding; inf where
+    ``H`` is unbounded.
+    """
+    lo, hi = H.lower, H.upper
+    n = lo.shape[-1]
+    eye = torch.eye(n, dtype=torch.bool, device=lo.device)
+    mag = torch.maximum(lo.abs(), hi.abs())
+    off = torch.where(eye, torch.zeros_like(mag), mag).sum(-1)
+    diag = torch.diagonal(lo, dim1=-2, dim2=-1)
+    pad = (8 * n + 16) * _eps(lo) * (diag.abs() + off).detach()
+    w = (off - diag + pad).clamp(min=0) * 0.5
+    return torch.where(torch.isnan(w), torch.full_like(w, torch.inf), w)
+
+
+def _dc_upper(rv: Tensor, qv: Tensor) -> Tensor:
+    """Seed 000 eq. 15: r + q convex, tangent of q at c is 0 -> r <= max_v (r(v) + q(v))."""
+    return (rv + qv).amax(0)
+
+
+def _dc_lower(
+    rv: Tensor, qv: Tensor, grad_c: Tensor, grad_v: Tensor | None, W: Tensor, dv: Tensor
+) -> Tensor:
+    """Seed 000 eq. 16: r >= tangent of the convex r + q at p, minus the concave q.
+
+    ``tangent_p(x) - q(x)`` is concave, so its minimum over the polytope is at a vertex; the
+    best tangent point among ``c`` and (if ``grad_v`` given) the vertices is kept.
+    ``rv, qv [N, ..., k]``, ``grad_c [..., k, n]``, ``grad_v [N, ..., k, n]``, ``W [..., k, n]``.
+    """
+    lower = ((grad_c * dv.unsqueeze(-2)).sum(-1) - qv).amin(0)  # p = c: r(c) = q(c) = 0
+    if grad_v is None:
+        return lower
+    g1v = rv + qv  # [N, ..., k]
+    grad_g1 = grad_v + 2 * W * dv.unsqueeze(-2)  # [N, ..., k, n]
+    diff = dv.unsqueeze(0) - dv.unsqueeze(1)  # [p, v] -> v - p
+    tang = g1v.unsqueeze(1) + (grad_g1.unsqueeze(1) * diff.unsqueeze(-2)).sum(-1)
+    return torch.maximum(lower, (tang - qv.unsqueeze(0)).amin(1).amax(0))
+
+
 def dc_remainder(
     fn: Fn,
     S: ConvexSet,
@@ -184,24 +227,23 @@ def dc_remainder(
     """Difference-of-convex remainder bound at the set's vertices -> Interval ``[..., k]``.
 
     Seed 000 eq. 14-18 with the erratum (seeds/README.md): per output i, ``r_i = g1 - g2``
-    with ``g1 = r_i + alpha_i |x - c|^2`` and ``g2 = alpha_i |x - c|^2``, where
-    ``alpha_i = max(0, -lambda_min / 2)`` uses a guaranteed lower bound of the smallest
-    eigenvalue of the interval Hessian of ``fn_i`` over the hull of ``S`` and ``c``
-    (:func:`hessian_eig_lower_bound`), so ``g1`` is convex there. Then
+    with ``g1 = r_i + q`` convex and ``g2 = q`` a convex quadratic centred at ``c``. The
+    paper's ``q = alpha_i |x - c|^2`` uses ``alpha_i = max(0, -lambda_min / 2)`` from a
+    guaranteed lower bound of the smallest eigenvalue of the interval Hessian of ``fn_i`` over
+    the hull of ``S`` and ``c`` (:func:`hessian_eig_lower_bound`); a second, diagonal
+    ``q = sum_j w_ij (x_j - c_j)^2`` (:func:`diagonal_shift`, tighter when the curvature lies
+    along few axes) is also used and the tighter bound kept. Then
 
     * upper (eq. 15, tangent of g2 at c is 0): ``r <= g1 <= max_v g1(v)`` over the vertices;
     * lower (eq. 16): for a tangent point p (``c`` and, for few vertices, every vertex)
-      ``r >= g1(p) + grad g1(p).(x - p) - alpha |x - c|^2``, a concave function whose minimum
-      over the polytope is attained at a vertex; the best tangent point is kept. Gradients
-      are exact (autograd), never Stirling slopes.
+      ``r >= g1(p) + grad g1(p).(x - p) - q(x)``, a concave function whose minimum over the
+      polytope is attained at a vertex. Gradients are exact (autograd), never Stirling slopes.
 
-    ``S``: Interval, Parallelotope or Zonotope (extreme points ``c + G s``, s in {-1,1}^m).
-    With more than ``max_vertices`` extreme points, or an Ellipsoid, this falls back to
-    :func:`lagrange_remainder` (documented deviation). A second lower bound comes from the
-    same split applied to ``-r`` (``beta_i`` from an upper bound of lambda_max):
-    ``r >= min_v (r(v) - beta_i |v - c|^2)``; the larger lower bound is kept.
-    ``with_lagrange=True`` also intersects the result with the Lagrange bound (same interval
-    Hessian, so almost free): still guaranteed, never looser.
+    The same construction applied to ``-r`` (convexifying ``-H``) gives a second lower and upper
+    bound; the intersection is returned. ``S``: Interval, Parallelotope or Zonotope (extreme
+    points ``c + G s``, s in {-1,1}^m). With more than ``max_vertices`` extreme points, or an
+    Ellipsoid, this falls back to :func:`lagrange_remainder` (documented deviation).
+    ``with_lagrange=True`` also intersects with the Lagrange bound (same interval Hessian).
     """
     c, J = _check(S, c, J)
     V = _extreme_points(S, max_vertices)
@@ -209,41 +251,53 @@ def dc_remainder(
         return lagrange_remainder(fn, S, c, J)
     box = _hull_with(S, c)
     H = interval_hessian(fn, box)  # [..., k, n, n]
-    alpha = (-hessian_eig_lower_bound(H)).clamp(min=0) * 0.5  # [..., k]: r + alpha|x-c|^2 cvx
-    beta = (-hessian_eig_lower_bound(-H)).clamp(min=0) * 0.5  # -r + beta|x-c|^2 convex
+    n = S.dim
+    ones = torch.ones(n, dtype=S.dtype, device=S.device)
+    alpha = (-hessian_eig_lower_bound(H)).clamp(min=0) * 0.5  # [..., k]
+    beta = (-hessian_eig_lower_bound(-H)).clamp(min=0) * 0.5  # for -r
+    W_pos = [alpha.unsqueeze(-1) * ones, diagonal_shift(H)]  # r + q convex
+    W_neg = [beta.unsqueeze(-1) * ones, diagonal_shift(-H)]  # -r + q convex
     Vf = _front(V)  # [N, ..., n]
     fc = fn(c)  # [..., k]
     Jc = jacobian(fn, c)  # [..., k, n]
     J = Jc if J is None else J
     dv = Vf - c  # [N, ..., n]
-    sqv = (dv * dv).sum(-1).unsqueeze(-1)  # [N, ..., 1]
     fv = fn(Vf)  # [N, ..., k]
-    Jdv = (J * dv.unsqueeze(-2)).sum(-1)  # [N, ..., k]
-    rv = fv - fc - Jdv  # remainder at the vertices
-    g1v = rv + alpha * sqv
-    mag = fv.abs() + fc.abs() + (J.abs() * dv.abs().unsqueeze(-2)).sum(-1)
-    mag = mag + (alpha + beta.where(torch.isfinite(beta), alpha)) * sqv
-    upper = g1v.amax(0)
-    # tangent plane of g1 at c: g1(c) = 0, grad g1(c) = Jc - J
-    lower = (((Jc - J) * dv.unsqueeze(-2)).sum(-1) - alpha * sqv).amin(0)
-    lower = torch.maximum(lower, (rv - beta * sqv).amin(0))  # the split of -r
-    grad_mag = (Jc - J).abs()
-    if V.shape[-2] <= _MAX_TANGENTS:  # tangent planes at every vertex p: [Np, Nv, ..., k]
-        grad_v = jacobian(fn, Vf) - J + 2 * alpha.unsqueeze(-1) * dv.unsqueeze(-2)
-        diff = Vf.unsqueeze(0) - Vf.unsqueeze(1)  # [p, v] -> v - p
-        tang = g1v.unsqueeze(1) + (grad_v.unsqueeze(1) * diff.unsqueeze(-2)).sum(-1)
-        lower = torch.maximum(lower, (tang - alpha * sqv.unsqueeze(0)).amin(1).amax(0))
-        grad_mag = grad_mag + grad_v.abs().amax(0)
-    scale = mag.amax(0) + 2 * (grad_mag * dv.abs().amax(0).unsqueeze(-2)).sum(-1)
-    bad = ~(torch.isfinite(alpha) & torch.isfinite(beta))
-    lower = torch.where(bad, torch.full_like(lower, -torch.inf), lower)
-    upper = torch.where(bad, torch.full_like(upper, torch.inf), upper)
-    scale = torch.where(bad, torch.zeros_like(scale), scale)
+    rv = fv - fc - (J * dv.unsqueeze(-2)).sum(-1)  # remainder at the vertices
+    grad_c = Jc - J
+    grad_v = jacobian(fn, Vf) - J if V.shape[-2] <= _MAX_TANGENTS else None
+    dv2 = (dv * dv).unsqueeze(-2)  # [N, ..., 1, n]
+    uppers, lowers, wmax = [], [], []
+    for W in W_pos:
+        Wf = torch.where(torch.isfinite(W), W, torch.zeros_like(W))
+        qv = (Wf * dv2).sum(-1)  # [N, ..., k]
+        uppers.append(_dc_upper(rv, qv))
+        lowers.append(_dc_lower(rv, qv, grad_c, grad_v, Wf, dv))
+        wmax.append(Wf)
+    for W in W_neg:
+        Wf = torch.where(torch.isfinite(W), W, torch.zeros_like(W))
+        qv = (Wf * dv2).sum(-1)
+        lowers.append(-_dc_upper(-rv, qv))
+        neg_v = None if grad_v is None else -grad_v
+        uppers.append(-_dc_lower(-rv, qv, -grad_c, neg_v, Wf, dv))
+        wmax.append(Wf)
+    bad_u = [~torch.isfinite(W).all(-1) for W in W_pos + W_neg]
+    inf = torch.full_like(fc, torch.inf)
+    upper = torch.stack([torch.where(b, inf, u) for u, b in zip(uppers, bad_u)])
+    lower = torch.stack([torch.where(b, -inf, lo) for lo, b in zip(lowers, bad_u)])
+    upper, lower = upper.amin(0), lower.amax(0)
+    # rounding scale: magnitudes of every term summed above
+    adv = dv.abs()
+    scale = (fv.abs() + fc.abs() + (J.abs() * adv.unsqueeze(-2)).sum(-1)).amax(0)
+    scale = scale + (torch.stack(wmax).amax(0) * dv2).sum(-1).amax(0)
+    gm = grad_c.abs() if grad_v is None else grad_c.abs() + grad_v.abs().amax(0)
+    scale = scale + 4 * (gm * adv.amax(0).unsqueeze(-2)).sum(-1)
+    scale = scale + 4 * (torch.stack(wmax).amax(0) * (adv.amax(0) ** 2).unsqueeze(-2)).sum(-1)
     out = _padded(lower, upper, scale)
     if with_lagrange:
         lag = _quad_form(H, box - c) * 0.5
-        if not bool(((Jc - J).detach() == 0).all()):
-            lag = lag + _linear_range(S, Jc - J, c)
+        if not bool((grad_c.detach() == 0).all()):
+            lag = lag + _linear_range(S, grad_c, c)
         out = out.intersect(lag)
     return out
 
