@@ -178,7 +178,10 @@ def test_gaussian_only_equals_filterpy_kalman():
 
 
 def _reference_smf(M, y, weight):
-    """Pure ellipsoidal SMF (numpy): S(p) sums for prediction and update, gain S H'(HSH'+E)^-1."""
+    """Pure ellipsoidal SMF (numpy): S(p) sums for prediction and update, gain S H'(HSH'+E)^-1.
+
+    Each sum carries diffsmf's rounding margin ``1 + 1e-10`` (``diffsmf.sets.ellipsoid.INFLATE``).
+    """
 
     def osum(S1, S2):
         if weight == "trace":
@@ -188,7 +191,7 @@ def _reference_smf(M, y, weight):
             n = len(lam)
             p = brentq(lambda p: (1 / (lam + 1 / p)).sum() - n * p * p / (p + 1), 1e-9, 1e9,
                        xtol=1e-14)
-        return (1 + 1 / p) * S1 + (1 + p) * S2
+        return ((1 + 1 / p) * S1 + (1 + p) * S2) * (1 + 1e-10)
 
     A, H, D, E = (M[k].numpy() for k in ("A", "H", "D", "E"))
     a, S = M["x0"].numpy().copy(), M["S0"].numpy().copy()

@@ -30,7 +30,7 @@ from torch import Tensor
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.linearize.statistical import statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
-from diffsmf.sets.ellipsoid import Ellipsoid, unit_ball_volume
+from diffsmf.sets.ellipsoid import INFLATE, Ellipsoid, minkowski_weight, unit_ball_volume
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive, register_positive
 
@@ -53,61 +53,34 @@ def _trace(M: Tensor) -> Tensor:
     return torch.diagonal(M, dim1=-2, dim2=-1).sum(-1)
 
 
-def _volume_weight(S1: Tensor, S2: Tensor) -> Tensor:
-    """Minimal-volume weight p ``[...]`` (seed 003 eq. 35 as corrected in seeds/README.md).
-
-    Positive root of ``sum_i 1 / (p l_i + 1) = n p / (p + 1)``, ``l_i`` the eigenvalues of
-    ``S1^-1 S2`` (the erratum's equation divided by p). The left side decreases and the right
-    side increases in p, so bisection in log p brackets the unique root; one Newton step with
-    gradient attached then gives the implicit-function derivative of p. Needs ``tr S2 > 0`` and
-    ``S1`` positive definite (elements where it is not get NaN; the caller replaces them).
-    """
-    n = S1.shape[-1]
-    L, info = torch.linalg.cholesky_ex(S1)
-    eye = torch.eye(n, dtype=S1.dtype, device=S1.device)
-    L = torch.where((info != 0).unsqueeze(-1).unsqueeze(-1), eye, L)
-    X = torch.linalg.solve_triangular(L, S2, upper=False)
-    lam = torch.linalg.eigvalsh(_sym(torch.linalg.solve_triangular(L, X.mT, upper=False)))
-    lam = lam.clamp_min(0)
-
-    def phi(p: Tensor, lam: Tensor) -> Tensor:
-        return (1.0 / (p.unsqueeze(-1) * lam + 1.0)).sum(-1) - n * p / (p + 1.0)
-
-    with torch.no_grad():
-        lo = torch.full(lam.shape[:-1], -40.0, dtype=lam.dtype, device=lam.device)
-        hi = torch.full_like(lo, 40.0)
-        for _ in range(64):  # bracket width 80 / 2^64 in log p
-            mid = 0.5 * (lo + hi)
-            pos = phi(mid.exp(), lam.detach()) > 0
-            lo, hi = torch.where(pos, mid, lo), torch.where(pos, hi, mid)
-        p0 = (0.5 * (lo + hi)).exp()
-    dphi = -(lam / (p0.unsqueeze(-1) * lam + 1.0) ** 2).sum(-1) - n / (p0 + 1.0) ** 2
-    p = p0 - phi(p0, lam) / dphi  # = p0 at the root; carries dp/d(S1, S2)
-    return torch.where(info == 0, p, torch.full_like(p, float("nan")))
-
-
 def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     """Shape of the outer ellipsoid of ``F(0, S1) + F(0, S2)`` (seed 003 eq. 34-36, erratum).
 
-    ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` with ``p = sqrt(tr S1 / tr S2)`` (minimal trace) or the
-    minimal-volume root (:func:`_volume_weight`). ``S1``, ``S2 [..., n, n]`` positive
-    semidefinite (degenerate or zero ellipsoids allowed); ``S2 = 0`` gives ``S1``. Where the
-    volume rule is undefined (``S1`` singular) the trace weight is used. Any ``p > 0`` gives an
-    outer bound (eq. 25-33), so the guarantee never depends on the root's accuracy.
+    ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` times ``1 + INFLATE`` (the rounding margin of
+    :mod:`diffsmf.sets.ellipsoid`), with p from :func:`diffsmf.sets.ellipsoid.minkowski_weight`
+    (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"volume"``: the erratum's root, differentiable).
+    Unlike ``Ellipsoid.minkowski_sum`` the operands may be positive *semi*definite (degenerate
+    or zero ellipsoids, e.g. ``Gamma D Gamma'`` or a collapsed mean set): ``S2 = 0`` gives
+    ``S1`` exactly, and where the volume rule is undefined (``S1`` singular) the trace weight is
+    used. Any ``p > 0`` gives an outer bound (eq. 25-33), so the guarantee never depends on
+    the weight.
     """
     if method not in _WEIGHTS:
         raise ValueError(f"weight: expected one of {_WEIGHTS}, got {method!r}")
     t1, t2 = _trace(S1), _trace(S2)
     zero = t2 <= 0
-    t2s = torch.where(zero, torch.ones_like(t2), t2)
-    p = torch.sqrt(t1 / t2s).clamp_min(1e-300)
+    eye = torch.eye(S1.shape[-1], dtype=S1.dtype, device=S1.device)
+    zero_m = zero.unsqueeze(-1).unsqueeze(-1)
+    S2s = torch.where(zero_m, eye, S2)  # placeholders keep the unused branch finite
+    p = minkowski_weight(S1, S2s, "trace").clamp_min(1e-300)
     if method == "volume":
-        S2s = torch.where(zero.unsqueeze(-1).unsqueeze(-1), S1, S2)
-        pv = _volume_weight(S1, S2s)
-        p = torch.where(torch.isnan(pv), p, pv)
+        pd = torch.linalg.cholesky_ex(S1.detach())[1] == 0
+        pd_m = pd.unsqueeze(-1).unsqueeze(-1)
+        pv = minkowski_weight(torch.where(pd_m, S1, eye), torch.where(pd_m, S2s, eye), "volume")
+        p = torch.where(pd & ~zero & (t1 > 0), pv, p)
     p = p.unsqueeze(-1).unsqueeze(-1)
-    S = (1.0 + 1.0 / p) * S1 + (1.0 + p) * S2
-    return _sym(torch.where(zero.unsqueeze(-1).unsqueeze(-1), S1, S))
+    S = ((1.0 + 1.0 / p) * S1 + (1.0 + p) * S2s) * (1.0 + INFLATE)
+    return _sym(torch.where(zero_m, S1, S))
 
 
 def _scaled(M0: Tensor, v: Tensor, v0: Tensor) -> Tensor:
