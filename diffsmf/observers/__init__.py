@@ -15,17 +15,36 @@ from diffsmf.observers.lmi import (
     lmi_matrix,
     simulate_error_check,
 )
+from diffsmf.observers.observer import PWLObserver, rk4_step
+from diffsmf.observers.pipeline import (
+    ContinuousModel,
+    PipelineResult,
+    certified_error,
+    design_observer_pipeline,
+    fit_nonlinearity,
+    plot_pipeline,
+    vdp_model,
+)
 
 __all__ = [
+    "ContinuousModel",
     "ILCDesign",
     "ILCFaultEstimator",
     "ObserverDesign",
+    "PWLObserver",
+    "PipelineResult",
     "RepeatedSystem",
     "analyze_observer_gain",
+    "certified_error",
     "design_ilc",
     "design_lipschitz_observer",
+    "design_observer_pipeline",
     "error_envelope",
+    "fit_nonlinearity",
     "intermittent_fault_example",
     "lmi_matrix",
+    "plot_pipeline",
+    "rk4_step",
     "simulate_error_check",
+    "vdp_model",
 ]
