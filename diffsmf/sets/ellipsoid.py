@@ -353,8 +353,11 @@ class Ellipsoid(ConvexSet):
         g = (a * Pa).sum(-1)  # a' P a
         mid = (a * c).sum(-1)
         sg = torch.sqrt(g)
-        lo = torch.maximum(o - h, mid - sg)  # tightened strip (same intersection)
-        hi = torch.minimum(o + h, mid + sg)
+        # tightened strip (same intersection), widened by a rounding margin so that no point
+        # of the true intersection is cut off
+        tol = 8 * torch.finfo(g.dtype).eps * (mid.abs() + sg + o.abs() + h)
+        lo = torch.maximum(o - h, mid - sg) - tol
+        hi = torch.minimum(o + h, mid + sg) + tol
         hi = torch.maximum(hi, lo)  # empty case: harmless degenerate strip
         o2, h2 = 0.5 * (lo + hi), 0.5 * (hi - lo)
         r = (h2 * h2).clamp(min=1e-24 * g)
