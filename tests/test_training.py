@@ -1,0 +1,202 @@
+"""Losses and the tuning loop (training/), on the exact toy interval filter."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_training_toy import V_BOUND, W_BOUND, ToyIntervalFilter, toy_system
+
+from diffsmf.sets import Interval
+from training import LossWeights, evaluate, tune
+from training.loop import Data, resolve_params
+from training.losses import (
+    consistency_excess,
+    filter_with_predictions,
+    log_volume_loss,
+    normalised_outside,
+    total_loss,
+)
+
+
+@pytest.fixture(scope="module")
+def data():
+    s = toy_system()
+    return s, s.simulate(40, batch=24, seed=0, noise="vertex")
+
+
+def test_filter_with_predictions_matches_forward(data):
+    s, traj = data
+    f = ToyIntervalFilter(s)
+    out = filter_with_predictions(f, traj.y)
+    ref = f(traj.y)
+    assert torch.equal(out.result.lower, ref.lower) and torch.equal(out.result.upper, ref.upper)
+    assert out.excess.shape == traj.y.shape
+
+
+def test_log_volume_loss_is_mean_log_of_box_areas(data):
+    s, traj = data
+    res = ToyIntervalFilter(s)(traj.y)
+    w = res.upper - res.lower
+    ref = torch.log(w[:, 1:].prod(-1).clamp_min(1e-300)).mean()  # exact filter: may be 0
+    assert torch.allclose(log_volume_loss(res, skip=1), ref, rtol=1e-12)
+
+
+def test_normalised_outside_on_boxes_equals_axis_formula():
+    g = torch.Generator().manual_seed(0)
+    lo = torch.rand(50, 3, generator=g) - 1
+    hi = lo + torch.rand(50, 3, generator=g) + 0.1
+    box = Interval(lo, hi)
+    inside = box.sample(20, g).movedim(-2, 0)  # [20, 50, 3]
+    assert (normalised_outside(box, inside) == 0).all()
+    x = lo + (hi - lo) * (3 * torch.rand(50, 3, generator=g) - 1)  # often outside
+    # independent reference: along +-e_i the normalised excess is (x_i - hi_i) / width_i
+    w = hi - lo
+    ref = torch.maximum((x - hi) / w, (lo - x) / w).amax(-1).clamp_min(0)
+    got = normalised_outside(box, x)
+    assert torch.all(got >= ref - 1e-12)  # extra probe directions can only find more
+    assert torch.equal(got > 0, ~box.contains(x, atol=0.0))
+
+
+def test_consistency_excess_sign_is_exact_emptiness(data):
+    s, traj = data
+    f = ToyIntervalFilter(s, measurement_noise=torch.tensor([0.3 * V_BOUND]))
+    out = filter_with_predictions(f, traj.y)
+    # the filter's own flag (exact interval emptiness) must agree with excess <= 0
+    flags = out.result.consistent[:, 1:]
+    assert torch.equal(flags, (out.excess <= 1e-12).all(-1))
+    assert not flags.all() and flags.any()
+
+
+def test_consistency_excess_reference_value():
+    s = toy_system()
+    f = ToyIntervalFilter(s)
+    pred = Interval(torch.tensor([[0.0, -1.0]]), torch.tensor([[0.2, 1.0]]))
+    y = torch.tensor([[0.25]])  # output set [0, 0.2] +- 0.01 -> centre 0.1, half 0.11
+    e = consistency_excess(f, pred, y)
+    assert torch.allclose(e, torch.tensor([[(0.15 - 0.11) / 0.11]]), rtol=1e-12)
+
+
+def test_loss_gradcheck_in_noise_bounds(data):
+    s, traj = data
+    f = ToyIntervalFilter(s, measurement_noise=torch.tensor([0.5 * V_BOUND]))
+    y, x = traj.y[:3, :4], traj.x[:3, :5]
+
+    class Loss(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.f = f
+
+        def forward(self):
+            out = filter_with_predictions(self.f, y)
+            w = LossWeights(margin=0.3)
+            return total_loss(out, x, w, use_containment=True, use_consistency=True)[0]
+
+    mod = Loss()
+
+    def fcall(rw, rv):
+        return torch.func.functional_call(
+            mod, {"f.raw_process_noise": rw, "f.raw_measurement_noise": rv}, ()
+        )
+
+    rw = (f.raw_process_noise.detach() - 0.37).requires_grad_(True)
+    rv = (f.raw_measurement_noise.detach() + 0.11).requires_grad_(True)
+    assert fcall(rw, rv) > 0
+    assert torch.autograd.gradcheck(fcall, (rw, rv))
+
+
+def test_tune_consistency_shrinks_inflated_bounds_and_stays_consistent(data):
+    s, _ = data
+    train = s.simulate(30, batch=16, seed=1, noise="vertex")
+    val = s.simulate(30, batch=16, seed=2, noise="vertex")
+    f = ToyIntervalFilter(s, process_noise=5 * W_BOUND, measurement_noise=5 * V_BOUND)
+    before = evaluate(f, val)
+    rep, f = tune(
+        f,
+        Data(train.y),
+        epochs=40,
+        batch_size=16,
+        lr=0.05,
+        validation=Data(val.y),
+        val_every=5,
+        patience=100,
+        progress=False,
+        seed=0,
+        tie="noise",
+    )
+    after = evaluate(f, Data(val.y, val.x))
+    assert after["mean_volume"] < 0.5 * before["mean_volume"]
+    assert after["consistent_frac"] == 1.0
+    assert after["violations"] == 0  # exact filter: consistent bounds >= truth on this data
+    # one shared factor: learned bounds are b* times one scale >= 1 (vertex data, exact filter)
+    scale = rep.final["measurement_noise"][0] / V_BOUND
+    assert rep.final["process_noise"] == pytest.approx([scale * W_BOUND] * 2, rel=1e-12)
+    assert 1.0 <= scale < 1.5
+    assert len(rep.history) == 40 and rep.best_epoch > 0
+
+
+def test_tune_grows_too_small_bounds(data):
+    s, _ = data
+    train = s.simulate(30, batch=16, seed=1, noise="vertex")
+    f = ToyIntervalFilter(s, process_noise=0.2 * W_BOUND, measurement_noise=0.2 * V_BOUND)
+    assert evaluate(f, Data(train.y))["consistent_frac"] < 1
+    rep, f = tune(f, Data(train.y), epochs=40, batch_size=8, lr=0.2, progress=False, tie="noise")
+    assert evaluate(f, Data(train.y))["consistent_frac"] == 1.0
+    assert rep.final["measurement_noise"][0] > rep.initial["measurement_noise"][0]
+
+
+def test_tune_is_deterministic_and_resumable(data, tmp_path):
+    s, traj = data
+    kw = dict(epochs=6, batch_size=8, progress=False, seed=3, validation=0.25, val_every=1)
+
+    def run(**extra):
+        f = ToyIntervalFilter(s, process_noise=3 * W_BOUND, measurement_noise=3 * V_BOUND)
+        return tune(f, traj, **{**kw, **extra})
+
+    r1, f1 = run()
+    r2, f2 = run()
+    assert r1.final == r2.final and r1.history == r2.history
+    # checkpoint after 3 epochs, resume to 6: same result as one run of 6 epochs
+    run(epochs=3, checkpoint_dir=tmp_path, checkpoint_every=3)
+    r3, f3 = run(resume=tmp_path / "last.pt")
+    assert r3.final == r1.final
+    assert (tmp_path / "best.pt").exists()
+
+
+def test_tune_containment_loss_with_ground_truth_and_early_stop(data):
+    s, traj = data
+    f = ToyIntervalFilter(s, process_noise=3 * W_BOUND, measurement_noise=3 * V_BOUND)
+    rep, f = tune(
+        f,
+        traj,
+        loss="containment",
+        epochs=200,
+        batch_size=8,
+        validation=0.25,
+        val_every=1,
+        patience=8,
+        progress=False,
+    )
+    assert rep.stopped_early and len(rep.history) < 200
+    assert rep.validation_after["loss"] < rep.validation_before["loss"]
+    assert rep.validation_after["mean_volume"] < 0.5 * rep.validation_before["mean_volume"]
+    assert rep.validation_after["loss"] == min(r["val_loss"] for r in rep.history)
+
+
+def test_tune_parameter_selection_and_bad_input(data):
+    s, traj = data
+    f = ToyIntervalFilter(s)
+    chosen, skipped = resolve_params(f, ("measurement_noise", "stirling_step"))
+    assert list(chosen) == ["measurement_noise"] and skipped == ["stirling_step"]
+    rep, _ = tune(f, traj, params=["measurement_noise"], epochs=2, progress=False)
+    assert rep.params == ["measurement_noise"]
+    assert f.process_noise.tolist() == [W_BOUND, W_BOUND]  # frozen
+    with pytest.raises(ValueError, match="params"):
+        tune(f, traj, params=["nope"], epochs=1, progress=False)
+    with pytest.raises(ValueError, match="loss"):
+        tune(f, Data(traj.y), loss="containment", epochs=1, progress=False)
+    with pytest.raises(ValueError, match="optimizer"):
+        tune(f, traj, optimizer="rmsprop", epochs=1, progress=False)
+    with pytest.raises(ValueError, match="validation"):
+        tune(f, traj, validation=1.5, epochs=1, progress=False)
+    with pytest.raises(ValueError, match="trajectories"):
+        tune(f, "abc", epochs=1, progress=False)

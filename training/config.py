@@ -1,0 +1,68 @@
+"""Run configuration of ``python -m training.tune`` (command line and ``--config file.toml``)."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+__all__ = ["TuneConfig", "load_config"]
+
+
+@dataclass
+class TuneConfig:
+    """Every option of the tuning command; TOML keys use the same names.
+
+    ``init_scale`` multiplies the system's noise bounds before tuning (5 = start from 5 b*);
+    ``loss``: ``auto`` (containment when the true states are used, i.e. ``ground_truth``),
+    ``consistency``, ``containment`` or ``both``; ``params``: hyperparameter names to tune.
+    """
+
+    system: str = "spring_damper"
+    filter: str = "hsnsmf"
+    filter_kwargs: dict[str, Any] = field(default_factory=dict)
+    epochs: int = 200
+    batch_size: int = 64
+    trajectories: int = 64
+    val_trajectories: int = 32
+    test_trajectories: int = 200
+    steps: int = 100
+    noise: str = "vertex"
+    init_scale: float = 1.0
+    ground_truth: bool = False
+    loss: str = "auto"
+    params: list[str] = field(
+        default_factory=lambda: ["process_noise", "measurement_noise", "stirling_step"]
+    )
+    optimizer: str = "adam"
+    lr: float = 0.05
+    patience: int = 10
+    val_every: int = 5
+    checkpoint_every: int = 20
+    seed: int = 0
+    out: str = "runs/tune"
+    progress: bool = True
+    weights: dict[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def keys(cls) -> list[str]:
+        return [f.name for f in fields(cls)]
+
+
+def load_config(path: str | Path) -> dict[str, Any]:
+    """Read a TOML file of :class:`TuneConfig` keys; unknown keys raise ``ValueError``."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"config: no such file {str(p)!r}")
+    with p.open("rb") as fh:
+        data = tomllib.load(fh)
+    unknown = sorted(set(data) - set(TuneConfig.keys()))
+    if unknown:
+        raise ValueError(f"config: unknown keys {unknown}; allowed: {TuneConfig.keys()}")
+    return data

@@ -1,0 +1,442 @@
+"""The tuning loop: gradient descent on set volume with held-out validation (issue 7).
+
+    report, filt = tune(filt, traj, epochs=200, batch_size=64, validation=0.25, seed=0)
+
+Runs data-parallel when ``torch.distributed`` is initialised (see :mod:`training.ddp`).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from diffsmf.filters.base import SetFilter
+from training import ddp
+from training.losses import LossWeights, filter_with_predictions, total_loss
+
+__all__ = ["Data", "TuneReport", "as_data", "evaluate", "resolve_params", "tune"]
+
+DEFAULT_PARAMS = ("process_noise", "measurement_noise", "stirling_step")
+LOSS_MODES = ("auto", "consistency", "containment", "both")
+
+
+@dataclass
+class Data:
+    """Trajectories: ``y [N, T, m]``, optional true states ``x [N, T+1, n]``, inputs ``u``."""
+
+    y: Tensor
+    x: Tensor | None = None
+    u: Tensor | None = None
+
+    def __len__(self) -> int:
+        return self.y.shape[0]
+
+    def take(self, idx: Tensor) -> Data:
+        return Data(
+            self.y[idx],
+            None if self.x is None else self.x[idx],
+            None if self.u is None else self.u[idx],
+        )
+
+
+@dataclass
+class TuneReport:
+    """What :func:`tune` did.
+
+    history: one dict per epoch (``epoch``, ``loss``, loss terms, ``val_*`` when validated);
+    initial / final: hyperparameter values before and after (final = best validation epoch);
+    validation_before / validation_after: :func:`evaluate` metrics on the validation set;
+    nonfinite_steps: optimiser steps skipped because a gradient was not finite.
+    """
+
+    params: list[str]
+    skipped_params: list[str]
+    initial: dict[str, list[float]]
+    final: dict[str, list[float]]
+    history: list[dict[str, float]] = field(default_factory=list)
+    best_epoch: int = 0
+    stopped_early: bool = False
+    validation_before: dict[str, float] | None = None
+    validation_after: dict[str, float] | None = None
+    nonfinite_steps: int = 0
+    seconds: float = 0.0
+    loss_mode: str = "auto"
+    weights: dict[str, float] = field(default_factory=dict)
+    world_size: int = 1
+    tied: list[list[str]] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+# ---------------------------------------------------------------------------- helpers
+def as_data(trajectories: Any) -> Data:
+    """Accept a :class:`diffsmf.Trajectory` (or anything with ``y``/``x``/``u``) or a tensor y."""
+    if isinstance(trajectories, Data):
+        return trajectories
+    if isinstance(trajectories, Tensor):
+        return Data(y=trajectories)
+    y = getattr(trajectories, "y", None)
+    if not isinstance(y, Tensor) or y.dim() != 3:
+        raise ValueError("trajectories: expected a Trajectory with y [N, T, m] (or a tensor y)")
+    x = getattr(trajectories, "x", None)
+    u = getattr(trajectories, "u", None)
+    if x is not None and x.shape[:2] != (y.shape[0], y.shape[1] + 1):
+        raise ValueError(f"trajectories: x must be [N, T+1, n], got {tuple(x.shape)}")
+    return Data(y=y, x=x, u=u)
+
+
+def resolve_params(
+    filt: nn.Module, names: Sequence[str] | str
+) -> tuple[dict[str, nn.Parameter], list[str]]:
+    """Map hyperparameter names to the ``nn.Parameter`` to optimise.
+
+    ``name`` selects ``raw_name`` (softplus-positive hyperparameters) or the parameter ``name``
+    itself; ``"all"`` selects every parameter. Names of :data:`DEFAULT_PARAMS` that the filter
+    lacks are skipped (returned second); any other unknown name raises ``ValueError``.
+    """
+    named = dict(filt.named_parameters())
+    if names == "all":
+        return {k[4:] if k.startswith("raw_") else k: p for k, p in named.items()}, []
+    if isinstance(names, str):
+        names = [names]
+    out, skipped = {}, []
+    for n in names:
+        if f"raw_{n}" in named:
+            out[n] = named[f"raw_{n}"]
+        elif n in named:
+            out[n] = named[n]
+        elif n in DEFAULT_PARAMS:
+            skipped.append(n)
+        else:
+            raise ValueError(f"params: filter {type(filt).__name__} has no parameter {n!r}")
+    if not out:
+        raise ValueError(f"params: none of {list(names)} is a parameter of this filter")
+    return out, skipped
+
+
+def hyperparameter_values(filt: nn.Module, names: Sequence[str]) -> dict[str, list[float]]:
+    """Constrained values (``filter.name``, e.g. the softplus-positive bound) as lists."""
+    named = dict(filt.named_parameters())
+    out = {}
+    for n in names:
+        v = getattr(filt, n, None) if "." not in n else None
+        if not isinstance(v, Tensor):
+            v = named[n]
+        out[n] = torch.as_tensor(v).detach().reshape(-1).tolist()
+    return out
+
+
+def _loss_flags(mode: str, has_x: bool) -> tuple[bool, bool]:
+    if mode not in LOSS_MODES:
+        raise ValueError(f"loss: expected one of {LOSS_MODES}, got {mode!r}")
+    if mode == "auto":
+        mode = "containment" if has_x else "consistency"
+    cont = mode in ("containment", "both")
+    if cont and not has_x:
+        raise ValueError(f"loss: {mode!r} needs ground-truth states (trajectories.x)")
+    return cont, mode in ("consistency", "both")
+
+
+def _make_optimizer(name: str, params: list[nn.Parameter], lr: float) -> torch.optim.Optimizer:
+    table = {"adam": torch.optim.Adam, "adamw": torch.optim.AdamW, "sgd": torch.optim.SGD}
+    if name not in table:
+        raise ValueError(f"optimizer: expected one of {sorted(table)}, got {name!r}")
+    return table[name](params, lr=lr)
+
+
+@torch.no_grad()
+def evaluate(
+    filt: SetFilter,
+    data: Any,
+    weights: LossWeights | None = None,
+    *,
+    loss: str = "auto",
+    chunk: int = 256,
+    atol: float = 1e-9,
+) -> dict[str, float]:
+    """Metrics of ``filt`` on trajectories (sharded and summed over processes under DDP).
+
+    Returns ``loss``, ``log_volume`` (mean log-volume, steps >= skip), ``mean_volume``,
+    ``consistent_frac`` (fraction of steps the filter flagged consistent), ``max_excess``
+    (largest normalised consistency excess), and with true states ``violations`` (number of
+    (trajectory, step) pairs outside the set, ``contains`` with ``atol``) and
+    ``violating_trajectories``.
+    """
+    data = as_data(data)
+    weights = weights or LossWeights()
+    cont, cons = _loss_flags(loss, data.x is not None)
+    idx = ddp.shard(torch.arange(len(data)))
+    dev = data.y.device
+    acc = torch.zeros(7, dtype=torch.float64, device=dev)
+    max_excess = torch.full((), -math.inf, dtype=torch.float64, device=dev)
+    for s in range(0, len(idx), chunk):
+        part = data.take(idx[s : s + chunk])
+        out = filter_with_predictions(filt, part.y, part.u)
+        lval, terms = total_loss(out, part.x, weights, use_containment=cont, use_consistency=cons)
+        b = part.y.shape[0]
+        vol = out.result.volume[:, weights.skip :]
+        acc[0] += lval * b
+        acc[1] += terms["log_volume"] * b
+        acc[2] += vol.mean() * b
+        acc[3] += out.result.consistent[:, 1:].double().mean() * b
+        acc[4] += b
+        if part.x is not None:
+            inside = out.result.sets.contains(part.x, atol=atol)
+            acc[5] += (~inside).sum()
+            acc[6] += (~inside).any(-1).sum()
+        max_excess = torch.maximum(max_excess, out.excess.max())
+    acc = ddp.all_reduce_sum(acc)
+    if ddp.is_distributed():
+        import torch.distributed as dist
+
+        dist.all_reduce(max_excess, op=dist.ReduceOp.MAX)
+    n = acc[4].clamp_min(1)
+    res = {
+        "loss": float(acc[0] / n),
+        "log_volume": float(acc[1] / n),
+        "mean_volume": float(acc[2] / n),
+        "consistent_frac": float(acc[3] / n),
+        "max_excess": float(max_excess),
+        "trajectories": int(acc[4]),
+    }
+    if data.x is not None:
+        res["violations"] = int(acc[5])
+        res["violating_trajectories"] = int(acc[6])
+    return res
+
+
+def _tie_groups(
+    tie: Sequence[Sequence[str]] | str | None, chosen: dict[str, nn.Parameter]
+) -> dict[tuple[str, ...], list[nn.Parameter]]:
+    """Validate ``tie`` and make each group's raw values equal (their mean) to start."""
+    if tie is None:
+        return {}
+    if tie == "noise":
+        tie = [[n for n in ("process_noise", "measurement_noise") if n in chosen]]
+    if isinstance(tie, str):
+        raise ValueError(f"tie: expected 'noise', None or groups of names, got {tie!r}")
+    out = {}
+    for g in tie:
+        missing = [n for n in g if n not in chosen]
+        if missing:
+            raise ValueError(f"tie: {missing} are not tuned parameters ({list(chosen)})")
+        ps = [chosen[n] for n in g]
+        with torch.no_grad():
+            mean = torch.cat([p.reshape(-1) for p in ps]).mean()
+            for p in ps:
+                p.fill_(mean)
+        out[tuple(g)] = ps
+    return out
+
+
+def _tie_grads(groups: dict[tuple[str, ...], list[nn.Parameter]]) -> None:
+    """Gradient of a shared factor: every element of a group gets the group's summed grad.
+
+    With equal starting values and equal gradients, Adam/SGD keep the elements equal.
+    """
+    for ps in groups.values():
+        grads = [p.grad for p in ps if p.grad is not None]
+        if not grads:
+            continue
+        total = sum(g.sum() for g in grads)
+        for p in ps:
+            p.grad = total.expand_as(p).clone()
+
+
+def _split(data: Data, validation: Any, seed: int) -> tuple[Data, Data | None]:
+    if validation is None:
+        return data, None
+    if isinstance(validation, float):
+        if not 0.0 < validation < 1.0:
+            raise ValueError(f"validation: a fraction must be in (0, 1), got {validation}")
+        g = torch.Generator().manual_seed(seed)
+        perm = torch.randperm(len(data), generator=g).to(data.y.device)
+        nv = max(1, int(round(validation * len(data))))
+        if nv >= len(data):
+            raise ValueError("validation: leaves no training trajectories")
+        return data.take(perm[nv:]), data.take(perm[:nv])
+    return data, as_data(validation)
+
+
+def _save(path: Path, payload: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+
+
+# ---------------------------------------------------------------------------- the loop
+def tune(
+    filt: SetFilter,
+    trajectories: Any,
+    *,
+    params: Sequence[str] | str = DEFAULT_PARAMS,
+    optimizer: str = "adam",
+    lr: float = 0.05,
+    epochs: int = 100,
+    batch_size: int = 64,
+    validation: Any = None,
+    loss: str = "auto",
+    weights: LossWeights | None = None,
+    val_every: int = 5,
+    patience: int = 10,
+    checkpoint_dir: str | Path | None = None,
+    checkpoint_every: int = 20,
+    resume: str | Path | None = None,
+    seed: int = 0,
+    progress: bool = True,
+    tie: Sequence[Sequence[str]] | str | None = None,
+) -> tuple[TuneReport, SetFilter]:
+    """Tune ``filt``'s hyperparameters in place; returns ``(report, filt)``.
+
+    Args:
+        trajectories: :class:`diffsmf.Trajectory` (``x`` may be ``None``: no ground truth).
+        params: hyperparameter names (``raw_<name>`` or parameter ``<name>``) or ``"all"``.
+        validation: ``None``, a fraction of ``trajectories`` held out, or a Trajectory.
+        loss: ``"auto"`` (containment if ``x`` is given, else consistency), ``"consistency"``
+            (no ground truth), ``"containment"`` or ``"both"``; always plus log-volume.
+        val_every, patience: validate every ``val_every`` epochs; stop after ``patience``
+            validations without improvement of the validation loss; the best validated
+            parameters are restored at the end (best training loss without validation).
+        checkpoint_dir: write ``last.pt`` every ``checkpoint_every`` epochs and ``best.pt``.
+        resume: a ``last.pt`` to continue from.
+        seed: seeds the mini-batch order (deterministic; identical across DDP processes).
+        tie: groups of hyperparameters that share ONE multiplicative factor (every element
+            of every member), e.g. ``[("process_noise", "measurement_noise")]`` or the
+            shorthand ``"noise"``: only the overall scale of the bounds is learned, their
+            shape is kept. Without ground truth the split of uncertainty between process and
+            measurement noise is not identifiable from data (docs/training.md), so the
+            consistency loss should be used with ``tie="noise"``.
+
+    Under ``torch.distributed`` each global mini-batch is sharded over the processes and the
+    gradients are summed, so K processes follow the single-process trajectory.
+    """
+    if epochs < 1 or batch_size < 1 or val_every < 1 or patience < 1:
+        raise ValueError("epochs, batch_size, val_every, patience: must be positive")
+    t0 = time.perf_counter()
+    weights = weights or LossWeights()
+    data, val = _split(as_data(trajectories), validation, seed)
+    cont, cons = _loss_flags(loss, data.x is not None)
+    chosen, skipped = resolve_params(filt, params)
+    groups = _tie_groups(tie, chosen)
+    names = list(chosen)
+    tuned = list(chosen.values())
+    frozen = [p for p in filt.parameters() if all(p is not q for q in tuned)]
+    saved_flags = [p.requires_grad for p in frozen]
+    for p in frozen:
+        p.requires_grad_(False)
+    for p in tuned:
+        p.requires_grad_(True)
+    ddp.broadcast_parameters(filt)
+    opt = _make_optimizer(optimizer, tuned, lr)
+    report = TuneReport(
+        params=names,
+        skipped_params=skipped,
+        initial=hyperparameter_values(filt, names),
+        final={},
+        loss_mode=loss,
+        weights=weights.to_dict(),
+        world_size=ddp.world_size(),
+        tied=[list(g) for g in groups],
+    )
+    start_epoch = 0
+    best = (math.inf, copy.deepcopy(filt.state_dict()), 0)
+    if resume is not None:
+        ck = torch.load(resume, weights_only=False)
+        filt.load_state_dict(ck["filter"])
+        opt.load_state_dict(ck["optimizer"])
+        start_epoch, report.history = ck["epoch"], ck["history"]
+        best = (ck["best_loss"], ck["best_state"], ck["best_epoch"])
+    if val is not None:
+        report.validation_before = evaluate(filt, val, weights, loss=loss)
+    is_main = ddp.rank() == 0
+    bar = tqdm(
+        range(start_epoch, epochs), disable=not (progress and is_main), desc="tune", leave=False
+    )
+    bad_vals = 0
+    n = len(data)
+    for epoch in bar:
+        g = torch.Generator().manual_seed(seed * 100_003 + epoch)
+        perm = torch.randperm(n, generator=g).to(data.y.device)
+        sums: dict[str, float] = {}
+        keys = ["loss", "log_volume"] + ["containment"] * cont + ["consistency"] * cons
+        for s in range(0, n, batch_size):
+            glob = perm[s : s + batch_size]
+            local = ddp.shard(glob)
+            opt.zero_grad(set_to_none=True)
+            stats = torch.zeros(len(keys), dtype=torch.float64)
+            if len(local):
+                frac = len(local) / len(glob)  # local mean -> share of the global mean
+                part = data.take(local)
+                out = filter_with_predictions(filt, part.y, part.u)
+                lval, terms = total_loss(
+                    out, part.x, weights, use_containment=cont, use_consistency=cons
+                )
+                (lval * frac).backward()
+                stats = torch.stack([lval.detach()] + [terms[k] for k in keys[1:]]).cpu() * frac
+            ddp.all_reduce_grads(tuned)
+            _tie_grads(groups)
+            stats = ddp.all_reduce_sum(stats)
+            w = len(glob) / n
+            for k, v in zip(keys, stats.tolist()):
+                sums[k] = sums.get(k, 0.0) + v * w
+            if all(torch.isfinite(p.grad).all() for p in tuned if p.grad is not None):
+                opt.step()
+            else:
+                report.nonfinite_steps += 1
+        row: dict[str, float] = {"epoch": epoch + 1, **sums}
+        if val is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs):
+            m = evaluate(filt, val, weights, loss=loss)
+            row.update({f"val_{k}": v for k, v in m.items()})
+            score = m["loss"]
+        elif val is None:
+            score = sums["loss"]
+        else:
+            score = None
+        if score is not None:
+            if score < best[0] - 1e-12:
+                best = (score, copy.deepcopy(filt.state_dict()), epoch + 1)
+                bad_vals = 0
+                if checkpoint_dir is not None and is_main:
+                    _save(Path(checkpoint_dir) / "best.pt", {"filter": best[1], "epoch": epoch + 1})
+            else:
+                bad_vals += 1
+        report.history.append(row)
+        bar.set_postfix(loss=f"{sums['loss']:.4g}", best=f"{best[0]:.4g}")
+        if checkpoint_dir is not None and is_main and (epoch + 1) % checkpoint_every == 0:
+            _save(
+                Path(checkpoint_dir) / "last.pt",
+                {
+                    "filter": filt.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "epoch": epoch + 1,
+                    "history": report.history,
+                    "best_loss": best[0],
+                    "best_state": best[1],
+                    "best_epoch": best[2],
+                },
+            )
+        if val is not None and bad_vals >= patience:
+            report.stopped_early = True
+            break
+    bar.close()
+    if best[2] > 0:
+        filt.load_state_dict(best[1])
+    report.best_epoch = best[2]
+    for p, f in zip(frozen, saved_flags):
+        p.requires_grad_(f)
+    report.final = hyperparameter_values(filt, names)
+    if val is not None:
+        report.validation_after = evaluate(filt, val, weights, loss=loss)
+    report.seconds = time.perf_counter() - t0
+    return report, filt

@@ -1,0 +1,197 @@
+"""Training losses for tuning set-membership filters (issue 7).
+
+Three terms, each a mean over trajectories and time steps so that weights do not depend on the
+batch size or horizon:
+
+* :func:`log_volume_loss` -- mean ``log vol(X_{k|k})`` of the posterior sets (the quantity to
+  shrink; log so that steps with tiny and large sets count alike).
+* :func:`containment_loss` -- hinge on the normalised distance of the true state outside the
+  posterior set (needs ground truth ``x``).
+* :func:`consistency_loss` -- hinge on the normalised distance of each measurement outside the
+  *predicted output set* ``h(X_{k|k-1}) (+) V`` (no ground truth needed): a measurement outside
+  it means the noise bounds are too small (the filter then reports ``consistent=False``).
+
+:func:`filter_with_predictions` runs a filter through its public online API
+(``initial_state``/``predict``/``update``/``collect``) and returns the result together with the
+consistency excess of every measurement, so all three losses come from one pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import Tensor
+
+from diffsmf.filters.base import FilterResult, SetFilter
+from diffsmf.sets.base import ConvexSet
+
+__all__ = [
+    "LossWeights",
+    "PassOutput",
+    "consistency_excess",
+    "consistency_loss",
+    "containment_loss",
+    "filter_with_predictions",
+    "log_volume_loss",
+    "normalised_outside",
+    "total_loss",
+]
+
+_TINY = 1e-300
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the tuning loss ``volume * L_vol + containment * L_cont + consistency * L_cons``.
+
+    Defaults (docs/training.md): ``volume=1``; ``containment=1000`` and ``consistency=1000``:
+    the hinges are means over all steps, so at equilibrium with the volume gradient only about
+    0.1 % of the steps may sit in the penalised band (a weight of 100 let about 1 % of the
+    training measurements go inconsistent in the toy test). ``margin=0.1``: a measurement
+    within 10 % of the predicted output half-width from its edge is already penalised, a
+    safety buffer because outer-bounding filters detect inconsistency late (their predicted
+    sets are larger than the true feasible sets). ``skip`` initial steps are left out of the
+    volume term (the initial set is not tunable).
+    """
+
+    volume: float = 1.0
+    containment: float = 1000.0
+    consistency: float = 1000.0
+    margin: float = 0.1
+    skip: int = 1
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+@dataclass
+class PassOutput:
+    """One filter pass: the result and the consistency excess ``[B, T, m]`` of every y_k."""
+
+    result: FilterResult
+    excess: Tensor
+
+
+def log_volume_loss(result: FilterResult, skip: int = 1) -> Tensor:
+    """Mean of ``log vol(X_{k|k})`` over batch and steps ``k >= skip``: scalar.
+
+    Volumes are clamped at 1e-300 (a degenerate set gives a large negative log, not -inf).
+    """
+    vol = result.volume[:, skip:]
+    return torch.log(vol.clamp_min(_TINY)).mean()
+
+
+def _directions(s: ConvexSet, x: Tensor, extra: int = 8) -> Tensor:
+    """Probe directions ``[D, *batch, n]``: +-axes, ``x - center`` and ``extra`` fixed ones."""
+    n = s.dim
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
+    g = torch.Generator().manual_seed(1234)
+    fixed = torch.randn(extra, n, generator=g, dtype=x.dtype).to(x.device)
+    fixed = fixed / fixed.norm(dim=-1, keepdim=True)
+    base = torch.cat([eye, -eye, fixed], 0)  # [D0, n]
+    bshape = torch.broadcast_shapes(s.batch_shape, x.shape[:-1])
+    base = base.reshape((base.shape[0],) + (1,) * len(bshape) + (n,)).expand(
+        (base.shape[0],) + tuple(bshape) + (n,)
+    )
+    r = (x - s.center).expand(tuple(bshape) + (n,))
+    nr = r.norm(dim=-1, keepdim=True)
+    radial = torch.where(nr > 0, r / nr.clamp_min(_TINY), eye[0].expand_as(r))
+    return torch.cat([base, radial.unsqueeze(0)], 0)
+
+
+def normalised_outside(s: ConvexSet, x: Tensor) -> Tensor:
+    """Normalised distance of ``x [..., n]`` outside the set ``s``: ``[...]``, 0 inside.
+
+    ``max_d (d.x - h(d)) / (h(d) + h(-d))`` over probe directions d (the coordinate axes,
+    the direction from the centre to x and 8 fixed directions), h the support function:
+    positive only if x is outside (a separating direction proves it), differentiable in the
+    set's fields, and in units of the set's width along d.
+    """
+    d = _directions(s, x)
+    hp = s.support(d)
+    hm = s.support(-d)
+    width = (hp + hm).clamp_min(1e-12)
+    excess = ((d * x).sum(-1) - hp) / width
+    return excess.amax(0).clamp_min(0.0)
+
+
+def containment_loss(result: FilterResult, x: Tensor) -> Tensor:
+    """Mean hinge on the normalised distance of the true states ``x [B, T+1, n]`` outside."""
+    if x.shape[:-1] != result.volume.shape:
+        raise ValueError(
+            f"x: expected shape {tuple(result.volume.shape) + (x.shape[-1],)}, got {tuple(x.shape)}"
+        )
+    return normalised_outside(result.sets, x).mean()
+
+
+def consistency_excess(filt: SetFilter, predicted: ConvexSet, y: Tensor) -> Tensor:
+    """Normalised excess of ``y [B, m]`` outside the predicted output set: ``[B, m]``.
+
+    Output set ``h(X_{k|k-1}) (+) V`` to first order: with J the Jacobian of h at the centre
+    c, component i is the interval ``h_i(c) + cV_i +- (r_i + rV_i)`` with
+    ``r_i = h(J_i) - J_i.c`` (support function; exact for linear h, where a positive excess
+    is exactly an empty strip intersection). Excess
+    ``(|y_i - h_i(c) - cV_i| - r_i - rV_i) / (r_i + rV_i)``: <= 0 consistent, > 0 not.
+    """
+    from diffsmf.linearize import jacobian
+
+    c = predicted.center
+    h = filt.system.h
+    J = jacobian(h, c.detach())  # [B, m, n]; a direction only, so no gradient through it
+    Jm = J.movedim(-2, 0)  # [m, B, n]
+    r = predicted.support(Jm) - (Jm * c).sum(-1)  # [m, B]
+    r = r.movedim(0, -1)  # [B, m]
+    rv = filt.measurement_noise
+    mid = h(c) + filt.measurement_noise_center
+    half = (r + rv).clamp_min(1e-12)
+    return ((y - mid).abs() - half) / half
+
+
+def filter_with_predictions(filt: SetFilter, y: Tensor, u: Tensor | None = None) -> PassOutput:
+    """Run ``filt`` on ``y [B, T, m]`` (``u [B, T, p]``) step by step through its public API.
+
+    Same sets as ``filt(y, u)`` (forward is exactly predict then update), plus the consistency
+    excess ``[B, T, m]`` of each measurement against the predicted set.
+    """
+    if y.dim() != 3 or y.shape[-1] != filt.system.m:
+        raise ValueError(f"y: expected shape [B, T, {filt.system.m}], got {tuple(y.shape)}")
+    B, T, _ = y.shape
+    state = filt.initial_state(batch=B)
+    states = [state]
+    excess = []
+    for k in range(T):
+        pred = filt.predict(state, None if u is None else u[:, k])
+        yk = y[:, k]
+        e = consistency_excess(filt, pred.set, torch.nan_to_num(yk))
+        excess.append(torch.where(torch.isnan(yk), torch.full_like(e, -1.0), e))
+        state = filt.update(pred, yk)
+        states.append(state)
+    return PassOutput(result=filt.collect(states), excess=torch.stack(excess, 1))
+
+
+def consistency_loss(excess: Tensor, margin: float = 0.1) -> Tensor:
+    """Mean hinge ``relu(excess + margin)`` over ``[B, T, m]`` (see :func:`consistency_excess`)."""
+    return torch.relu(excess + margin).mean()
+
+
+def total_loss(
+    out: PassOutput,
+    x: Tensor | None,
+    weights: LossWeights,
+    *,
+    use_containment: bool,
+    use_consistency: bool,
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """Weighted sum of the three terms; returns ``(loss, {term: value})`` (values detached)."""
+    terms = {"log_volume": log_volume_loss(out.result, weights.skip)}
+    loss = weights.volume * terms["log_volume"]
+    if use_containment:
+        if x is None:
+            raise ValueError("x: containment loss needs ground-truth states")
+        terms["containment"] = containment_loss(out.result, x)
+        loss = loss + weights.containment * terms["containment"]
+    if use_consistency:
+        terms["consistency"] = consistency_loss(out.excess, weights.margin)
+        loss = loss + weights.consistency * terms["consistency"]
+    return loss, {k: v.detach() for k, v in terms.items()}

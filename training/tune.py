@@ -1,0 +1,212 @@
+"""Command line of the tuner: ``python -m training.tune`` and ``diffsmf tune`` (issue 7).
+
+    python -m training.tune --system spring_damper --filter hsnsmf --epochs 200 --out runs/sd
+    python -m training.tune --config sd.toml
+    torchrun --nproc_per_node 2 -m training.tune ...      # data-parallel (gloo / NCCL)
+
+Writes ``hyperparameters.json`` (initial, tuned and true bounds), ``report.json``,
+``loss_curve.csv`` and ``tuning.png`` (loss curve and mean set area before/after on held-out
+trajectories) to ``--out``. The loop itself is :func:`training.loop.tune`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from diffsmf.filters.base import SetFilter
+from training import ddp
+from training.config import TuneConfig, load_config
+from training.loop import LOSS_MODES, Data, TuneReport, evaluate, tune
+from training.losses import LossWeights
+
+__all__ = ["add_arguments", "build", "main", "tune"]
+
+
+# ---------------------------------------------------------------------------- command line
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``python -m training.tune`` / ``diffsmf tune`` (defaults: :class:`TuneConfig`)."""
+    d = TuneConfig()
+    a = parser.add_argument
+    a("--config", default=None, help="TOML file of options (command-line values win)")
+    a("--system", default=d.system, help="built-in system name (ds.systems.names())")
+    a("--filter", default=d.filter, help="filter name (ds.filters.by_name)")
+    a("--epochs", type=int, default=d.epochs)
+    a("--batch-size", type=int, default=d.batch_size)
+    a("--trajectories", type=int, default=d.trajectories, help="training trajectories")
+    a("--val-trajectories", type=int, default=d.val_trajectories)
+    a("--test-trajectories", type=int, default=d.test_trajectories, help="held-out audit")
+    a("--steps", type=int, default=d.steps, help="horizon of each trajectory")
+    a("--noise", default=d.noise, choices=["uniform", "vertex"], help="simulated noise")
+    a("--init-scale", type=float, default=d.init_scale, help="start from init_scale * b*")
+    a("--ground-truth", action="store_true", help="train with the true states")
+    a("--loss", default=d.loss, choices=list(LOSS_MODES))
+    a("--params", default=",".join(d.params), help="comma-separated hyperparameter names")
+    a("--optimizer", default=d.optimizer, choices=["adam", "adamw", "sgd"])
+    a("--lr", type=float, default=d.lr)
+    a("--patience", type=int, default=d.patience)
+    a("--val-every", type=int, default=d.val_every)
+    a("--checkpoint-every", type=int, default=d.checkpoint_every)
+    a("--seed", type=int, default=d.seed)
+    a("--out", default=d.out, help="output folder")
+    a("--no-progress", dest="progress", action="store_false")
+
+
+def _merge_config(args: argparse.Namespace) -> TuneConfig:
+    """TuneConfig from parsed args, with ``--config`` values where the CLI kept its default."""
+    d = TuneConfig()
+    vals = {k: getattr(args, k) for k in TuneConfig.keys() if hasattr(args, k)}
+    if isinstance(vals.get("params"), str):
+        vals["params"] = [p for p in vals["params"].split(",") if p]
+    if getattr(args, "config", None):
+        for k, v in load_config(args.config).items():
+            if k not in vals or vals[k] == getattr(d, k):
+                vals[k] = v
+    return TuneConfig(**vals)
+
+
+def build(cfg: TuneConfig) -> tuple[Any, SetFilter, dict[str, Any]]:
+    """System, filter (bounds scaled by ``init_scale``) and simulated data of a config."""
+    import diffsmf as ds
+
+    system = ds.systems.get(cfg.system)
+    filt = ds.filters.by_name(cfg.filter)(system, **cfg.filter_kwargs)
+    true = {
+        "process_noise": filt.process_noise.detach().clone(),
+        "measurement_noise": filt.measurement_noise.detach().clone(),
+    }
+    if cfg.init_scale != 1.0:
+        filt.process_noise = true["process_noise"] * cfg.init_scale
+        filt.measurement_noise = true["measurement_noise"] * cfg.init_scale
+    sim = {
+        split: system.simulate(cfg.steps, batch=b, seed=cfg.seed + off, noise=cfg.noise)
+        for split, b, off in (
+            ("train", cfg.trajectories, 0),
+            ("val", cfg.val_trajectories, 1),
+            ("test", cfg.test_trajectories, 2),
+        )
+        if b > 0
+    }
+    return system, filt, {"true": true, **sim}
+
+
+def _strip_x(traj: Any) -> Data:
+    return Data(y=traj.y, x=None, u=traj.u)
+
+
+def _write_outputs(
+    out: Path, cfg: TuneConfig, report: TuneReport, before: Any, after: Any, test: Any, true: dict
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    hp = {
+        "system": cfg.system,
+        "filter": cfg.filter,
+        "true_bounds": {k: v.tolist() for k, v in true.items()},
+        "initial": report.initial,
+        "tuned": report.final,
+        "best_epoch": report.best_epoch,
+        "seconds": report.seconds,
+    }
+    (out / "hyperparameters.json").write_text(json.dumps(hp, indent=2))
+    (out / "report.json").write_text(json.dumps(report.to_dict(), indent=2, default=str))
+    keys = sorted({k for r in report.history for k in r})
+    with (out / "loss_curve.csv").open("w") as fh:
+        fh.write(",".join(keys) + "\n")
+        for r in report.history:
+            fh.write(",".join("" if k not in r else f"{r[k]:.10g}" for k in keys) + "\n")
+    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    ep = [r["epoch"] for r in report.history]
+    ax[0].plot(ep, [r["loss"] for r in report.history], label="train loss")
+    vv = [(r["epoch"], r["val_loss"]) for r in report.history if "val_loss" in r]
+    if vv:
+        ax[0].plot(*zip(*vv), "o-", label="validation loss")
+    ax[0].set_xlabel("epoch")
+    ax[0].legend()
+    ax[0].set_title("loss")
+    if before is not None and after is not None:
+        k = torch.arange(before.shape[-1])
+        ax[1].semilogy(k, before, label="before tuning")
+        ax[1].semilogy(k, after, label="after tuning")
+        ax[1].set_xlabel("step k")
+        ax[1].set_title(f"mean set area, {test} held-out trajectories")
+        ax[1].legend()
+    fig.tight_layout()
+    fig.savefig(out / "tuning.png", dpi=110)
+    plt.close(fig)
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run the tuning command; writes hyperparameters.json, loss_curve.csv, tuning.png."""
+    cfg = _merge_config(args)
+    torch.manual_seed(cfg.seed)
+    ddp.init_from_env()
+    system, filt, sim = build(cfg)
+    train = sim["train"] if cfg.ground_truth else _strip_x(sim["train"])
+    val = sim.get("val")
+    if val is not None and not cfg.ground_truth:
+        val = _strip_x(val)
+    test = sim.get("test")
+    before = after = None
+    if test is not None:
+        with torch.no_grad():
+            before = filt(test.y, u=test.u).volume.mean(0)
+    report, filt = tune(
+        filt,
+        train,
+        params=cfg.params,
+        optimizer=cfg.optimizer,
+        lr=cfg.lr,
+        epochs=cfg.epochs,
+        batch_size=cfg.batch_size,
+        validation=val,
+        loss=cfg.loss,
+        weights=LossWeights(**cfg.weights),
+        val_every=cfg.val_every,
+        patience=cfg.patience,
+        checkpoint_dir=Path(cfg.out) / "checkpoints",
+        checkpoint_every=cfg.checkpoint_every,
+        seed=cfg.seed,
+        progress=cfg.progress,
+    )
+    if test is not None:
+        with torch.no_grad():
+            after = filt(test.y, u=test.u).volume.mean(0)
+        audit = evaluate(filt, test, LossWeights(**cfg.weights), loss="both")
+    if ddp.rank() == 0:
+        _write_outputs(
+            Path(cfg.out), cfg, report, before, after, cfg.test_trajectories, sim["true"]
+        )
+        print(
+            f"{cfg.filter} on {cfg.system}: {report.best_epoch} epochs kept, {report.seconds:.1f} s"
+        )
+        for k in report.final:
+            tv = sim["true"].get(k)
+            tv_s = "" if tv is None else f"   b* = {[round(t, 6) for t in tv.tolist()]}"
+            print(
+                f"  {k:<18} {[round(v, 6) for v in report.initial[k]]} -> "
+                f"{[round(v, 6) for v in report.final[k]]}{tv_s}"
+            )
+        if test is not None:
+            k0 = 1
+            print(
+                f"  mean area (held out, k>=1): {float(before[k0:].mean()):.4g} -> "
+                f"{float(after[k0:].mean()):.4g}; containment violations "
+                f"{audit.get('violations')} / {test.x.shape[0]} traj x {cfg.steps} steps"
+            )
+        print(f"  wrote {cfg.out}/hyperparameters.json, loss_curve.csv, tuning.png")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    parser = argparse.ArgumentParser(prog="python -m training.tune", description=__doc__)
+    add_arguments(parser)
+    raise SystemExit(main(parser.parse_args()))
