@@ -371,3 +371,35 @@ def test_plot_helpers_draw_every_set(tmp_path):
     plt.close(fig)
     with pytest.raises(ValueError, match="dims"):
         polygon_2d(Z3)
+
+
+def test_plot_bounds_and_volumes(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from diffsmf.filters.base import FilterResult
+    from diffsmf.plot import plot_bounds, plot_volumes
+
+    Z = rand_zono(2, 3, batch=(2, 5))
+    box = Z.interval_hull()
+    res = FilterResult(
+        sets=Z,
+        center=Z.center,
+        lower=box.lower,
+        upper=box.upper,
+        volume=Z.volume(),
+        consistent=torch.ones(2, 5, dtype=torch.bool),
+    )
+    fig, (ax1, ax2) = plt.subplots(1, 2)
+    plot_bounds(ax1, res, dim=1, truth=Z.center, label="zono")
+    lines = ax1.get_lines()
+    assert np.allclose(lines[0].get_ydata(), box.upper[0, :, 1].numpy())
+    assert np.allclose(lines[1].get_ydata(), box.lower[0, :, 1].numpy())
+    plot_volumes(ax2, {"a": res, "b": res})
+    assert np.allclose(ax2.get_lines()[1].get_ydata(), Z.volume()[0].numpy())
+    fig.savefig(tmp_path / "bounds.png")
+    plt.close(fig)
+    with pytest.raises(ValueError, match="dim"):
+        plot_bounds(ax1, res, dim=2)
