@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.linearize.jacobians import jacobian
-from diffsmf.linearize.jets import interval_hessian, interval_jacobian
+from diffsmf.linearize.jets import Jet, interval_jacobian, jet_eval
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval, interval_eval
 
@@ -114,15 +114,29 @@ def lagrange_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None)
     """
     c, J = _check(S, c, J)
     box = _hull_with(S, c)
-    H = interval_hessian(fn, box)  # [..., k, n, n]
+    jet = jet_eval(fn, box, order=2)  # value and Hessian enclosures over the hull
+    D = None if J is None else jacobian(fn, c) - J
+    return _lagrange(jet, box, S, c, J, D)
+
+
+def _lagrange(
+    jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, D: Tensor | None
+) -> Interval:
+    """Seed 001 eq. 26-28 from the jet over ``box``; ``D = J_exact(c) - J`` or None."""
     d = box - c  # [..., n] (outward rounded)
-    R = _quad_form(H, d) * 0.5
-    if J is None:
-        return R
-    D = jacobian(fn, c) - J
-    if bool((D.detach() == 0).all()):
-        return R
-    return R + _linear_range(S, D, c)
+    R = _quad_form(jet.hess, d) * 0.5
+    if D is not None and not bool((D.detach() == 0).all()):
+        R = R + _linear_range(S, D, c)
+    # float evaluation of fn(x) - fn(c) - J (x - c) is padded by its rounding scale
+    Jm = 0.0 if J is None else (J.abs() * d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2))
+    scale = _abs_max(jet.val) + (Jm if J is None else Jm.sum(-1))
+    return _padded(R.lower, R.upper, scale)
+
+
+def _abs_max(I: Interval) -> Tensor:
+    """``max |x|`` over an interval array (inf-safe, detached)."""
+    m = torch.maximum(I.lower.abs(), I.upper.abs()).detach()
+    return torch.where(torch.isfinite(m), m, torch.zeros_like(m))
 
 
 def hessian_eig_lower_bound(H: Interval) -> Tensor:
@@ -250,7 +264,8 @@ def dc_remainder(
     if V is None:
         return lagrange_remainder(fn, S, c, J)
     box = _hull_with(S, c)
-    H = interval_hessian(fn, box)  # [..., k, n, n]
+    jet = jet_eval(fn, box, order=2)
+    H = jet.hess  # [..., k, n, n]
     n = S.dim
     ones = torch.ones(n, dtype=S.dtype, device=S.device)
     alpha = (-hessian_eig_lower_bound(H)).clamp(min=0) * 0.5  # [..., k]
@@ -289,16 +304,14 @@ def dc_remainder(
     # rounding scale: magnitudes of every term summed above
     adv = dv.abs()
     scale = (fv.abs() + fc.abs() + (J.abs() * adv.unsqueeze(-2)).sum(-1)).amax(0)
+    scale = scale + _abs_max(jet.val)  # rounding of fn at interior points
     scale = scale + (torch.stack(wmax).amax(0) * dv2).sum(-1).amax(0)
     gm = grad_c.abs() if grad_v is None else grad_c.abs() + grad_v.abs().amax(0)
     scale = scale + 4 * (gm * adv.amax(0).unsqueeze(-2)).sum(-1)
     scale = scale + 4 * (torch.stack(wmax).amax(0) * (adv.amax(0) ** 2).unsqueeze(-2)).sum(-1)
     out = _padded(lower, upper, scale)
     if with_lagrange:
-        lag = _quad_form(H, box - c) * 0.5
-        if not bool((grad_c.detach() == 0).all()):
-            lag = lag + _linear_range(S, grad_c, c)
-        out = out.intersect(lag)
+        out = out.intersect(_lagrange(jet, box, S, c, J, grad_c))
     return out
 
 
