@@ -67,7 +67,8 @@ __all__ = [
 class ILCDesign:
     """Gains and verified numbers: L [n, l], K [q, l], P1 [n, n], P2 [q, q], gamma_w (l2 gain
     from the uncertainty signal w to the fault error), status, message, lmi_max_eig (numpy),
-    contraction = rho with V(Φ z) <= rho^2 V(z), V = diag(P1, P2) (numpy generalized eigenvalue).
+    contraction = c with V(Φ z) <= c^2 V(z), V = diag(P1, P2) (numpy generalized eigenvalue);
+    rho = the contraction imposed in the LMI (c <= rho).
     """
 
     status: str
@@ -79,6 +80,7 @@ class ILCDesign:
     gamma_w: float = float("inf")
     lmi_max_eig: float = float("nan")
     contraction: float = float("nan")
+    rho: float = float("nan")
 
     @property
     def feasible(self) -> bool:
@@ -224,6 +226,7 @@ def design_ilc(
         message="verified: 2-D LMI negative definite (numpy)" if ok else
         f"numpy check failed (LMI max eig {lmi_max:.3g})",
         L=L, K=K, P1=P1v, P2=P2v, gamma_w=float(np.sqrt(gv)), lmi_max_eig=lmi_max, contraction=rho,
+        rho=float(np.sqrt(rho2.value)),
     )
 
 
