@@ -236,11 +236,12 @@ def test_intersect_ellipsoid_contains_common_points(seed, n, method):
     assert (F.volume()[meet] <= vmin[meet] * (1 + 1e-9)).all()
 
 
-def test_intersect_measurement_contains_feasible_points():
+@pytest.mark.parametrize("m", [2, 3])
+def test_intersect_measurement_contains_feasible_points(m):
     E = _ell(3, (2,), seed=8)
     g = torch.Generator().manual_seed(8)
-    H = torch.randn(2, 2, 3, generator=g)
-    R = _spd(2, (2,), seed=9) * 0.3
+    H = torch.randn(2, m, 3, generator=g)
+    R = _spd(m, (2,), seed=9) * 0.3
     y = (H @ E.center.unsqueeze(-1)).squeeze(-1) + 0.2
     F = E.intersect_measurement(H, y, R)
     x = _pts(E, 3000, 3)

@@ -296,6 +296,17 @@ class Ellipsoid(ConvexSet):
         P, c = self.shape, self.center_
         e = y - (H @ c.unsqueeze(-1)).squeeze(-1)
         G = _sym(H @ P @ H.mT)
+        if H.shape[-2] == self.dim and rho is None:
+            # square H: the measurement set is the ellipsoid E(H^-1 y, H^-1 R H^-T); use the
+            # two-sided form (no cancellation as rho -> 1) when H is invertible everywhere
+            Hi_y, info = torch.linalg.solve_ex(H, y.unsqueeze(-1))
+            if bool((info == 0).all()):
+                X = torch.linalg.solve(H, R)
+                S2 = _sym(torch.linalg.solve(H, X.mT))
+                _, info2 = torch.linalg.cholesky_ex(S2.detach())
+                if bool((info2 == 0).all()):
+                    E2 = Ellipsoid._make(Hi_y.squeeze(-1), S2)
+                    return self.intersect_ellipsoid(E2, method=method)
         fam = _MeasFamily(P, H, G, _sym(R), e)
         empty = fam.empty()
         rho_t = self._pick_rho(fam, method, rho, H, R)
@@ -325,14 +336,16 @@ class Ellipsoid(ConvexSet):
             HH = torch.linalg.eigvalsh(_sym(H @ H.mT))[..., 0].clamp(min=1e-300)
             s2 = torch.linalg.eigvalsh(_sym(R))[..., -1] / HH
             r = s1.sqrt() / (s1.sqrt() + s2.sqrt())
-            return r.clamp(max=1.0 - 1e-6).expand(fam.batch)
+            top = 1.0 - max(1e-6, 1e4 * torch.finfo(self.dtype).eps)
+            return r.clamp(max=top).expand(fam.batch)
         if method not in ("volume", "trace"):
             raise ValueError(f"method: expected 'volume', 'trace' or 'fixed', got {method!r}")
         if method == "volume":
             red, full = fam.red_log_volume, fam.log_volume
         else:
             red, full = fam.red_trace, fam.trace
-        top = 1.0 - 1e-9 if fam.m == self.dim else 1.0 - 1e-6
+        eps = torch.finfo(self.dtype).eps
+        top = 1.0 - max(1e-9, 100 * eps) if fam.m == self.dim else 1.0 - max(1e-6, 1e4 * eps)
         return _minimize_rho(red, full, fam.batch, self.center_, fam.requires_grad, top)
 
     def intersect_strip(self, strip: Any, method: str = "volume", rho: Any = None) -> Ellipsoid:

@@ -98,8 +98,7 @@ class Interval(ConvexSet):
             lo, hi = torch.broadcast_tensors(lo, hi)
         except RuntimeError as exc:
             raise ValueError(
-                f"upper: shape {tuple(hi.shape)} does not broadcast with lower "
-                f"{tuple(lo.shape)}"
+                f"upper: shape {tuple(hi.shape)} does not broadcast with lower {tuple(lo.shape)}"
             ) from exc
         if (lo.detach() > hi.detach()).any():
             raise ValueError("lower: must be <= upper elementwise")
@@ -484,13 +483,16 @@ def _add(a: Interval, b: Interval) -> Interval:
 
 def _mul(a: Interval, b: Interval) -> Interval:
     # seed 001 sec. 3: [a] * [b] = [min, max] of the four endpoint products
-    p = torch.stack(
-        torch.broadcast_tensors(
-            a.lower * b.lower, a.lower * b.upper, a.upper * b.lower, a.upper * b.upper
-        )
-    )
-    p = _nan0(p)
-    return Interval._make(_down(p.amin(0)), _up(p.amax(0)))
+    al, au, bl, bu = torch.broadcast_tensors(a.lower, a.upper, b.lower, b.upper)
+    fa = torch.stack([al, al, au, au])
+    fb = torch.stack([bl, bu, bl, bu])
+    p = _nan0(fa * fb)
+    lo, hi = p.amin(0), p.amax(0)
+    # a zero product is exact unless some product underflowed (non-zero factors, zero result)
+    under = ((p == 0) & (fa != 0) & (fb != 0)).any(0)
+    lo = torch.where((lo == 0) & ~under, lo, _down(lo))
+    hi = torch.where((hi == 0) & ~under, hi, _up(hi))
+    return Interval._make(lo, hi)
 
 
 def _recip(b: Interval) -> Interval:
@@ -519,9 +521,7 @@ def _div(a: Interval, b: Interval) -> Interval:
     one = torch.ones_like(c)
     sc = torch.where(nonzero, c, one)
     sd = torch.where(nonzero, d, one)
-    q = torch.stack(
-        torch.broadcast_tensors(a.lower / sc, a.lower / sd, a.upper / sc, a.upper / sd)
-    )
+    q = torch.stack(torch.broadcast_tensors(a.lower / sc, a.lower / sd, a.upper / sc, a.upper / sd))
     direct = Interval._make(_down(q.amin(0)), _up(q.amax(0)))
     if bool(nonzero.all()):
         return direct
@@ -784,9 +784,28 @@ def _build_table() -> dict[Any, Callable]:
         for fn in fns:
             table[fn] = impl
     for name in [
-        "sin", "cos", "exp", "log", "sqrt", "tanh", "abs", "square", "sigmoid", "atan",
-        "relu", "clamp", "reciprocal", "mean", "reshape", "unsqueeze", "squeeze",
-        "transpose", "permute", "movedim", "flatten", "clone",
+        "sin",
+        "cos",
+        "exp",
+        "log",
+        "sqrt",
+        "tanh",
+        "abs",
+        "square",
+        "sigmoid",
+        "atan",
+        "relu",
+        "clamp",
+        "reciprocal",
+        "mean",
+        "reshape",
+        "unsqueeze",
+        "squeeze",
+        "transpose",
+        "permute",
+        "movedim",
+        "flatten",
+        "clone",
     ]:
         if hasattr(torch, name):
             table[getattr(torch, name)] = _unary(name)
