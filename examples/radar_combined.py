@@ -137,13 +137,16 @@ def _figures(out: Path, traj, results) -> None:
         c = res.center[0]
         ax.plot(c[:, 0], c[:, 2], styles[name], lw=1, label=name)
     res_c = results["Combined"][0]
+    region = res_c.confidence_region(k=3.0)
     T = res_c.center.shape[1] - 1
     for k in range(0, T + 1, 10):
         plot_set(ax, res_c.sets[0, k], dims=(0, 2), edgecolor="C2", linewidth=0.8)
+        plot_set(ax, region[0, k], dims=(0, 2), edgecolor="C2", linewidth=0.6, linestyle="--")
         ax.plot(res_c.center[0, k, 0], res_c.center[0, k, 2], "C2*", ms=6)
     ax.set_xlabel("x1 (m)")
     ax.set_ylabel("x2 (m)")
-    ax.set_title("radar (seed 003 fig. 3): combined-filter mean sets every 10 steps")
+    ax.set_title("radar (seed 003 fig. 3): combined mean sets (solid) and 3-sigma regions\n"
+                 "(mean set (+) F(0, 9P), dashed) every 10 steps", fontsize=10)
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "radar_combined.png", dpi=90)
