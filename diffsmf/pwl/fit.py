@@ -1,0 +1,349 @@
+"""Adaptive least-squares fitting of SCPLNN models (seed 004 sec. 3.1.2).
+
+Step 1: least-squares affine fit; stop if its max sample error is below eps.
+Step 2: connect the max-error sample p1 to the domain's vertices (:func:`cone_partition`).
+Step 3: least-squares fit of the vertex weights (refit of the whole model); every region whose
+max sample error exceeds eps is split at its max-error sample by connecting it to the region's
+vertices (:class:`Refiner`); repeat until no region exceeds eps.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from diffsmf.pwl.partition import (
+    Refiner,
+    cone_partition,
+    grid_partition,
+    simplex_domain,
+)
+from diffsmf.pwl.scplnn import SCPLNN
+
+__all__ = ["FitReport", "fit_scplnn", "fit_weights", "as_xy", "domain_box"]
+
+_F64 = torch.float64
+BOX_MAX_DIM = 5  # beyond this a box domain needs > 2n (n-1)! = 1440 initial simplices
+
+
+@dataclass
+class FitReport:
+    """Summary of :func:`fit_scplnn`.
+
+    regions: number of simplices; vertices: partition vertices; parameters: fitted weights
+    (vertices * outputs); max_error / rms_error ``[p]``: training errors per output; eps ``[p]``;
+    converged: max error < eps for every output; rounds: refit rounds; seconds: wall time;
+    history: (regions, max scaled error) after each refit; stop_reason: why the loop ended.
+    """
+
+    regions: int
+    vertices: int
+    parameters: int
+    max_error: Tensor
+    rms_error: Tensor
+    eps: Tensor
+    converged: bool
+    rounds: int
+    seconds: float
+    stop_reason: str
+    history: list[tuple[int, float]] = field(default_factory=list)
+
+    def summary(self) -> str:
+        me = ", ".join(f"{v:.4g}" for v in self.max_error.tolist())
+        ep = ", ".join(f"{v:.4g}" for v in self.eps.tolist())
+        return (f"SCPLNN fit: {self.regions} regions, {self.vertices} vertices, "
+                f"{self.parameters} weights; max training error [{me}] (eps [{ep}]), "
+                f"converged={self.converged} ({self.stop_reason}), {self.rounds} rounds, "
+                f"{self.seconds:.3f} s")
+
+
+def as_xy(X: Any, Y: Any) -> tuple[Tensor, Tensor]:
+    """Validate samples: X ``[N, n]`` (or [N]) and Y ``[N, p]`` (or [N]) as float64 tensors."""
+    X = torch.as_tensor(X, dtype=_F64)
+    Y = torch.as_tensor(Y, dtype=_F64)
+    if X.dim() == 1:
+        X = X[:, None]
+    if Y.dim() == 1:
+        Y = Y[:, None]
+    if X.dim() != 2 or X.shape[1] < 1:
+        raise ValueError(f"X: expected [N, n] with n >= 1, got shape {tuple(X.shape)}")
+    if Y.dim() != 2 or Y.shape[0] != X.shape[0]:
+        raise ValueError(f"Y: expected [{X.shape[0]}, p], got shape {tuple(Y.shape)}")
+    if X.shape[0] < 1:
+        raise ValueError("X: need at least one sample")
+    if not torch.isfinite(X).all():
+        raise ValueError("X: contains NaN or inf")
+    if not torch.isfinite(Y).all():
+        raise ValueError("Y: contains NaN or inf")
+    return X, Y
+
+
+def domain_box(X: Tensor, domain: Any) -> tuple[Tensor, Tensor]:
+    """Box ``(lower [n], upper [n])``: the given one (checked to contain X) or X's bounding box
+    (a zero-width axis is widened by 0.5 on each side)."""
+    if domain is None or isinstance(domain, str):
+        lo, hi = X.amin(0), X.amax(0)
+        flat = hi - lo <= 1e-12 * (1 + hi.abs())
+        return torch.where(flat, lo - 0.5, lo), torch.where(flat, hi + 0.5, hi)
+    lo, hi = (domain.lower, domain.upper) if hasattr(domain, "lower") else domain
+    lo = torch.as_tensor(lo, dtype=_F64).reshape(-1)
+    hi = torch.as_tensor(hi, dtype=_F64).reshape(-1)
+    if lo.shape != (X.shape[1],) or hi.shape != lo.shape or not bool((hi > lo).all()):
+        raise ValueError(f"domain: expected lower < upper, each of shape [{X.shape[1]}]")
+    if bool(((X < lo) | (X > hi)).any()):
+        raise ValueError("X: some samples lie outside the given domain")
+    return lo, hi
+
+
+def fit_weights(
+    n_vertices: int, idx: Tensor, lam: Tensor, Y: Tensor, simplices: Tensor, ridge: float = 1e-10
+) -> Tensor:
+    """Least-squares vertex weights ``[nv, p]`` for the nodal basis (sec. 3.1.1: "weights by
+    least squares").
+
+    Sample i has basis values ``lam [N, n+1]`` at vertices ``idx [N, n+1]``. Solves the normal
+    equations ``(Phi'Phi + ridge * s * L) W = Phi'Y`` (Phi sparse, n+1 nonzeros per row; L the
+    graph Laplacian of the partition's edges, s the mean diagonal of Phi'Phi) by Cholesky with
+    one step of iterative refinement; dense for up to 3000 vertices, scipy sparse beyond. The
+    tiny Laplacian term makes the problem well posed when some vertex has too few samples in
+    its star: such vertices take the harmonic average of their neighbours' values.
+    """
+    p = Y.shape[1]
+    n1 = idx.shape[1]
+    rows = idx[:, :, None].expand(-1, n1, n1).reshape(-1)
+    cols = idx[:, None, :].expand(-1, n1, n1).reshape(-1)
+    vals = (lam[:, :, None] * lam[:, None, :]).reshape(-1)
+    rhs = torch.zeros(n_vertices, p, dtype=_F64).index_add_(
+        0, idx.reshape(-1), (lam[..., None] * Y[:, None, :]).reshape(-1, p))
+    er = simplices[:, :, None].expand(-1, n1, n1).reshape(-1)
+    ec = simplices[:, None, :].expand(-1, n1, n1).reshape(-1)
+    off = er != ec
+    er, ec = er[off], ec[off]
+    diag = torch.zeros(n_vertices, dtype=_F64).index_add_(0, rows[rows == cols], vals[rows == cols])
+    s = float(diag.sum()) / max(1, int((diag > 0).sum()))
+    alpha = ridge * s
+    if n_vertices <= 3000:
+        G = torch.zeros(n_vertices, n_vertices, dtype=_F64)
+        G.index_put_((rows, cols), vals, accumulate=True)
+        Gr = G.clone()
+        Gr.index_put_((er, ec), torch.full_like(er, -alpha, dtype=_F64), accumulate=True)
+        Gr.index_put_((er, er), torch.full_like(er, alpha, dtype=_F64), accumulate=True)
+        L, info = torch.linalg.cholesky_ex(Gr)
+        if int(info) == 0:
+            W = torch.cholesky_solve(rhs, L)
+            W = W + torch.cholesky_solve(rhs - Gr @ W, L)  # iterative refinement
+        else:  # rank deficient (e.g. ridge=0 and a vertex without samples): min-norm solution
+            W = torch.linalg.lstsq(Gr, rhs, driver="gelsd").solution
+        return W
+    import numpy as np
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    r = torch.cat([rows, er, er]).numpy()
+    c = torch.cat([cols, ec, er]).numpy()
+    v = torch.cat([vals, torch.full((len(er),), -alpha), torch.full((len(er),), alpha)]).numpy()
+    Gs = sp.csc_matrix((v, (r, c)), shape=(n_vertices, n_vertices))
+    solve = spla.factorized(Gs)
+    b = rhs.numpy()
+    W = np.stack([solve(b[:, j]) for j in range(p)], 1)
+    W = W + np.stack([solve((b - Gs @ W)[:, j]) for j in range(p)], 1)
+    return torch.from_numpy(W)
+
+
+def _eps_tensor(eps: Any, p: int) -> Tensor:
+    e = torch.as_tensor(eps, dtype=_F64).reshape(-1)
+    if e.numel() == 1:
+        e = e.expand(p).clone()
+    if e.shape != (p,) or not bool((e > 0).all()) or not torch.isfinite(e).all():
+        raise ValueError(f"eps: expected a positive number or {p} positive numbers, got {eps}")
+    return e
+
+
+def fit_scplnn(
+    X: Any,
+    Y: Any,
+    eps: Any,
+    max_regions: int = 10_000,
+    domain: Any = None,
+    *,
+    max_rounds: int = 200,
+    ridge: float = 1e-6,
+    snap: float | None = None,
+    mark: float = 0.0,
+    rule: str = "interior",
+    edge_clip: float = 0.5,
+    outside: str = "error",
+    progress: bool | None = None,
+) -> tuple[SCPLNN, FitReport]:
+    """Fit an SCPLNN to samples X ``[N, n]``, Y ``[N, p]`` (or [N]) by adaptive splitting.
+
+    Args:
+        eps: target max absolute training error, a number or one per output ``[p]``.
+        max_regions: stop splitting once the partition has this many simplices (the last split
+            may overshoot by the children of one split).
+        domain: ``None`` (bounding box of X; for n > 5 a simplex containing it), a box
+            ``(lower, upper)`` / Interval containing X, ``"box"`` or ``"simplex"``.
+        max_rounds: cap on refit rounds.
+        ridge: relative weight of the Laplacian regulariser (see :func:`fit_weights`).
+        snap: barycentric threshold of the split rule (see :class:`Refiner`); default
+            0.5 / (n + 1).
+        mark: split only regions whose error exceeds ``max(eps, mark * current max error)``
+            each round (0: every region above eps, as in seed 004).
+        outside: policy of the returned model for points outside the domain.
+        progress: tqdm progress bar (None: shown only for fits longer than 2 s on a terminal).
+
+    Returns ``(model, report)``; ``report.converged`` says whether max error < eps everywhere.
+    The loop is made of many small tensor operations, so it runs with one intra-op thread
+    (restored afterwards): on a loaded 2-core machine thread hand-offs cost more than the work.
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _fit(X, Y, eps, max_regions, domain, max_rounds, ridge, snap, mark, rule,
+                    edge_clip, outside, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: int, ridge: float,
+         snap: float, mark: float, rule: str, edge_clip: float, outside: str,
+         progress: bool | None
+         ) -> tuple[SCPLNN, FitReport]:
+    t0 = time.perf_counter()
+    X, Y = as_xy(X, Y)
+    N, n = X.shape
+    p = Y.shape[1]
+    e = _eps_tensor(eps, p)
+    if max_regions < 1:
+        raise ValueError(f"max_regions: must be >= 1, got {max_regions}")
+    lo, hi = domain_box(X, domain)
+    snap = 0.5 / (n + 1) if snap is None else float(snap)
+    use_box = domain == "box" or (not isinstance(domain, str) and (domain is not None or
+                                                                    n <= BOX_MAX_DIM))
+    if domain is not None and isinstance(domain, str) and domain not in ("box", "simplex"):
+        raise ValueError(f"domain: expected None, 'box', 'simplex' or (lower, upper), got {domain}")
+
+    # Step 1: one affine function by least squares
+    Xa = torch.cat([X, torch.ones(N, 1, dtype=_F64)], 1)
+    coef = torch.linalg.lstsq(Xa, Y, driver="gelsd").solution  # [n+1, p]
+    score = ((Y - Xa @ coef).abs() / e).amax(-1)
+    history = [(1, float(score.max()))]
+    if use_box:
+        if float(score.max()) < 1:
+            V, S = grid_partition(lo, hi, 1)
+            return _finish(V, S, coef, None, X, Y, e, t0, 0, "affine fit below eps", history,
+                           outside, True)
+        # Step 2: connect the max-error sample to the domain's vertices
+        V, S = cone_partition(lo, hi, X[int(score.argmax())])
+        ref = Refiner(V, S, snap=snap, rule=rule, edge_clip=edge_clip)
+    else:
+        Vd = simplex_domain(lo, hi)
+        S0 = torch.arange(n + 1)[None]
+        if float(score.max()) < 1:
+            return _finish(Vd, S0, coef, None, X, Y, e, t0, 0, "affine fit below eps", history,
+                           outside, False)
+        ref = Refiner(Vd, S0, snap=snap, rule=rule, edge_clip=edge_clip)
+        ref.split(X[int(score.argmax())], 0)
+    assign = ref.relocate(X, ref.alive.nonzero().flatten())
+    return _adaptive_loop(ref, assign, X, Y, e, t0, max_regions, max_rounds, ridge, mark,
+                          outside, use_box, progress, history)
+
+
+def _adaptive_loop(ref: Refiner, assign: Tensor, X: Tensor, Y: Tensor, e: Tensor, t0: float,
+                   max_regions: int, max_rounds: int, ridge: float, mark: float, outside: str,
+                   use_box: bool,
+                   progress: bool | None, history: list) -> tuple[SCPLNN, FitReport]:
+    """Step 3 of sec. 3.1.2: refit, split every region above eps at its max-error sample."""
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=None, disable=(not progress) if progress is not None else None,
+               delay=0 if progress else 2.0, desc="fit_scplnn", unit="round", leave=False)
+    reason, rounds = "max_rounds reached", 0
+    W = None
+    for _ in range(max_rounds):
+        rounds += 1
+        V, S_all = ref.V, ref.S
+        idx = S_all[assign]
+        lam = ref.lam(X, assign)
+        live_S = S_all[ref.alive]
+        W = fit_weights(V.shape[0], idx, lam, Y, live_S, ridge)
+        resid = (lam[..., None] * W[idx]).sum(1) - Y
+        score = (resid.abs() / e).amax(-1)  # [N] error in units of eps
+        worst = float(score.max())
+        history.append((ref.n_simplices, worst))
+        bar.update(1)
+        bar.set_postfix(regions=ref.n_simplices, max_err_over_eps=f"{worst:.3g}")
+        if worst < 1:
+            reason = "max error below eps"
+            break
+        if ref.n_simplices >= max_regions:
+            reason = "max_regions reached"
+            break
+        cands = _split_candidates(assign, score, ref.S.shape[0], max(1.0, mark * worst))
+        if cands.numel() == 0:
+            reason = "no splittable region left (max-error samples at vertices)"
+            break
+        for q in cands.tolist():
+            s = int(assign[q])
+            if not bool(ref.alive[s]):
+                continue  # already split this round through a shared face
+            out = ref.split(X[q], s)
+            if out is None:
+                continue
+            removed, children = out
+            moved = torch.isin(assign, removed).nonzero().flatten()
+            assign[moved] = ref.relocate(X[moved], children)
+            if ref.n_simplices >= max_regions:
+                break
+    bar.close()
+    if W is None or W.shape[0] != ref.V.shape[0]:  # split after the last fit: refit
+        W = fit_weights(ref.V.shape[0], ref.S[assign], ref.lam(X, assign), Y, ref.S[ref.alive],
+                        ridge)
+    V, S, _ = ref.compact()
+    return _finish(V, S, None, W, X, Y, e, t0, rounds, reason, history, outside, use_box)
+
+
+def _split_candidates(assign: Tensor, score: Tensor, cap: int, level: float) -> Tensor:
+    """Max-error sample of each region whose max error (in units of eps) is at least ``level``,
+    sorted by decreasing error. Returns sample indices."""
+    reg_max = torch.zeros(cap, dtype=_F64).scatter_reduce(0, assign, score, "amax")
+    is_best = (score == reg_max[assign]) & (score >= level)
+    pts = is_best.nonzero().flatten()
+    # one per region (first index), then by decreasing error
+    _, first = _first_per_group(assign[pts])
+    pts = pts[first]
+    return pts[torch.argsort(score[pts], descending=True)]
+
+
+def _first_per_group(g: Tensor) -> tuple[Tensor, Tensor]:
+    """For group labels g [k]: unique labels and the index of each label's first occurrence."""
+    uniq, inv = torch.unique(g, return_inverse=True)
+    first = torch.full((uniq.numel(),), g.numel(), dtype=torch.long).scatter_reduce(
+        0, inv, torch.arange(g.numel()), "amin")
+    return uniq, first
+
+
+def _finish(V: Tensor, S: Tensor, coef: Tensor | None, W: Tensor | None, X: Tensor, Y: Tensor,
+            e: Tensor, t0: float, rounds: int, reason: str, history: list, outside: str,
+            box: bool) -> tuple[SCPLNN, FitReport]:
+    """Build the model (weights W, or the affine ``coef`` at the vertices) and the report."""
+    if W is None:
+        W = torch.cat([V, torch.ones(V.shape[0], 1, dtype=_F64)], 1) @ coef
+    model = SCPLNN(V, S, W, outside=outside, box_domain=box)
+    used = torch.zeros(V.shape[0], dtype=torch.bool)
+    used[S.reshape(-1)] = True
+    if not bool(used.all()):  # drop vertices left unused (e.g. a snapped corner)
+        newid = torch.cumsum(used.long(), 0) - 1
+        model = SCPLNN(V[used], newid[S], W[used], outside=outside, box_domain=box)
+    with torch.no_grad():
+        err = (model(X, outside="clamp") - Y).abs()
+    report = FitReport(
+        regions=model.n_regions, vertices=model.vertices.shape[0],
+        parameters=model.n_parameters(), max_error=err.amax(0), rms_error=err.pow(2).mean(0).sqrt(),
+        eps=e, converged=bool((err.amax(0) < e).all()), rounds=rounds,
+        seconds=time.perf_counter() - t0, stop_reason=reason, history=history)
+    return model, report
