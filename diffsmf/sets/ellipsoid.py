@@ -463,16 +463,21 @@ def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     ld = lam.detach().clamp(min=1e-300)
     lo = torch.log(1.0 / ld[..., -1].sqrt())
     hi = torch.log(1.0 / ld[..., 0].sqrt())
-    for _ in range(80):  # bisection on the increasing function F(exp(t))
+    for _ in range(32):  # bisection on the increasing function F(exp(t))
         mid = 0.5 * (lo + hi)
         pos = _vol_condition(mid.exp(), ld) > 0
         hi = torch.where(pos, mid, hi)
         lo = torch.where(pos, lo, mid)
     p0 = (0.5 * (lo + hi)).exp()
-    # differentiable Newton step: p = p0 - F(p0)/F'(p0), F' analytic
-    q = (1.0 / p0).unsqueeze(-1)
-    dF = (((2 * q**3) * (lam + q) + (lam - q * q) * q * q) / (lam + q) ** 2).sum(-1)
-    return p0 - _vol_condition(p0, lam) / dF
+    p0 = (p0 - _vol_condition(p0, ld) / _vol_condition_dp(p0, ld)).detach()  # Newton polish
+    # differentiable Newton step: p = p0 - F(p0)/F'(p0), F' analytic (implicit function)
+    return p0 - _vol_condition(p0, lam) / _vol_condition_dp(p0, lam)
+
+
+def _vol_condition_dp(p: Tensor, lam: Tensor) -> Tensor:
+    """``dF/dp`` of :func:`_vol_condition` (positive)."""
+    q = (1.0 / p).unsqueeze(-1)
+    return (((2 * q**3) * (lam + q) + (lam - q * q) * q * q) / (lam + q) ** 2).sum(-1)
 
 
 def _fogel_huang_rho(g: Tensor, r: Tensor, e: Tensor, n: int) -> Tensor:
@@ -528,6 +533,14 @@ class _MeasFamily:
             P.shape[:-2], H.shape[:-2], G.shape[:-2], R.shape[:-2], e.shape[:-1]
         )
         self.n, self.m = P.shape[-1], G.shape[-1]
+        self._reduced = False
+
+    def _reduce(self) -> None:
+        """Reduced scalar quantities for the search (computed lazily, no gradient)."""
+        if self._reduced:
+            return
+        self._reduced = True
+        P, G, R, e = self.P, self.G, self.R, self.e
         with torch.no_grad():
             L = torch.linalg.cholesky(R)
             X = torch.linalg.solve_triangular(L, G, upper=False)
@@ -548,6 +561,7 @@ class _MeasFamily:
 
     # ---------------------------------------------------------------- reduced (search only)
     def _Di(self, rho: Tensor) -> Tensor:
+        self._reduce()
         r = rho.unsqueeze(-1)
         return r * self.gam.unsqueeze(-2) + (1 - r)  # rho [..., K] -> [..., K, m]
 
@@ -627,7 +641,7 @@ def _golden(
     maximize: bool = False,
     lo: Tensor | None = None,
     hi: Tensor | None = None,
-    iters: int = 48,
+    iters: int = 36,
     top: float = 1.0 - 1e-9,
 ) -> Tensor:
     """Batched golden-section search of a unimodal ``fun(rho [..., K]) -> [..., K]`` on
