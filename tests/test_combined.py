@@ -23,6 +23,15 @@ from diffsmf.systems import System
 torch.set_default_dtype(torch.float64)
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """These tests use many tiny matrices; extra intra-op threads only add contention."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def _spd(n: int, gen: torch.Generator, scale: float = 1.0) -> torch.Tensor:
     L = torch.randn(n, n, generator=gen)
     return scale * (L @ L.T + 0.5 * torch.eye(n))
