@@ -327,3 +327,41 @@ def test_validation_names_argument():
         Interval.from_center_radius(torch.zeros(2), torch.tensor([1.0, -1.0]))
     B = Interval.from_center_radius(torch.zeros(2), torch.ones(2))
     assert B.contains(torch.tensor([1.0, -1.0]), atol=0.0)
+
+
+def test_point_intervals_enclose_exact_values():
+    """Outward rounding: degenerate inputs must enclose the exact (high-precision) result."""
+    from fractions import Fraction
+
+    import mpmath
+
+    mpmath.mp.prec = 200
+    g = torch.Generator().manual_seed(42)
+    x = torch.randn(150, generator=g) * 10.0 ** torch.randint(-3, 4, (150,), generator=g)
+    y = torch.randn(150, generator=g) * 10.0 ** torch.randint(-3, 4, (150,), generator=g)
+    X, Y = Interval(x, x), Interval(y, y)
+    for res, exact in (
+        (X + Y, lambda a, b: Fraction(a) + Fraction(b)),
+        (X - Y, lambda a, b: Fraction(a) - Fraction(b)),
+        (X * Y, lambda a, b: Fraction(a) * Fraction(b)),
+        (X / Y, lambda a, b: Fraction(a) / Fraction(b)),
+        (X**3, lambda a, b: Fraction(a) ** 3),
+    ):
+        for i in range(150):
+            v = exact(x[i].item(), y[i].item())
+            assert Fraction(res.lower[i].item()) <= v <= Fraction(res.upper[i].item())
+    xs = x.clamp(-600, 600)
+    Xs = Interval(xs, xs)
+    ax = x.abs() + 1e-3
+    AX = Interval(ax, ax)
+    for res, fn, pts in (
+        (torch.exp(Xs), mpmath.exp, xs),
+        (torch.sin(Xs), mpmath.sin, xs),
+        (torch.cos(Xs), mpmath.cos, xs),
+        (torch.tanh(Xs), mpmath.tanh, xs),
+        (torch.log(AX), mpmath.log, ax),
+        (torch.sqrt(AX), mpmath.sqrt, ax),
+    ):
+        for i in range(150):
+            v = fn(mpmath.mpf(pts[i].item()))
+            assert mpmath.mpf(res.lower[i].item()) <= v <= mpmath.mpf(res.upper[i].item()), fn
