@@ -267,6 +267,15 @@ def test_remainders_gradcheck_wrt_zonotope_fields():
 
         assert torch.autograd.gradcheck(bounds, (c0, G0))
 
+    h0 = torch.tensor([0.05, 0.08], requires_grad=True)  # the Stirling step (a hyperparameter)
+    Z = Zonotope(c0.detach(), G0.detach())
+
+    def by_step(h):
+        R = dc_remainder(fn, Z, Z.center, stirling_jacobian(fn, Z.center, h))
+        return torch.cat([R.lower, R.upper], -1)
+
+    assert torch.autograd.gradcheck(by_step, (h0,))
+
 
 def test_parameter_deviation_contains_switching_mismatch():
     for name in ("mismatch_quadratic", "fermenter"):

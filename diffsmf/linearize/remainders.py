@@ -266,6 +266,9 @@ def dc_remainder(
     box = _hull_with(S, c)
     jet = jet_eval(fn, box, order=2)
     H = jet.hess  # [..., k, n, n]
+    if bool((H.lower.detach() == 0).all() and (H.upper.detach() == 0).all()):
+        # fn is affine on the hull: r(x) = (J_exact - J)(x - c) exactly, no vertices needed
+        return _lagrange(jet, box, S, c, J, None if J is None else jacobian(fn, c) - J)
     n = S.dim
     ones = torch.ones(n, dtype=S.dtype, device=S.device)
     alpha = (-hessian_eig_lower_bound(H)).clamp(min=0) * 0.5  # [..., k]
