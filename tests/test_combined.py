@@ -356,6 +356,9 @@ def test_nan_skip_and_bad_input():
     assert not torch.allclose(st.set.shape[1], pred.set.shape[1])
     with pytest.raises(ValueError, match="initial_cov"):
         CombinedFilter(sys, initial_cov=torch.eye(3))
+    default = ds.filters.by_name("combined")(sys)  # P0 = covariance of uniform on x0_set
+    pts = sys.x0_set.sample(20000, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(default.initial_cov, torch.cov(pts.T), rtol=0.1, atol=0.01)
     with pytest.raises(ValueError, match="weight"):
         CombinedFilter(sys, initial_cov=M["P0"], weight="det")
     sys0, _ = _linear_system(seed=11, gaussian=False)

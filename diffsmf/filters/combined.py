@@ -145,7 +145,10 @@ class CombinedFilter(SetFilter):
             ``measurement_noise`` (ellipsoids used as they are, other sets covered by the
             ellipsoid of their interval hull); Gaussian ``Q``/``R``: ``process_cov`` /
             ``measurement_cov``. Any of them may be ``None`` (zero).
-        initial_cov: ``P_0 [n, n]`` (symmetric PSD), required.
+        initial_cov: ``P_0 [n, n]`` (symmetric PSD). Default: the covariance of the uniform
+            distribution on the initial ellipsoid, ``S_0 / (n + 2)`` (the analogue of the EKF's
+            ``r^2 / 3`` for a box), so that ``by_name("combined")(system)`` works; pass it to
+            separate the Gaussian initial spread from the initial mean set.
         weight: Minkowski weights p, q by ``"trace"`` (minimal trace, the paper's choice) or
             ``"volume"`` (minimal volume), seed 003 eq. 34-36 (erratum).
         gain: ``"kalman"`` (eq. 44, ``K = P H' (H P H' + R)^-1``, needs R positive definite),
@@ -173,7 +176,7 @@ class CombinedFilter(SetFilter):
         self,
         system: System,
         *,
-        initial_cov: Tensor,
+        initial_cov: Tensor | None = None,
         weight: str = "trace",
         gain: str = "auto",
         levels: Sequence[float] = (0.5, 1.0),
@@ -227,6 +230,9 @@ class CombinedFilter(SetFilter):
         self.levels = tuple(levels)
         self.point_weights = point_weights
         self.axes = axes
+        self._x0 = _initial_ellipsoid(system.x0_set)
+        if initial_cov is None:
+            initial_cov = self._x0.shape.detach() / (n + 2)
         self.register_buffer("initial_cov", _psd("initial_cov", initial_cov, n))
         self.register_buffer("D0", D0)
         self.register_buffer("E0", E0)
@@ -236,7 +242,6 @@ class CombinedFilter(SetFilter):
         self.register_buffer("r_v0", self.measurement_noise.detach().clone())
         register_positive(self, "process_std", _diag_sqrt(Q0), learnable=learn_noise)
         register_positive(self, "measurement_std", _diag_sqrt(R0), learnable=learn_noise)
-        self._x0 = _initial_ellipsoid(system.x0_set)
         self._gaussian_meas = bool((R0 != 0).any())
 
     # ------------------------------------------------------------------ noise matrices
