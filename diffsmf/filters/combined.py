@@ -61,26 +61,26 @@ def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"volume"``: the erratum's root, differentiable).
     Unlike ``Ellipsoid.minkowski_sum`` the operands may be positive *semi*definite (degenerate
     or zero ellipsoids, e.g. ``Gamma D Gamma'`` or a collapsed mean set): ``S2 = 0`` gives
-    ``S1`` exactly, and where the volume rule is undefined (``S1`` singular) the trace weight is
-    used. Any ``p > 0`` gives an outer bound (eq. 25-33), so the guarantee never depends on
-    the weight.
+    ``S1`` exactly (``S1 = 0`` gives ``S2``), and where the volume rule is undefined (``S1``
+    singular) the trace weight is used. Any ``p > 0`` gives an outer bound (eq. 25-33), so the
+    guarantee never depends on the weight.
     """
     if method not in _WEIGHTS:
         raise ValueError(f"weight: expected one of {_WEIGHTS}, got {method!r}")
     t1, t2 = _trace(S1), _trace(S2)
-    zero = t2 <= 0
+    zero1, zero2 = (t1 <= 0).unsqueeze(-1).unsqueeze(-1), (t2 <= 0).unsqueeze(-1).unsqueeze(-1)
     eye = torch.eye(S1.shape[-1], dtype=S1.dtype, device=S1.device)
-    zero_m = zero.unsqueeze(-1).unsqueeze(-1)
-    S2s = torch.where(zero_m, eye, S2)  # placeholders keep the unused branch finite
-    p = minkowski_weight(S1, S2s, "trace").clamp_min(1e-300)
+    S1s = torch.where(zero1, eye, S1)  # placeholders keep the unused branches finite
+    S2s = torch.where(zero2, eye, S2)  # (also their gradients: no 0/0 in sqrt's backward)
+    p = minkowski_weight(S1s, S2s, "trace")
     if method == "volume":
-        pd = torch.linalg.cholesky_ex(S1.detach())[1] == 0
+        pd = torch.linalg.cholesky_ex(S1s.detach())[1] == 0
         pd_m = pd.unsqueeze(-1).unsqueeze(-1)
-        pv = minkowski_weight(torch.where(pd_m, S1, eye), torch.where(pd_m, S2s, eye), "volume")
-        p = torch.where(pd & ~zero & (t1 > 0), pv, p)
+        pv = minkowski_weight(torch.where(pd_m, S1s, eye), torch.where(pd_m, S2s, eye), "volume")
+        p = torch.where(pd, pv, p)
     p = p.unsqueeze(-1).unsqueeze(-1)
-    S = ((1.0 + 1.0 / p) * S1 + (1.0 + p) * S2s) * (1.0 + INFLATE)
-    return _sym(torch.where(zero_m, S1, S))
+    S = ((1.0 + 1.0 / p) * S1s + (1.0 + p) * S2s) * (1.0 + INFLATE)
+    return _sym(torch.where(zero2, S1, torch.where(zero1, S2, S)))
 
 
 def _scaled(M0: Tensor, v: Tensor, v0: Tensor) -> Tensor:
@@ -112,7 +112,7 @@ def _cover_shape(s: ConvexSet | None, dim: int) -> Tensor:
         return torch.zeros(dim, dim, dtype=torch.float64)
     if isinstance(s, Ellipsoid):
         return s.shape.detach()
-    return s.interval_hull().to_ellipsoid().shape.detach()  # box cover diag(n r^2)
+    return Ellipsoid.from_box(s.interval_hull()).shape.detach()  # box cover diag(n r^2)
 
 
 @dataclass(frozen=True)
