@@ -32,6 +32,8 @@ def _check_x(x: Tensor) -> Tensor:
 def jacobian(fn: Fn, x: Tensor) -> Tensor:
     """Autograd Jacobian ``d fn / d x`` at ``x [..., n]`` -> ``[..., k, n]``.
 
+    Seed 001 eq. 25 (``A = df/dx`` at the estimate; also the EKF and the DC tangent planes).
+
     Differentiable (usable inside a loss, and twice: :func:`hessian` nests it). If ``fn``
     broadcasts ``x`` against a larger batch (closure over batched tensors), ``x`` is first
     expanded to the output batch shape.
@@ -53,7 +55,11 @@ def jacobian(fn: Fn, x: Tensor) -> Tensor:
 
 
 def hessian(fn: Fn, x: Tensor) -> Tensor:
-    """Autograd Hessian of each output of ``fn`` at ``x [..., n]`` -> ``[..., k, n, n]``."""
+    """Autograd Hessian of each output of ``fn`` at ``x [..., n]`` -> ``[..., k, n, n]``.
+
+    Seed 001 eq. 26-28 (``N_es``, here at a point; the guaranteed version over a box is
+    :func:`diffsmf.linearize.interval_hessian`).
+    """
     x = _check_x(x)
     n = x.shape[-1]
 

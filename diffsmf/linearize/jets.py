@@ -481,7 +481,11 @@ def jet_eval(fn: Callable[[Any], Any], box: Interval, order: int = 2) -> Jet:
 
 
 def interval_jacobian(fn: Callable[[Any], Any], box: Interval) -> Interval:
-    """Guaranteed enclosure of the Jacobian of ``fn`` over ``box [..., n]`` -> ``[..., k, n]``."""
+    """Guaranteed enclosure of the Jacobian of ``fn`` over ``box [..., n]`` -> ``[..., k, n]``.
+
+    Interval extension (seed 001 sec. 3.2) of the derivative; used for the mean-value form of
+    the parameter deviation (seed 001 eq. 18-21).
+    """
     return jet_eval(fn, box, order=1).grad
 
 
