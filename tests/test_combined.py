@@ -221,6 +221,19 @@ def test_gaussian_only_nonlinear_matches_filterpy_ekf():
                                        atol=1e-9)
 
 
+def test_gaussian_only_gradients_finite_after_mean_set_collapse():
+    """No bounded noise: the mean set collapses (S -> 0); tuning Q, R must still get finite
+    gradients (the degenerate Minkowski branches are masked, not differentiated through)."""
+    sys, M = _linear_system(bounded=False, seed=12)
+    traj = sys.simulate(8, batch=4, seed=10)
+    filt = CombinedFilter(sys, initial_cov=M["P0"], weight="volume")
+    res = filt(traj.y)
+    loss = (res.center - traj.x).pow(2).sum() + res.covariance.diagonal(dim1=-2, dim2=-1).sum()
+    loss.backward()
+    for p in (filt.raw_process_std, filt.raw_measurement_std):
+        assert torch.isfinite(p.grad).all() and (p.grad != 0).any()
+
+
 def _reference_smf(M, y, weight):
     """Pure ellipsoidal SMF (numpy): S(p) sums for prediction and update, gain S H'(HSH'+E)^-1.
 
@@ -361,6 +374,10 @@ def test_nan_skip_and_bad_input():
     torch.testing.assert_close(default.initial_cov, torch.cov(pts.T), rtol=0.1, atol=0.01)
     with pytest.raises(ValueError, match="weight"):
         CombinedFilter(sys, initial_cov=M["P0"], weight="det")
+    with pytest.raises(ValueError, match="axes"):
+        CombinedFilter(sys, axes="cholesky")
+    with pytest.raises(ValueError, match="levels"):
+        CombinedFilter(sys, levels=(0.0,))
     sys0, _ = _linear_system(seed=11, gaussian=False)
     with pytest.raises(ValueError, match="measurement_cov"):
         CombinedFilter(sys0, initial_cov=M["P0"], gain="kalman")

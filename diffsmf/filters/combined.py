@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
-from diffsmf.linearize.statistical import statistical_linearization
+from diffsmf.linearize.statistical import _check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
 from diffsmf.sets.ellipsoid import INFLATE, Ellipsoid, minkowski_weight, unit_ball_volume
 from diffsmf.systems.system import System
@@ -227,7 +227,9 @@ class CombinedFilter(SetFilter):
             )
         self.gain = ("kalman" if r_pd else "set") if gain == "auto" else gain
         self.weight = weight
-        self.levels = tuple(levels)
+        if axes not in ("principal", "symmetric"):
+            raise ValueError(f"axes: expected 'principal' or 'symmetric', got {axes!r}")
+        self.levels = _check_levels(levels)
         self.point_weights = point_weights
         self.axes = axes
         self._x0 = _initial_ellipsoid(system.x0_set)
