@@ -286,7 +286,7 @@ def test_mean_set_contains_true_state_vertex_noise(gain):
     kw = {"measurement_cov": M["R"], "process_cov": M["Q"]} if gain == "kalman" else {}
     res = _run(CombinedFilter(sys, initial_cov=M["P0"], gain=gain, **kw), traj.y)
     assert res.sets.contains(traj.x, atol=1e-9).all()
-    assert res.consistent.all() or gain == "kalman"
+    assert res.consistent.all()  # every measurement is consistent with the true bounds
 
 
 def test_gradcheck_noise_bounds_and_covariances():
