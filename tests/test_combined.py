@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.linalg import eigh as sp_eigh
 from scipy.optimize import brentq, minimize_scalar
 
@@ -38,6 +40,7 @@ def _spd(n: int, gen: torch.Generator, scale: float = 1.0) -> torch.Tensor:
 
 
 def _linear_system(n=4, m=2, seed=0, bounded=True, gaussian=True):
+    """Random stable linear system with ellipsoidal bounded parts and Gaussian parts."""
     g = torch.Generator().manual_seed(seed)
     A = torch.randn(n, n, generator=g)
     A = 0.95 * A / torch.linalg.eigvals(A).abs().max()
@@ -287,6 +290,22 @@ def test_mean_set_contains_true_state_vertex_noise(gain):
     res = _run(CombinedFilter(sys, initial_cov=M["P0"], gain=gain, **kw), traj.y)
     assert res.sets.contains(traj.x, atol=1e-9).all()
     assert res.consistent.all()  # every measurement is consistent with the true bounds
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    n=st.integers(1, 4),
+    m_frac=st.floats(0.0, 1.0),
+    seed=st.integers(0, 10_000),
+    weight=st.sampled_from(["trace", "volume"]),
+)
+def test_containment_property_random_linear_systems(n, m_frac, seed, weight):
+    """Any dims, any weight rule: zero Gaussian noise, vertex noise, state in the mean set."""
+    m = 1 + int(m_frac * (n - 1))
+    sys, M = _linear_system(n=n, m=m, seed=seed, gaussian=False)
+    traj = sys.simulate(10, batch=50, seed=seed, noise="vertex")
+    res = _run(CombinedFilter(sys, initial_cov=M["P0"], weight=weight), traj.y)
+    assert res.sets.contains(traj.x, atol=1e-9).all()
 
 
 def test_gradcheck_noise_bounds_and_covariances():
