@@ -76,23 +76,45 @@ def _sum_abs_det(G: Tensor, idx: Tensor) -> Tensor:
     return total
 
 
+def _cross_normal(A: Tensor) -> Tensor:
+    """Generalised cross product of the n-1 columns of ``A [..., n, n-1]`` -> ``[..., n]``.
+
+    ``q . v = det([A, v])`` for every v (expansion along the last column). Computed with
+    elementwise ops only (no per-matrix LAPACK call): a dynamic programme over row subsets,
+    ``D(S) = det A[S, :|S|]`` expanded along column ``|S| - 1``; ``n 2^n`` multiply-adds.
+    """
+    n = A.shape[-2]
+    At = A.movedim((-2, -1), (0, 1)).contiguous()  # [n, n-1, ...]: contiguous slices
+    cols = [[At[r, j] for j in range(n - 1)] for r in range(n)]
+    level: dict[int, Tensor] = {1 << r: cols[r][0] for r in range(n)} if n > 1 else {}
+    for j in range(1, n - 1):  # build |S| = j + 1 from |S| = j
+        nxt: dict[int, Tensor] = {}
+        for S, dS in level.items():
+            for r in range(n):
+                if S >> r & 1:
+                    continue
+                T = S | (1 << r)
+                pos = bin(T & ((1 << r) - 1)).count("1")  # index of r within sorted T
+                sign = 1.0 if (pos + j) % 2 == 0 else -1.0
+                if T in nxt:
+                    nxt[T] = torch.addcmul(nxt[T], cols[r][j], dS, value=sign)
+                else:
+                    nxt[T] = cols[r][j] * dS if sign > 0 else -(cols[r][j] * dS)
+        level = nxt
+    full = (1 << n) - 1
+    if n == 1:
+        return A.new_ones(*A.shape[:-2], 1)
+    out = [level[full ^ (1 << k)] * (1.0 if (k + n - 1) % 2 == 0 else -1.0) for k in range(n)]
+    return torch.stack(out, -1)
+
+
 def _cofactor_normals(G: Tensor, idx: Tensor) -> Tensor:
     """Generalised cross products of the (n-1)-subsets ``idx [K, n-1]`` -> ``[..., K, n]``.
 
-    ``q_T . v = det([G_T, v])`` for every v (expansion of the determinant along the last
-    column), so q_T is normal to span(G_T); zero if G_T is rank deficient.
+    ``q_T . v = det([G_T, v])`` for every v, so q_T is normal to span(G_T); zero if G_T is
+    rank deficient.
     """
-    n = G.shape[-2]
-    sub = G[..., idx].movedim(-2, -3)  # [..., K, n, n-1]
-    eye = torch.eye(n, dtype=G.dtype, device=G.device)
-    full = torch.cat(
-        [
-            sub.unsqueeze(-3).expand(*sub.shape[:-2], n, n, n - 1),
-            eye.reshape(n, n, 1).expand(*sub.shape[:-2], n, n, 1),
-        ],
-        dim=-1,
-    )  # [..., K, n(k), n, n]: column e_k appended
-    return torch.linalg.det(full)
+    return _cross_normal(G[..., idx].movedim(-2, -3))
 
 
 class Zonotope(ConvexSet):
@@ -444,7 +466,10 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     with torch.no_grad():
         Gd = G.detach()
-        scale = Gd.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
+        if G.shape[-1] == 0:
+            scale = Gd.new_full((*G.shape[:-2], 1, 1), 1e-150)
+        else:
+            scale = Gd.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
         best, ok = _best_basis(Gd / scale)
     if bool(ok.all()):
         return _basis_T(G, best)
@@ -556,20 +581,19 @@ def _alamo_lambda(c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, metho
     return torch.gather(cands, -2, k.reshape(*k.shape, 1, 1).expand(*k.shape, 1, n)).squeeze(-2)
 
 
-def _zonotope_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> Tensor:
-    """Exact membership (see :meth:`Zonotope.contains`)."""
+def _facet_directions(G: Tensor) -> tuple[Tensor, Tensor | None]:
+    """Unit half-space normals ``[..., K, n]`` for the membership test and, in n >= 3 D, a
+    flag ``[...]`` for the sets where they are not exact (rank-deficient: LP needed)."""
     n, m = G.shape[-2], G.shape[-1]
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
-    batch = torch.broadcast_shapes(c.shape[:-1], x.shape[:-1])
     dirs = [eye.expand(*G.shape[:-2], n, n), G.transpose(-1, -2)]
     lp_needed = None
     if n == 2:
         dirs.append(torch.stack([-G[..., 1, :], G[..., 0, :]], -1))
     elif n > 2 and m >= n - 1 and math.comb(m, n - 1) <= MAX_VOLUME_SUBSETS:
-        # facet normals: a unit vector orthogonal to each (n-1)-subset (complete QR); for a
-        # rank-deficient subset it is some orthogonal direction (still a valid constraint)
-        sub = G[..., _combinations(m, n - 1, G.device)].movedim(-2, -3)  # [..., K, n, n-1]
-        dirs.append(torch.linalg.qr(sub, mode="complete")[0][..., -1])
+        # facet normals: cross products of the (n-1)-subsets (zero, hence no constraint,
+        # for rank-deficient subsets; all facets of a full-dimensional zonotope are found)
+        dirs.append(_cofactor_normals(G, _combinations(m, n - 1, G.device)))
         lp_needed = (
             torch.linalg.matrix_rank(G) < n
             if m >= n
@@ -578,12 +602,31 @@ def _zonotope_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> Tensor:
     elif n > 2:
         lp_needed = torch.ones(G.shape[:-2], dtype=torch.bool, device=G.device)
     D = torch.cat(dirs, -2)  # [..., K, n]
-    norm = D.norm(dim=-1)
-    D = D / norm.clamp_min(1e-300).unsqueeze(-1)
-    D = torch.where((norm > 0).unsqueeze(-1), D, torch.zeros_like(D))
+    norm = D.norm(dim=-1, keepdim=True)
+    D = torch.where(norm > 0, D / norm.clamp_min(1e-300), torch.zeros_like(D))
+    return D, lp_needed
+
+
+def _zonotope_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> Tensor:
+    """Exact membership (see :meth:`Zonotope.contains`).
+
+    The half-space normals are computed per set (chunked over the flattened set batch to bound
+    memory), then every point is tested against its set's half-spaces.
+    """
+    n, m = G.shape[-2], G.shape[-1]
+    batch = torch.broadcast_shapes(c.shape[:-1], x.shape[:-1])
+    gb = G.shape[:-2]
+    if math.prod(batch) == 0 or math.prod(gb) == 0:
+        return torch.zeros(batch, dtype=torch.bool, device=G.device)
+    Gf = G.reshape(-1, n, m)
+    k_est = n + m + (math.comb(m, n - 1) if n > 2 and m >= n - 1 else m)
+    starts, step = _chunks(Gf.shape[0], k_est * n * max(n, 2))
+    parts = [_facet_directions(Gf[s : s + step]) for s in starts]
+    D = torch.cat([d for d, _ in parts], 0).reshape(*gb, -1, n)
+    lp_needed = None if parts[0][1] is None else torch.cat([f for _, f in parts], 0).reshape(gb)
     h = (D @ G).abs().sum(-1)  # [..., K]
     dx = ((x - c).unsqueeze(-2) @ D.transpose(-1, -2)).squeeze(-2)  # [..., K]
-    tol = atol + 1e-12 * (h.abs() + (D * c.unsqueeze(-2)).sum(-1).abs())
+    tol = atol + 1e-12 * (h.abs() + (D @ c.unsqueeze(-1)).squeeze(-1).abs())
     ok = (dx.abs() <= h + tol).all(-1)
     if lp_needed is not None:
         lp_b = lp_needed.expand(batch)
