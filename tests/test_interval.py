@@ -121,6 +121,12 @@ def test_unary_monotone_enclose(seed):
         (torch.sqrt, xp),
         (torch.sigmoid, x),
         (torch.atan, x),
+        (torch.sinh, x),
+        (torch.cosh, x),
+        (torch.expm1, x),
+        (torch.log1p, xp),
+        (torch.erf, x),
+        (torch.nn.functional.softplus, x),
     ):
         assert _encloses(fn(iv), fn(_points(iv))), fn
 

@@ -297,6 +297,27 @@ class Interval(ConvexSet):
     def atan(self) -> Interval:
         return _monotone(self, torch.atan, 2)
 
+    def softplus(self) -> Interval:
+        return _monotone(self, torch.nn.functional.softplus, 2, clamp_min=0.0)
+
+    def log1p(self) -> Interval:
+        if bool((self.lower.detach() < -1).any()):
+            raise ValueError("x: log1p needs lower >= -1 (interval leaves the domain)")
+        return _monotone(self, torch.log1p, 2)
+
+    def expm1(self) -> Interval:
+        return _monotone(self, torch.expm1, 2, clamp_min=-1.0)
+
+    def sinh(self) -> Interval:
+        return _monotone(self, torch.sinh, 2)
+
+    def erf(self) -> Interval:
+        return _monotone(self, torch.erf, 2, clamp_min=-1.0, clamp_max=1.0)
+
+    def cosh(self) -> Interval:
+        """Exact range of ``cosh`` (even; minimum 1 at 0)."""
+        return _monotone(self.abs(), torch.cosh, 2, clamp_min=1.0)
+
     def relu(self) -> Interval:
         return Interval._make(torch.relu(self.lower), torch.relu(self.upper))
 
@@ -750,6 +771,13 @@ def _pow_fn(x: Any, p: Any) -> Interval:
     return Interval.__rpow__(p, x)
 
 
+def _softplus(x: Any, beta: float = 1.0) -> Interval:
+    iv = _as_interval(x)
+    if beta == 1.0:
+        return iv.softplus()
+    return (iv * beta).softplus() / beta
+
+
 def _sum_fn(x: Interval, dim: Any = None, keepdim: bool = False, **kwargs: Any) -> Interval:
     return _sum(x, dim, keepdim)
 
@@ -780,6 +808,7 @@ def _build_table() -> dict[Any, Callable]:
         ((torch.full_like,), _like(torch.full_like)),
         ((torch.neg, torch.negative, T.neg, T.__neg__), lambda x: -_as_interval(x)),
         ((F.relu,), lambda x, inplace=False: _as_interval(x).relu()),
+        ((F.softplus,), lambda x, beta=1.0, threshold=20.0: _softplus(x, beta)),
     ]:
         for fn in fns:
             table[fn] = impl
@@ -798,6 +827,11 @@ def _build_table() -> dict[Any, Callable]:
         "clamp",
         "reciprocal",
         "mean",
+        "log1p",
+        "expm1",
+        "sinh",
+        "cosh",
+        "erf",
         "reshape",
         "unsqueeze",
         "squeeze",
