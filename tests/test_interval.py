@@ -367,6 +367,13 @@ def test_point_intervals_enclose_exact_values():
         (torch.tanh(Xs), mpmath.tanh, xs),
         (torch.log(AX), mpmath.log, ax),
         (torch.sqrt(AX), mpmath.sqrt, ax),
+        (torch.atan(Xs), mpmath.atan, xs),
+        (torch.sinh(Xs), mpmath.sinh, xs),
+        (torch.cosh(Xs), mpmath.cosh, xs),
+        (torch.erf(Xs), mpmath.erf, xs),
+        (torch.expm1(Xs), mpmath.expm1, xs),
+        (torch.log1p(AX), mpmath.log1p, ax),
+        (torch.sigmoid(Xs), lambda v: 1 / (1 + mpmath.exp(-v)), xs),
     ):
         for i in range(150):
             v = fn(mpmath.mpf(pts[i].item()))
