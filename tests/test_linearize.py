@@ -225,6 +225,25 @@ def test_remainders_contain_sampled_and_vertex_errors(set_name):
             assert _encloses(R, err), f"{name} misses a point on {set_name}"
 
 
+def test_dc_on_many_generator_zonotopes_planar_and_3d():
+    def f3(x):
+        return torch.stack([x[..., 0] * x[..., 1] * x[..., 2], torch.cos(x[..., 0] + x[..., 2]),
+                            x[..., 1] ** 2 - x[..., 0]], -1)
+
+    for n, fn in ((2, bilin), (3, f3)):
+        Z = Zonotope(torch.randn(4, n, generator=GEN) * 0.3,
+                     torch.randn(4, n, 10, generator=GEN) * 0.05)  # 2^10 > MAX_VERTICES
+        pts = torch.cat([Z.sample(2000, generator=GEN), Z.sample_extreme(500, generator=GEN)],
+                        -2).movedim(-2, 0)
+        c = Z.center
+        J = stirling_jacobian(fn, c, 0.05)
+        err = fn(pts) - fn(c) - ((pts - c).unsqueeze(-2) * J).sum(-1)
+        R = dc_remainder(fn, Z, c, J)
+        assert _encloses(R, err)
+        if n == 3:  # box-corner fallback is intersected with the Lagrange bound
+            assert (R.width <= lagrange_remainder(fn, Z, c, J).width + 1e-15).all()
+
+
 def test_dc_is_exact_at_vertices_for_a_convex_quadratic_upper_bound():
     # r(x) = |x - c|^2 on a box: alpha = 0 and the DC upper bound is the max over vertices
     S = Interval(torch.tensor([0.0, 0.0]), torch.tensor([1.0, 2.0]))

@@ -36,10 +36,12 @@ __all__ = [
 
 Fn = Callable[[Tensor], Tensor]
 
-#: Above this many extreme points per set, :func:`dc_remainder` falls back to the Lagrange bound.
-MAX_VERTICES = 4096
+#: Above this many sign combinations, :func:`dc_remainder` uses the corners of the interval hull.
+MAX_VERTICES = 256
 #: Tangent planes at every vertex (not only at ``c``) while the vertex count is at most this.
 _MAX_TANGENTS = 64
+#: Elements per chunk of the tangent-plane evaluation.
+_TANGENT_ELEMS = 4_000_000
 #: Padding of float evaluations, in units of eps times the magnitudes involved.
 _PAD_ULPS = 64.0
 
@@ -167,19 +169,30 @@ def hessian_eig_lower_bound(H: Interval) -> Tensor:
     return torch.where(ok, lam, torch.full_like(lam, -torch.inf))
 
 
-def _extreme_points(S: ConvexSet, max_vertices: int) -> Tensor | None:
-    """Points whose convex hull is ``S`` (all vertices included) -> ``[..., N, n]`` or None."""
-    if isinstance(S, Interval):
-        return S.vertices() if 2**S.dim <= max_vertices else None
+def _extreme_points(S: ConvexSet, max_vertices: int) -> tuple[Tensor, bool]:
+    """Points whose convex hull contains ``S`` -> (``[..., N, n]``, exact).
+
+    ``exact`` is True when the hull of the points is ``S`` itself (box corners, parallelotope
+    vertices, 2-D zonotope vertices, or ``c + G s`` over all sign vectors s); otherwise the
+    corners of the interval hull of ``S`` (a containing box) are returned: max/min of the
+    convex / concave parts over that box still bound those over ``S``.
+    """
+    n = S.dim
     G = getattr(S, "generators", None)  # Parallelotope (T) and Zonotope
-    if G is None:
-        return None  # Ellipsoid: not a polytope
-    m = G.shape[-1]
-    if 2**m > max_vertices:
-        return None
-    s = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=m)), dtype=G.dtype,
-                     device=G.device)  # [2^m, m]
-    return S.center.unsqueeze(-2) + s @ G.mT
+    if isinstance(S, Interval):
+        if 2**n <= max_vertices:
+            return S.vertices(), True
+    elif G is not None:
+        m = G.shape[-1]
+        if n == 2 and hasattr(S, "vertices_2d"):
+            return S.vertices_2d(), True  # 2m vertices of a planar zonotope
+        if 2**m <= max_vertices:
+            s = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=m)), dtype=G.dtype,
+                             device=G.device)  # [2^m, m]
+            return S.center.unsqueeze(-2) + s @ G.mT, True
+    if 2**n > max_vertices:
+        raise ValueError(f"max_vertices: {max_vertices} < 2^{n} box corners")
+    return S.interval_hull().vertices(), False
 
 
 def _front(V: Tensor) -> Tensor:
@@ -216,7 +229,8 @@ def _dc_lower(
     """Seed 000 eq. 16: r >= tangent of the convex r + q at p, minus the concave q.
 
     ``tangent_p(x) - q(x)`` is concave, so its minimum over the polytope is at a vertex; the
-    best tangent point among ``c`` and (if ``grad_v`` given) the vertices is kept.
+    best tangent point among ``c`` and (if ``grad_v`` given) the vertices is kept. The
+    tangent points are processed in chunks (memory ``chunk x N x batch x k x n``).
     ``rv, qv [N, ..., k]``, ``grad_c [..., k, n]``, ``grad_v [N, ..., k, n]``, ``W [..., k, n]``.
     """
     lower = ((grad_c * dv.unsqueeze(-2)).sum(-1) - qv).amin(0)  # p = c: r(c) = q(c) = 0
@@ -224,9 +238,14 @@ def _dc_lower(
         return lower
     g1v = rv + qv  # [N, ..., k]
     grad_g1 = grad_v + 2 * W * dv.unsqueeze(-2)  # [N, ..., k, n]
-    diff = dv.unsqueeze(0) - dv.unsqueeze(1)  # [p, v] -> v - p
-    tang = g1v.unsqueeze(1) + (grad_g1.unsqueeze(1) * diff.unsqueeze(-2)).sum(-1)
-    return torch.maximum(lower, (tang - qv.unsqueeze(0)).amin(1).amax(0))
+    N = dv.shape[0]
+    step = max(1, _TANGENT_ELEMS // max(1, grad_g1.numel()))
+    for p0 in range(0, N, step):
+        sl = slice(p0, p0 + step)
+        diff = dv.unsqueeze(0) - dv[sl].unsqueeze(1)  # [p, v] -> v - p
+        tang = g1v[sl].unsqueeze(1) + (grad_g1[sl].unsqueeze(1) * diff.unsqueeze(-2)).sum(-1)
+        lower = torch.maximum(lower, (tang - qv.unsqueeze(0)).amin(1).amax(0))
+    return lower
 
 
 def dc_remainder(
@@ -254,15 +273,16 @@ def dc_remainder(
       polytope is attained at a vertex. Gradients are exact (autograd), never Stirling slopes.
 
     The same construction applied to ``-r`` (convexifying ``-H``) gives a second lower and upper
-    bound; the intersection is returned. ``S``: Interval, Parallelotope or Zonotope (extreme
-    points ``c + G s``, s in {-1,1}^m). With more than ``max_vertices`` extreme points, or an
-    Ellipsoid, this falls back to :func:`lagrange_remainder` (documented deviation).
+    bound; the intersection is returned. Vertices: box corners, parallelotope vertices, the 2m
+    vertices of a planar zonotope, or ``c + G s`` over all sign vectors (at most
+    ``max_vertices``). For an Ellipsoid or a zonotope with more sign vectors, the corners of
+    the interval hull (a containing box) are used instead, and the result is always intersected
+    with the Lagrange bound (documented deviation: the paper only treats parallelotopes).
     ``with_lagrange=True`` also intersects with the Lagrange bound (same interval Hessian).
     """
     c, J = _check(S, c, J)
-    V = _extreme_points(S, max_vertices)
-    if V is None:
-        return lagrange_remainder(fn, S, c, J)
+    V, exact = _extreme_points(S, max_vertices)
+    with_lagrange = with_lagrange or not exact
     box = _hull_with(S, c)
     jet = jet_eval(fn, box, order=2)
     H = jet.hess  # [..., k, n, n]
