@@ -112,6 +112,22 @@ def test_statistical_linearization_exact_for_affine_and_point_count():
     assert axis_points(c, S, levels=(1 / 3, 2 / 3, 1.0))[0].shape == (25, 4)
 
 
+@pytest.mark.parametrize("axes", ["principal", "symmetric"])
+def test_statistical_linearization_gradients(axes):
+    g = torch.Generator().manual_seed(13)
+    c, S = torch.randn(3, generator=g), _spd(3, g).requires_grad_()
+
+    def fit(S):
+        return statistical_linearization(torch.sin, c, 0.5 * (S + S.mT), axes=axes)
+
+    assert torch.autograd.gradcheck(fit, (S,))
+    # repeated eigenvalues (x/y-symmetric ellipsoid): no NaN (principal: basis held fixed)
+    S2 = torch.diag(torch.tensor([2.0, 2.0, 0.5])).requires_grad_()
+    A, b = fit(S2)
+    (A.sum() + b.sum()).backward()
+    assert torch.isfinite(S2.grad).all()
+
+
 def test_statistical_linearization_bad_input():
     c, S = torch.zeros(2), torch.eye(2)
     with pytest.raises(ValueError, match="levels"):

@@ -44,10 +44,39 @@ class _SqrtmPSD(torch.autograd.Function):
         return V @ (Gs / denom) @ V.mT
 
 
+class _EighSafe(torch.autograd.Function):
+    """``eigh`` whose backward drops the eigenvector terms of (numerically) repeated eigenvalues.
+
+    The standard backward ``V (diag(gl) + F o (V' gV)) V'`` with ``F_ij = 1/(l_j - l_i)``
+    divides by zero when eigenvalues repeat (e.g. an x/y-symmetric ellipsoid), where the
+    principal axes are not differentiable at all (any basis of the eigenspace is a valid
+    choice). There ``F_ij`` is set to 0, i.e. the chosen basis is held fixed; elsewhere the
+    gradient is exact.
+    """
+
+    @staticmethod
+    def forward(ctx, S: Tensor) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+        evals, V = torch.linalg.eigh(S)
+        ctx.save_for_backward(evals, V)
+        return evals, V
+
+    @staticmethod
+    def backward(ctx, gl: Tensor, gV: Tensor) -> Tensor:  # type: ignore[override]
+        evals, V = ctx.saved_tensors
+        gap = evals.unsqueeze(-2) - evals.unsqueeze(-1)  # l_j - l_i
+        tol = 1e-10 * evals.abs().amax(-1, keepdim=True).unsqueeze(-1).clamp_min(1e-300)
+        F = torch.where(gap.abs() > tol, 1.0 / torch.where(gap == 0, 1.0, gap), 0.0)
+        inner = F * (V.mT @ gV) if gV is not None else torch.zeros_like(V)
+        if gl is not None:
+            inner = inner + torch.diag_embed(gl)
+        g = V @ inner @ V.mT
+        return 0.5 * (g + g.mT)
+
+
 def _axes_matrix(shape: Tensor, axes: str) -> Tensor:
     """Matrix M ``[..., n, n]`` whose columns are the semi-axes used (``S = M M'``)."""
     if axes == "principal":  # principal semi-axes sqrt(l_i) v_i (Morrell & Stirling)
-        evals, V = torch.linalg.eigh(shape)
+        evals, V = _EighSafe.apply(shape)
         return V * evals.clamp_min(0).sqrt().unsqueeze(-2)
     return _SqrtmPSD.apply(shape)  # columns of S^(1/2): boundary points, smooth in S
 
@@ -79,9 +108,10 @@ def axis_points(
         levels: fractions of each semi-axis where points are placed (both signs); the default
             ``(0.5, 1.0)`` gives the paper's 4N+1 points. ``K = 2 * len(levels) * n + 1``.
         axes: ``"principal"`` (eigenvectors scaled by sqrt(eigenvalues), the paper's choice;
-            its gradient is undefined where ``shape`` has repeated eigenvalues) or
+            not differentiable where ``shape`` has repeated eigenvalues, where the backward
+            holds the eigenbasis fixed instead of returning NaN, see :class:`_EighSafe`) or
             ``"symmetric"`` (columns of ``shape^(1/2)``; equal to the principal axes for
-            axis-aligned ellipsoids, differentiable everywhere; use it for gradient tuning).
+            axis-aligned ellipsoids, smooth everywhere).
 
     Returns:
         ``points [K, ..., n]`` (the point index leads, so that tensors closed over by a user's
