@@ -28,20 +28,9 @@ __all__ = ["AuditReport", "add_arguments", "containment", "gauge", "main", "pape
 
 TOL = 1e-9
 
-# Horizons of the papers' examples (seed 000 figures, seed 001 switching times + margin).
-_PAPER_STEPS = {
-    "bilinear": 50,
-    "spring_damper": 100,
-    "mismatch_quadratic": 100,
-    "fermenter": 300,
-    "vdp": 100,
-    "radar": 100,
-}
-
-
-def paper_steps(system_name: str) -> int:
-    """Horizon used for ``system_name`` (a ``steps``/``horizon`` attribute of the system wins)."""
-    return _PAPER_STEPS.get(system_name, 100)
+def paper_steps(system) -> int:
+    """Horizon of a system: its ``horizon`` attribute (the built-ins carry the papers'), or 100."""
+    return int(getattr(system, "horizon", None) or 100)
 
 
 @dataclass
@@ -147,7 +136,7 @@ def containment(
         :class:`AuditReport`. ``mean_volume`` averages over trajectories and steps 1..T.
     """
     system = filt.system if system is None else system
-    steps = paper_steps(system.name) if steps is None else steps
+    steps = paper_steps(system) if steps is None else steps
     traj = system.simulate(steps=steps, batch=trials, seed=seed, noise=noise)
     t0 = time.perf_counter()
     with torch.no_grad():

@@ -38,6 +38,20 @@ def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor
     return fn
 
 
+def finite_remainder(R: Interval, what: str) -> Interval:
+    """Raise a clear ``ValueError`` when a remainder bound is unbounded (NaN/inf).
+
+    That happens when the set reaches a singularity of the model, e.g. the pole of the
+    fermenter's growth rate ``mu`` at ``S = -1.27``: no bounded guaranteed set exists then.
+    """
+    if not (torch.isfinite(R.lower.detach()).all() and torch.isfinite(R.upper.detach()).all()):
+        raise ValueError(
+            f"{what}: the remainder bound is unbounded over the current set (the set reaches a "
+            "singularity of the model); use a smaller initial set or tighter bounds"
+        )
+    return R
+
+
 def rounding_margin(*terms: Tensor) -> Tensor:
     """Outward margin ``ROUND_REL * (1 + sum |term|)`` broadcast over the given tensors."""
     total = 1.0
@@ -74,7 +88,7 @@ def prediction_remainder(
     if system.parameters is not None:
         D = parameter_deviation(system.f, S, system.parameters, system.theta_nominal, u)
         R = Interval(R.lower + D.lower, R.upper + D.upper)
-    return R
+    return finite_remainder(R, "f")
 
 
 def measurement_strips(
@@ -95,7 +109,7 @@ def measurement_strips(
     Returns normal ``[B, m, n]``, offset ``[B, m]``, halfwidth ``[B, m]``.
     """
     hc = h(c)
-    E = remainder(h, S, c, H)
+    E = finite_remainder(remainder(h, S, c, H), "h")
     Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
     offset = y - vbox.center - hc + Hc - E.center
     half = vbox.radius + E.radius
@@ -168,6 +182,21 @@ def as_ellipsoid(S: ConvexSet) -> ConvexSet:
     if isinstance(S, Interval):
         return S.to_ellipsoid()
     return as_zonotope(S).to_ellipsoid()
+
+
+def remainder_box(state_set: ConvexSet, extras: dict) -> Interval:
+    """Box over which an ellipsoidal filter bounds its remainders.
+
+    The interval hull of the ellipsoid, intersected at k = 0 with the hull of the *given*
+    initial set (``extras["x0_box"]``): the true x0 lies in that set, and the covering
+    ellipsoid of a box is ``sqrt(n)`` times wider per axis (it may reach a singularity of f
+    that the box does not, e.g. the fermenter's ``mu`` pole).
+    """
+    box = state_set.interval_hull()
+    b0 = extras.get("x0_box")
+    if b0 is not None:
+        box = box.intersect(b0)
+    return box
 
 
 def check_initial_set(name: str, S: ConvexSet | None, n: int) -> None:

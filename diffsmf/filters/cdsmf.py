@@ -59,11 +59,14 @@ class CDSMF(SetFilter):
             raise ValueError("stirling_step: must be a positive scalar or [n] tensor")
         register_positive(self, "stirling_step", h.expand(system.n).clone())
         self.sum_method = sum_method
-        self._x0 = C.as_ellipsoid(initial_set if initial_set is not None else system.x0_set)
+        given = initial_set if initial_set is not None else system.x0_set
+        self._x0 = C.as_ellipsoid(given)
+        self._x0_box = given.interval_hull()
 
     def initial_state(self, batch: int | None = None) -> FilterState:
         S = C.expand_state_set(self._x0, batch)
-        return FilterState(set=S, consistent=torch.ones(S.batch_shape, dtype=torch.bool))
+        ok = torch.ones(S.batch_shape, dtype=torch.bool)
+        return FilterState(set=S, consistent=ok, extras={"x0_box": self._x0_box})
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (E - c) (+) cover(remainder box + W)``."""
@@ -74,7 +77,8 @@ class CDSMF(SetFilter):
         c = E.center
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, c, self.stirling_step)  # seed 000 eq. 12
-        R = C.prediction_remainder(self.system, dc_remainder, fn, E.interval_hull(), c, F, u)
+        box = C.remainder_box(E, state.extras)
+        R = C.prediction_remainder(self.system, dc_remainder, fn, box, c, F, u)
         W = self.process_noise_box()
         fc = fn(c)
         rad = R.radius + W.radius
@@ -84,7 +88,7 @@ class CDSMF(SetFilter):
         box = Interval(-rad, rad)
         new = lin.minkowski_sum(box.to_ellipsoid(), method=self.sum_method)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
-        return state.replace(set=new)
+        return state.replace(set=new, extras={})
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Seed 000 Theorem 3 strips intersected one by one with the ellipsoid."""

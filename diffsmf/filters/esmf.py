@@ -70,11 +70,14 @@ class ESMF(SetFilter):
         if rho_rule not in ("eq40", "eq13"):
             raise ValueError(f"rho_rule: expected 'eq40' or 'eq13', got {rho_rule!r}")
         self.rho_rule = rho_rule
-        self._x0 = C.as_ellipsoid(initial_set if initial_set is not None else system.x0_set)
+        given = initial_set if initial_set is not None else system.x0_set
+        self._x0 = C.as_ellipsoid(given)
+        self._x0_box = given.interval_hull()
 
     def initial_state(self, batch: int | None = None) -> FilterState:
         S = C.expand_state_set(self._x0, batch)
-        return FilterState(set=S, consistent=torch.ones(S.batch_shape, dtype=torch.bool))
+        ok = torch.ones(S.batch_shape, dtype=torch.bool)
+        return FilterState(set=S, consistent=ok, extras={"x0_box": self._x0_box})
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Eq. 24-35: ``E(f(c) + a, A P A') (+) [(Qbar (+) Q) (+) Delta]``."""
@@ -83,10 +86,10 @@ class ESMF(SetFilter):
 
         E = state.set
         c = E.center
-        box = E.interval_hull()  # eq. 27
+        box = C.remainder_box(E, state.extras)  # eq. 27 (∩ the initial box at k = 0)
         fn = C.step_function(self.system, u)
         A = jacobian(fn, c)  # eq. 25
-        R = lagrange_remainder(fn, box, c, A)  # eq. 26-28
+        R = C.finite_remainder(lagrange_remainder(fn, box, c, A), "f")  # eq. 26-28
         fc = fn(c)
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
         Qhat = R.to_ellipsoid().minkowski_sum(  # eq. 29-31
@@ -96,11 +99,12 @@ class ESMF(SetFilter):
             D = parameter_deviation(
                 self.system.f, box, self.system.parameters, self.system.theta_nominal, u
             )
+            D = C.finite_remainder(D, "parameter deviation")
             Qhat = Qhat.minkowski_sum(D.to_ellipsoid(), method="trace")
         lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
         new = lin.minkowski_sum(Qhat, method="trace")  # eq. 34-35
         new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
-        return state.replace(set=new)
+        return state.replace(set=new, extras={})
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Eq. 36-40: prior ∩ linearised observation set (``Ellipsoid.intersect_measurement``)."""
@@ -112,7 +116,7 @@ class ESMF(SetFilter):
         H = jacobian(h, c)
         hc = h(c)
         V = self.measurement_noise_box()
-        Rh = lagrange_remainder(h, E.interval_hull(), c, H)
+        Rh = C.finite_remainder(lagrange_remainder(h, E.interval_hull(), c, H), "h")
         noise = Interval(V.lower + Rh.lower, V.upper + Rh.upper)
         noise = C.widen(noise, C.rounding_margin(y, hc, noise.center, noise.radius))
         Rhat = noise.to_ellipsoid().shape  # diag(m r^2): covering ellipsoid of the box
