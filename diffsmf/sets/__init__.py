@@ -1,8 +1,9 @@
-"""Batched, differentiable convex sets: Interval (box), Zonotope, Parallelotope, Ellipsoid, Strip."""
+"""Batched, differentiable convex sets: Interval (box), Zonotope, Parallelotope, Ellipsoid,
+Strip."""
 
 from diffsmf.sets.base import ConvexSet, stack, where
 from diffsmf.sets.ellipsoid import Ellipsoid
-from diffsmf.sets.interval import Interval
+from diffsmf.sets.interval import Interval, interval_eval
 from diffsmf.sets.parallelotope import Parallelotope
 from diffsmf.sets.strip import Strip
 from diffsmf.sets.zonotope import Zonotope
@@ -14,6 +15,7 @@ __all__ = [
     "Parallelotope",
     "Strip",
     "Zonotope",
+    "interval_eval",
     "stack",
     "where",
 ]
