@@ -21,7 +21,10 @@ class TuneConfig:
 
     ``init_scale`` multiplies the system's noise bounds before tuning (5 = start from 5 b*);
     ``loss``: ``auto`` (containment when the true states are used, i.e. ``ground_truth``),
-    ``consistency``, ``containment`` or ``both``; ``params``: hyperparameter names to tune.
+    ``consistency``, ``containment`` or ``both``; ``params``: hyperparameter names to tune;
+    ``tie``: ``noise`` (one shared scale for all noise bounds), ``none``, or ``auto`` (``noise``
+    without ground truth, where the split between process and measurement noise is not
+    identifiable, else ``none``).
     """
 
     system: str = "spring_damper"
@@ -40,6 +43,7 @@ class TuneConfig:
     params: list[str] = field(
         default_factory=lambda: ["process_noise", "measurement_noise", "stirling_step"]
     )
+    tie: str = "auto"
     optimizer: str = "adam"
     lr: float = 0.05
     patience: int = 10

@@ -148,10 +148,15 @@ def _loss_flags(mode: str, has_x: bool) -> tuple[bool, bool]:
 
 
 def _make_optimizer(name: str, params: list[nn.Parameter], lr: float) -> torch.optim.Optimizer:
-    table = {"adam": torch.optim.Adam, "adamw": torch.optim.AdamW, "sgd": torch.optim.SGD}
-    if name not in table:
-        raise ValueError(f"optimizer: expected one of {sorted(table)}, got {name!r}")
-    return table[name](params, lr=lr)
+    """Adam/AdamW with ``betas=(0.9, 0.99)``: the consistency hinge gives huge gradients while
+    bounds are far too small and tiny ones near the boundary; the default beta2 = 0.999
+    remembers the huge ones for ~1000 steps and stalls the approach (toy test)."""
+    if name in ("adam", "adamw"):
+        cls = torch.optim.Adam if name == "adam" else torch.optim.AdamW
+        return cls(params, lr=lr, betas=(0.9, 0.99))
+    if name == "sgd":
+        return torch.optim.SGD(params, lr=lr)
+    raise ValueError(f"optimizer: expected one of ['adam', 'adamw', 'sgd'], got {name!r}")
 
 
 @torch.no_grad()
@@ -165,6 +170,8 @@ def evaluate(
     atol: float = 1e-9,
 ) -> dict[str, float]:
     """Metrics of ``filt`` on trajectories (sharded and summed over processes under DDP).
+
+    No gradients, so the filter runs unguarded (its own consistency flags and sets).
 
     Returns ``loss``, ``log_volume`` (mean log-volume, steps >= skip), ``mean_volume``,
     ``consistent_frac`` (fraction of steps the filter flagged consistent), ``max_excess``
@@ -181,7 +188,7 @@ def evaluate(
     max_excess = torch.full((), -math.inf, dtype=torch.float64, device=dev)
     for s in range(0, len(idx), chunk):
         part = data.take(idx[s : s + chunk])
-        out = filter_with_predictions(filt, part.y, part.u)
+        out = filter_with_predictions(filt, part.y, part.u, guard_empty=False)
         lval, terms = total_loss(out, part.x, weights, use_containment=cont, use_consistency=cons)
         b = part.y.shape[0]
         vol = out.result.volume[:, weights.skip :]

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.base import FilterResult, SetFilter
-from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.base import ConvexSet, where
 
 __all__ = [
     "LossWeights",
@@ -49,8 +49,8 @@ class LossWeights:
     the hinges are means over all steps, so at equilibrium with the volume gradient only about
     0.1 % of the steps may sit in the penalised band (a weight of 100 let about 1 % of the
     training measurements go inconsistent in the toy test). ``margin=0.1``: a measurement
-    within 10 % of the predicted output half-width from its edge is already penalised, a
-    safety buffer because outer-bounding filters detect inconsistency late (their predicted
+    less than 0.1 noise units (:func:`consistency_excess`) inside the edge of the predicted
+    output set is already penalised, a safety buffer because outer-bounding filters detect inconsistency late (their predicted
     sets are larger than the true feasible sets). ``skip`` initial steps are left out of the
     volume term (the initial set is not tunable).
     """
@@ -126,13 +126,16 @@ def containment_loss(result: FilterResult, x: Tensor) -> Tensor:
 
 
 def consistency_excess(filt: SetFilter, predicted: ConvexSet, y: Tensor) -> Tensor:
-    """Normalised excess of ``y [B, m]`` outside the predicted output set: ``[B, m]``.
+    """Excess of ``y [B, m]`` outside the predicted output set, in noise units: ``[B, m]``.
 
     Output set ``h(X_{k|k-1}) (+) V`` to first order: with J the Jacobian of h at the centre
     c, component i is the interval ``h_i(c) + cV_i +- (r_i + rV_i)`` with
     ``r_i = h(J_i) - J_i.c`` (support function; exact for linear h, where a positive excess
     is exactly an empty strip intersection). Excess
-    ``(|y_i - h_i(c) - cV_i| - r_i - rV_i) / (r_i + rV_i)``: <= 0 consistent, > 0 not.
+    ``(|y_i - h_i(c) - cV_i| - r_i - rV_i) / s_i``: <= 0 consistent, > 0 not, where
+    ``s_i = rV_i + |J_i| rW`` is one step of noise seen at the output (the scale that the
+    tuned bounds change; normalising by the whole half-width would let the initial set, not
+    the noise, set the units).
     """
     from diffsmf.linearize import jacobian
 
@@ -144,15 +147,25 @@ def consistency_excess(filt: SetFilter, predicted: ConvexSet, y: Tensor) -> Tens
     r = r.movedim(0, -1)  # [B, m]
     rv = filt.measurement_noise
     mid = h(c) + filt.measurement_noise_center
-    half = (r + rv).clamp_min(1e-12)
-    return ((y - mid).abs() - half) / half
+    scale = (rv + (J.abs() * filt.process_noise).sum(-1)).clamp_min(1e-12)
+    return ((y - mid).abs() - r - rv) / scale
 
 
-def filter_with_predictions(filt: SetFilter, y: Tensor, u: Tensor | None = None) -> PassOutput:
+def filter_with_predictions(
+    filt: SetFilter, y: Tensor, u: Tensor | None = None, *, guard_empty: bool = True
+) -> PassOutput:
     """Run ``filt`` on ``y [B, T, m]`` (``u [B, T, p]``) step by step through its public API.
 
     Same sets as ``filt(y, u)`` (forward is exactly predict then update), plus the consistency
     excess ``[B, T, m]`` of each measurement against the predicted set.
+
+    ``guard_empty``: a measurement with excess > -1e-9 (outside, or within 1e-9 noise units of
+    the edge of, the predicted output set) is not passed to ``update``; that element keeps its
+    predicted set and is flagged inconsistent -- the filter contract's own rule for an empty
+    intersection, applied a hair earlier (a superset, so still guaranteed). Reason: the strip
+    intersections compute their unused non-empty branch on empty input and its backward gives
+    0 * inf = NaN gradients (seen in ``Parallelotope.intersect_strip``); the guard keeps the
+    gradients finite. With nonlinear h the excess is first order, so the guard is a heuristic.
     """
     if y.dim() != 3 or y.shape[-1] != filt.system.m:
         raise ValueError(f"y: expected shape [B, T, {filt.system.m}], got {tuple(y.shape)}")
@@ -163,11 +176,23 @@ def filter_with_predictions(filt: SetFilter, y: Tensor, u: Tensor | None = None)
     for k in range(T):
         pred = filt.predict(state, None if u is None else u[:, k])
         yk = y[:, k]
+        nan = torch.isnan(yk)
         e = consistency_excess(filt, pred.set, torch.nan_to_num(yk))
-        excess.append(torch.where(torch.isnan(yk), torch.full_like(e, -1.0), e))
-        state = filt.update(pred, yk)
+        excess.append(torch.where(nan, torch.full_like(e, -1.0), e))
+        bad = ((e > -1e-9) & ~nan).any(-1)
+        if guard_empty and bool(bad.any()):
+            safe = torch.where(bad.unsqueeze(-1), _output_centre(filt, pred.set), yk)
+            new = filt.update(pred, safe)
+            state = new.replace(set=where(bad, pred.set, new.set), consistent=new.consistent & ~bad)
+        else:
+            state = filt.update(pred, yk)
         states.append(state)
     return PassOutput(result=filt.collect(states), excess=torch.stack(excess, 1))
+
+
+def _output_centre(filt: SetFilter, predicted: ConvexSet) -> Tensor:
+    """``h(c) + cV`` of the predicted set (inside the predicted output set), detached."""
+    return (filt.system.h(predicted.center) + filt.measurement_noise_center).detach()
 
 
 def consistency_loss(excess: Tensor, margin: float = 0.1) -> Tensor:

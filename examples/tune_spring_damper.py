@@ -1,0 +1,238 @@
+"""Learning noise bounds and Stirling steps by gradient descent on set volume (issue 7).
+
+Parts (``--part``; each prints a table and writes JSON under ``--out``):
+
+* ``bounds``: spring_damper simulated with its true bounds b* (vertex noise). HSNSMF starts
+  from 5 b* and from 0.2 b*, is tuned with the consistency loss only (no ground truth; one
+  shared scale for all bounds), and is audited on held-out vertex-noise trajectories.
+* ``stirling``: tune the Stirling step h (containment loss with ground truth, noise bounds
+  fixed at b*) on ``bilinear`` (HSNSMF) and ``fermenter`` (HSNSMF); held-out containment.
+* ``grad``: the gradient of the log-area at every step of a 100-step horizon w.r.t. every
+  hyperparameter (finite?).
+* ``timing``: seconds per epoch of the 64 trajectories x 100 steps run, extrapolated to 200.
+
+    python examples/tune_spring_damper.py --part bounds --epochs 40
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+import diffsmf as ds
+from training import tune
+from training.loop import Data
+from training.tune import simulate_finite
+
+torch.set_default_dtype(torch.float64)
+
+
+def _fmt(v: list[float]) -> str:
+    return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
+
+
+def _audit(filt, test, chunk: int = 250) -> dict:
+    """Mean area (k >= 1), violations (exact contains) and consistency on held-out data."""
+    vols, viol, cons = [], 0, []
+    with torch.no_grad():
+        for s in range(0, test.y.shape[0], chunk):
+            y, x = test.y[s : s + chunk], test.x[s : s + chunk]
+            u = None if test.u is None else test.u[s : s + chunk]
+            res = filt(y, u=u)
+            vols.append(res.volume[:, 1:])
+            viol += int((~res.sets.contains(x)).sum())
+            cons.append(res.consistent[:, 1:].double())
+    return {
+        "mean_area": float(torch.cat(vols).mean()),
+        "violations": viol,
+        "consistent_frac": float(torch.cat(cons).mean()),
+        "trajectories": int(test.y.shape[0]),
+        "steps": int(test.y.shape[1]),
+    }
+
+
+def _head(tr, k: int):
+    return type(tr)(tr.x[:k], tr.y[:k], None if tr.u is None else tr.u[:k], None)
+
+
+def part_bounds(a: argparse.Namespace) -> dict:
+    sys_ = ds.systems.get("spring_damper")
+    ref = ds.filters.HSNSMF(sys_)
+    b_w, b_v = ref.process_noise.detach().clone(), ref.measurement_noise.detach().clone()
+    train = simulate_finite(sys_, a.train_steps, a.train, a.seed, "vertex")
+    val = simulate_finite(sys_, a.train_steps, a.val, a.seed + 1, "vertex")
+    test = simulate_finite(sys_, 100, a.test, a.seed + 2, "vertex")
+    out = {"b_star": {"process_noise": b_w.tolist(), "measurement_noise": b_v.tolist()}}
+    for start in (5.0, 0.2):
+        f = ds.filters.HSNSMF(sys_, process_noise=start * b_w, measurement_noise=start * b_v)
+        # before-tuning audit on all held-out trajectories at 5 b* (the area reduction), on
+        # the first 200 at 0.2 b* (only its consistency is of interest; saves CPU time)
+        before = _audit(f, test if start > 1 else _head(test, 200))
+        rep, f = tune(
+            f,
+            Data(train.y),  # no ground truth
+            params=("process_noise", "measurement_noise"),
+            tie="noise",
+            loss="consistency",
+            epochs=a.epochs,
+            batch_size=a.batch_size,
+            lr=a.lr,
+            validation=Data(val.y),
+            val_every=2,
+            patience=a.patience,
+            seed=a.seed,
+            progress=not a.no_progress,
+        )
+        after = _audit(f, test)
+        row = {
+            "start": start,
+            "learned": rep.final,
+            "scale": rep.final["measurement_noise"][0] / float(b_v[0]),
+            "before": before,
+            "after": after,
+            "area_reduction": 1 - after["mean_area"] / before["mean_area"] if start > 1 else None,
+            "epochs_run": len(rep.history),
+            "best_epoch": rep.best_epoch,
+            "seconds": rep.seconds,
+            "nonfinite_steps": rep.nonfinite_steps,
+            "val_consistent_after": rep.validation_after["consistent_frac"],
+        }
+        out[f"start_{start}"] = row
+        print(f"\nstart {start} b*: {len(rep.history)} epochs ({rep.seconds:.0f} s)")
+        print(f"  process_noise      {_fmt(rep.final['process_noise'])}  b* {_fmt(b_w.tolist())}")
+        print(
+            f"  measurement_noise  {_fmt(rep.final['measurement_noise'])}  b* {_fmt(b_v.tolist())}"
+        )
+        print(f"  learned / b* = {row['scale']:.4f}")
+        print(
+            f"  held out ({after['trajectories']} vertex traj x 100): mean area "
+            f"{before['mean_area']:.4g} -> {after['mean_area']:.4g} "
+            f"({100 * (row['area_reduction'] or 0):.1f} % less); violations {before['violations']} -> "
+            f"{after['violations']}; consistent {before['consistent_frac']:.4f} -> "
+            f"{after['consistent_frac']:.4f}"
+        )
+    return out
+
+
+def part_stirling(a: argparse.Namespace) -> dict:
+    out = {}
+    for name, fname in (("bilinear", "hsnsmf"), ("fermenter", "hsnsmf")):
+        sys_ = ds.systems.get(name)
+        steps = min(int(getattr(sys_, "horizon", 100) or 100), a.stirling_steps)
+        train = simulate_finite(sys_, steps, a.train, a.seed, "vertex")
+        test = simulate_finite(sys_, steps, a.test_stirling, a.seed + 2, "vertex")
+        f = ds.filters.by_name(fname)(sys_)
+        h0 = f.stirling_step.detach().clone()
+        before = _audit(f, test)
+        rep, f = tune(
+            f,
+            train,
+            params=("stirling_step",),
+            loss="containment",
+            epochs=a.stirling_epochs,
+            batch_size=a.batch_size,
+            lr=a.lr,
+            validation=0.25,
+            val_every=2,
+            patience=a.patience,
+            seed=a.seed,
+            progress=not a.no_progress,
+        )
+        after = _audit(f, test)
+        remainder_params = [n for n, _ in f.named_parameters() if "remainder" in n or "margin" in n]
+        out[name] = {
+            "filter": fname,
+            "steps": steps,
+            "h_before": h0.tolist(),
+            "h_after": rep.final["stirling_step"],
+            "before": before,
+            "after": after,
+            "seconds": rep.seconds,
+            "remainder_margin_parameter": remainder_params or None,
+        }
+        print(
+            f"\n{name} ({fname}, {steps} steps): h {_fmt(h0.tolist())} -> "
+            f"{_fmt(rep.final['stirling_step'])}; mean area {before['mean_area']:.4g} -> "
+            f"{after['mean_area']:.4g}; held-out violations {before['violations']} -> "
+            f"{after['violations']} ({after['trajectories']} vertex traj); "
+            f"remainder-margin parameter: {remainder_params or 'none in this filter'}"
+        )
+    return out
+
+
+def part_grad(a: argparse.Namespace) -> dict:
+    sys_ = ds.systems.get("spring_damper")
+    tr = simulate_finite(sys_, 100, 4, a.seed + 5, "vertex")
+    out = {}
+    for fname in ("hsnsmf", "mszm", "cdsmf"):
+        f = ds.filters.by_name(fname)(sys_)
+        params = [p for p in f.parameters() if p.requires_grad]
+        res = f(tr.y, u=tr.u)
+        logv = torch.log(res.volume.clamp_min(1e-300)).mean(0)  # [T+1]
+        bad = []
+        t0 = time.perf_counter()
+        for k in range(1, logv.shape[0]):
+            g = torch.autograd.grad(logv[k], params, retain_graph=True, allow_unused=True)
+            if not all(gi is None or torch.isfinite(gi).all() for gi in g):
+                bad.append(k)
+        out[fname] = {"steps": logv.shape[0] - 1, "nonfinite_steps": bad}
+        print(
+            f"{fname}: d log-area_k / d hyperparameters finite at "
+            f"{logv.shape[0] - 1 - len(bad)}/{logv.shape[0] - 1} steps "
+            f"({time.perf_counter() - t0:.0f} s){'; bad: ' + str(bad) if bad else ''}"
+        )
+    return out
+
+
+def part_timing(a: argparse.Namespace) -> dict:
+    sys_ = ds.systems.get("spring_damper")
+    train = simulate_finite(sys_, 100, 64, a.seed, "vertex")
+    f = ds.filters.HSNSMF(sys_)
+    rep, _ = tune(
+        f, Data(train.y), tie="noise", epochs=a.timing_epochs, batch_size=64, progress=False
+    )
+    per_epoch = rep.seconds / a.timing_epochs
+    print(
+        f"\ntiming: {a.timing_epochs} epochs of 64 x 100 (HSNSMF): {rep.seconds:.1f} s, "
+        f"{per_epoch:.2f} s/epoch -> 200 epochs ~ {200 * per_epoch / 60:.1f} min "
+        f"(torch threads {torch.get_num_threads()})"
+    )
+    return {"epochs": a.timing_epochs, "seconds": rep.seconds, "per_epoch": per_epoch}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--part", default="all", choices=["all", "bounds", "stirling", "grad", "timing"])
+    p.add_argument("--epochs", type=int, default=40)
+    p.add_argument("--stirling-epochs", type=int, default=20)
+    p.add_argument("--stirling-steps", type=int, default=100)
+    p.add_argument("--train", type=int, default=32)
+    p.add_argument("--val", type=int, default=16)
+    p.add_argument("--test", type=int, default=1000)
+    p.add_argument("--test-stirling", type=int, default=200)
+    p.add_argument("--train-steps", type=int, default=50)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=0.2)
+    p.add_argument("--patience", type=int, default=6)
+    p.add_argument("--timing-epochs", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="out/training")
+    p.add_argument("--no-progress", action="store_true")
+    a = p.parse_args()
+    parts = ["bounds", "stirling", "grad", "timing"] if a.part == "all" else [a.part]
+    outdir = Path(a.out)
+    outdir.mkdir(parents=True, exist_ok=True)
+    for part in parts:
+        t0 = time.perf_counter()
+        res = globals()[f"part_{part}"](a)
+        res["wall_seconds"] = time.perf_counter() - t0
+        (outdir / f"{part}.json").write_text(json.dumps(res, indent=2, default=str))
+        print(f"[{part}] {res['wall_seconds']:.0f} s -> {outdir / (part + '.json')}")
+
+
+if __name__ == "__main__":
+    main()
