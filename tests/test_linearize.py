@@ -311,6 +311,20 @@ def test_parameter_deviation_contains_switching_mismatch():
         assert (dev.width <= 1.5 * (d.amax((0, 1)) - d.amin((0, 1))) + 1e-9).all(), name
 
 
+def test_parameter_deviation_gradcheck_wrt_set_and_parameter_bounds():
+    sys = ds.systems.get("fermenter")
+    c0 = (sys.paper_x0 + 0.1).unsqueeze(0).requires_grad_()
+    G0 = torch.tensor([[[0.2, 0.05], [-0.04, 0.15], [0.1, 0.02]]], requires_grad=True)
+    lo0 = sys.parameters.lower.clone().requires_grad_()
+    hi0 = sys.parameters.upper.clone().requires_grad_()
+
+    def dev(c, G, lo, hi):
+        D = parameter_deviation(sys.f, Zonotope(c, G), Interval(lo, hi))
+        return torch.cat([D.lower, D.upper], -1)
+
+    assert torch.autograd.gradcheck(dev, (c0, G0, lo0, hi0))
+
+
 def test_remainder_bad_input():
     S = Interval(torch.zeros(2), torch.ones(2))
     with pytest.raises(ValueError, match="c"):
