@@ -108,6 +108,17 @@ def test_lipschitz_zero_python_control_gains_satisfy_same_lmi():
             assert d.bound <= a.bound * 1.01
 
 
+def test_decay_objective_and_discrete_envelope():
+    st = (BF_VDP, np.eye(2))
+    b = design_lipschitz_observer(A_VDP, C_VDP, 1.0, 1.0, structure=st, max_gain=300, iters=12)
+    d = design_lipschitz_observer(A_VDP, C_VDP, 1.0, 1.0, structure=st, max_gain=300, iters=12,
+                                  objective="decay")
+    assert b.feasible and d.feasible and d.decay > b.decay and d.bound >= b.bound * 0.999
+    Ad = np.eye(2) + 0.1 * A_VDP
+    dd = design_lipschitz_observer(Ad, C_VDP, 0.05, 0.5, time="discrete", iters=12)
+    assert dd.feasible and simulate_error_check(dd, steps=200, batch=16)["ok"]
+
+
 def test_problem_built_once_and_bad_input():
     lmi_mod._problem.cache_clear()
     design_lipschitz_observer(A_VDP, C_VDP, 0.1, 1.0, iters=5)
