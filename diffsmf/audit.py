@@ -198,3 +198,6 @@ def main(args: argparse.Namespace) -> int:
             f"{TOL:g}; guaranteed filters (hsnsmf, mszm, cdsmf, esmf) must show 0."
         )
     return 1 if bad else 0
+
+
+from diffsmf.tightness import TightnessReport, inner_bounds, tightness  # noqa: E402, F401 (issue 7)

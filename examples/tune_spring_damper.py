@@ -111,8 +111,8 @@ def part_bounds(a: argparse.Namespace) -> dict:
         print(
             f"  held out ({after['trajectories']} vertex traj x 100): mean area "
             f"{before['mean_area']:.4g} -> {after['mean_area']:.4g} "
-            f"({100 * (row['area_reduction'] or 0):.1f} % less); violations {before['violations']} -> "
-            f"{after['violations']}; consistent {before['consistent_frac']:.4f} -> "
+            f"({100 * (row['area_reduction'] or 0):.1f} % less); violations "
+            f"{before['violations']} -> {after['violations']}; consistent {before['consistent_frac']:.4f} -> "
             f"{after['consistent_frac']:.4f}"
         )
     return out

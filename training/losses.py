@@ -50,8 +50,8 @@ class LossWeights:
     0.1 % of the steps may sit in the penalised band (a weight of 100 let about 1 % of the
     training measurements go inconsistent in the toy test). ``margin=0.1``: a measurement
     less than 0.1 noise units (:func:`consistency_excess`) inside the edge of the predicted
-    output set is already penalised, a safety buffer because outer-bounding filters detect inconsistency late (their predicted
-    sets are larger than the true feasible sets). ``skip`` initial steps are left out of the
+    output set is already penalised, a safety buffer because outer-bounding filters detect
+    inconsistency late (their predicted sets are larger than the true feasible sets). ``skip`` initial steps are left out of the
     volume term (the initial set is not tunable).
     """
 
