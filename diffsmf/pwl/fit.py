@@ -1,7 +1,9 @@
 """Adaptive least-squares fitting of SCPLNN models (seed 004 sec. 3.1.2).
 
 Step 1: least-squares affine fit; stop if its max sample error is below eps.
-Step 2: connect the max-error sample p1 to the domain's vertices (:func:`cone_partition`).
+Step 2: connect the max-error sample p1 to the domain's vertices (:func:`cone_partition`);
+p1 closer than ``snap`` (relative) to a side of the box is first moved onto it, else the cones
+over the near facets are slivers that no later split repairs.
 Step 3: least-squares fit of the vertex weights (refit of the whole model); every region whose
 max sample error exceeds eps is split at its max-error sample by connecting it to the region's
 vertices (:class:`Refiner`); repeat until no region exceeds eps.
@@ -24,7 +26,7 @@ from diffsmf.pwl.partition import (
 )
 from diffsmf.pwl.scplnn import SCPLNN
 
-__all__ = ["FitReport", "fit_scplnn", "fit_weights", "as_xy", "domain_box"]
+__all__ = ["FitReport", "as_xy", "domain_box", "fit_partition", "fit_scplnn", "fit_weights"]
 
 _F64 = torch.float64
 BOX_MAX_DIM = 5  # beyond this a box domain needs > 2n (n-1)! = 1440 initial simplices
@@ -99,59 +101,83 @@ def domain_box(X: Tensor, domain: Any) -> tuple[Tensor, Tensor]:
     return lo, hi
 
 
-def fit_weights(
-    n_vertices: int, idx: Tensor, lam: Tensor, Y: Tensor, simplices: Tensor, ridge: float = 1e-10
-) -> Tensor:
+def fit_weights(vertices: Tensor, idx: Tensor, lam: Tensor, Y: Tensor, ridge: float = 0.0,
+                prior: Tensor | None = None) -> Tensor:
     """Least-squares vertex weights ``[nv, p]`` for the nodal basis (sec. 3.1.1: "weights by
     least squares").
 
-    Sample i has basis values ``lam [N, n+1]`` at vertices ``idx [N, n+1]``. Solves the normal
-    equations ``(Phi'Phi + ridge * s * L) W = Phi'Y`` (Phi sparse, n+1 nonzeros per row; L the
-    graph Laplacian of the partition's edges, s the mean diagonal of Phi'Phi) by Cholesky with
-    one step of iterative refinement; dense for up to 3000 vertices, scipy sparse beyond. The
-    tiny Laplacian term makes the problem well posed when some vertex has too few samples in
-    its star: such vertices take the harmonic average of their neighbours' values.
+    Sample i has basis values ``lam [N, n+1]`` at vertices ``idx [N, n+1]`` of ``vertices
+    [nv, n]``. Solves the normal equations ``(Phi'Phi + a I) W = Phi'Y + a prior`` (Phi sparse,
+    n+1 nonzeros per row, ``a = ridge * mean diag(Phi'Phi)``) by Cholesky with one step of
+    iterative refinement; dense up to 3000 vertices, scipy sparse beyond. In the adaptive loop
+    ``prior`` is the previous model's value at each vertex, so a vertex with too few samples in
+    its star keeps the value the coarser model gave it instead of extrapolating noise (a
+    documented regularisation; ``ridge = 0`` is plain least squares, minimum-norm if rank
+    deficient).
     """
+    nv = vertices.shape[0]
     p = Y.shape[1]
     n1 = idx.shape[1]
     rows = idx[:, :, None].expand(-1, n1, n1).reshape(-1)
     cols = idx[:, None, :].expand(-1, n1, n1).reshape(-1)
     vals = (lam[:, :, None] * lam[:, None, :]).reshape(-1)
-    rhs = torch.zeros(n_vertices, p, dtype=_F64).index_add_(
+    rhs = torch.zeros(nv, p, dtype=_F64).index_add_(
         0, idx.reshape(-1), (lam[..., None] * Y[:, None, :]).reshape(-1, p))
-    er = simplices[:, :, None].expand(-1, n1, n1).reshape(-1)
-    ec = simplices[:, None, :].expand(-1, n1, n1).reshape(-1)
-    off = er != ec
-    er, ec = er[off], ec[off]
-    diag = torch.zeros(n_vertices, dtype=_F64).index_add_(0, rows[rows == cols], vals[rows == cols])
-    s = float(diag.sum()) / max(1, int((diag > 0).sum()))
-    alpha = ridge * s
-    if n_vertices <= 3000:
-        G = torch.zeros(n_vertices, n_vertices, dtype=_F64)
+    if ridge > 0:
+        diag = torch.zeros(nv, dtype=_F64).index_add_(0, idx.reshape(-1), lam.reshape(-1) ** 2)
+        a = ridge * float(diag.sum()) / max(1, int((diag > 0).sum()))
+        ar = torch.arange(nv)
+        rows, cols = torch.cat([rows, ar]), torch.cat([cols, ar])
+        vals = torch.cat([vals, torch.full((nv,), a, dtype=_F64)])
+        if prior is not None:
+            rhs = rhs + a * prior
+    if nv <= 3000:
+        G = torch.zeros(nv, nv, dtype=_F64)
         G.index_put_((rows, cols), vals, accumulate=True)
-        Gr = G.clone()
-        Gr.index_put_((er, ec), torch.full_like(er, -alpha, dtype=_F64), accumulate=True)
-        Gr.index_put_((er, er), torch.full_like(er, alpha, dtype=_F64), accumulate=True)
-        L, info = torch.linalg.cholesky_ex(Gr)
+        L, info = torch.linalg.cholesky_ex(G)
         if int(info) == 0:
             W = torch.cholesky_solve(rhs, L)
-            W = W + torch.cholesky_solve(rhs - Gr @ W, L)  # iterative refinement
-        else:  # rank deficient (e.g. ridge=0 and a vertex without samples): min-norm solution
-            W = torch.linalg.lstsq(Gr, rhs, driver="gelsd").solution
+            W = W + torch.cholesky_solve(rhs - G @ W, L)  # iterative refinement
+        else:  # rank deficient (too few samples): minimum-norm least squares
+            W = torch.linalg.lstsq(G, rhs, driver="gelsd").solution
         return W
     import numpy as np
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    r = torch.cat([rows, er, er]).numpy()
-    c = torch.cat([cols, ec, er]).numpy()
-    v = torch.cat([vals, torch.full((len(er),), -alpha), torch.full((len(er),), alpha)]).numpy()
-    Gs = sp.csc_matrix((v, (r, c)), shape=(n_vertices, n_vertices))
-    solve = spla.factorized(Gs)
+    Gs = sp.csc_matrix((vals.numpy(), (rows.numpy(), cols.numpy())), shape=(nv, nv))
     b = rhs.numpy()
-    W = np.stack([solve(b[:, j]) for j in range(p)], 1)
-    W = W + np.stack([solve((b - Gs @ W)[:, j]) for j in range(p)], 1)
+    try:
+        solve = spla.factorized(Gs)
+        W = np.stack([solve(b[:, j]) for j in range(p)], 1)
+        W = W + np.stack([solve((b - Gs @ W)[:, j]) for j in range(p)], 1)
+    except RuntimeError:  # singular: least squares
+        W = np.stack([spla.lsqr(Gs, b[:, j], atol=1e-14, btol=1e-14)[0] for j in range(p)], 1)
     return torch.from_numpy(W)
+
+
+def fit_partition(
+    X: Any, Y: Any, vertices: Tensor, simplices: Tensor, ridge: float = 0.0,
+    outside: str = "error",
+) -> SCPLNN:
+    """Least-squares SCPLNN on a given conforming partition (no splitting).
+
+    X ``[N, n]``, Y ``[N, p]``; vertices ``[nv, n]``, simplices ``[M, n+1]`` tiling a box.
+    With ``ridge=0`` and enough samples (each vertex's star sampled) the solution is the exact
+    least-squares one; a continuous PWL function on that partition is recovered exactly.
+    """
+    X, Y = as_xy(X, Y)
+    model = SCPLNN(vertices, simplices, torch.zeros(vertices.shape[0], Y.shape[1]),
+                   outside=outside)
+    s, inside = model.locate(X)
+    if not bool(inside.all()):
+        raise ValueError("X: some samples lie outside the partition")
+    Bm = model.bary[s]
+    lam = (Bm[..., :-1] @ X[..., None]).squeeze(-1) + Bm[..., -1]
+    W = fit_weights(model.vertices, model.simplices[s], lam, Y, ridge)
+    with torch.no_grad():
+        model.weight.copy_(W)
+    return model
 
 
 def _eps_tensor(eps: Any, p: int) -> Tensor:
@@ -188,9 +214,14 @@ def fit_scplnn(
         domain: ``None`` (bounding box of X; for n > 5 a simplex containing it), a box
             ``(lower, upper)`` / Interval containing X, ``"box"`` or ``"simplex"``.
         max_rounds: cap on refit rounds.
-        ridge: relative weight of the Laplacian regulariser (see :func:`fit_weights`).
+        ridge: relative weight pulling each vertex towards the previous round's model (see
+            :func:`fit_weights`); matters only for vertices with few samples.
         snap: barycentric threshold of the split rule (see :class:`Refiner`); default
             0.5 / (n + 1).
+        rule: ``"interior"`` (seed 004: connect the sample to the region's vertices when it is
+            well inside, else cut the longest edge) or ``"edge"`` (always the longest edge).
+        edge_clip: where the longest edge is cut: the sample's projection clipped to
+            ``[edge_clip, 1 - edge_clip]`` (0.5: the midpoint).
         mark: split only regions whose error exceeds ``max(eps, mark * current max error)``
             each round (0: every region above eps, as in seed 004).
         outside: policy of the returned model for points outside the domain.
@@ -238,7 +269,10 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: in
             return _finish(V, S, coef, None, X, Y, e, t0, 0, "affine fit below eps", history,
                            outside, True)
         # Step 2: connect the max-error sample to the domain's vertices
-        V, S = cone_partition(lo, hi, X[int(score.argmax())])
+        p1 = X[int(score.argmax())]
+        u = (p1 - lo) / (hi - lo)  # a p1 near the boundary would make sliver cones: snap it
+        u = torch.where(u < snap, 0.0, torch.where(u > 1 - snap, 1.0, u))
+        V, S = cone_partition(lo, hi, lo + u * (hi - lo))
         ref = Refiner(V, S, snap=snap, rule=rule, edge_clip=edge_clip)
     else:
         Vd = simplex_domain(lo, hi)
@@ -249,14 +283,15 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: in
         ref = Refiner(Vd, S0, snap=snap, rule=rule, edge_clip=edge_clip)
         ref.split(X[int(score.argmax())], 0)
     assign = ref.relocate(X, ref.alive.nonzero().flatten())
-    return _adaptive_loop(ref, assign, X, Y, e, t0, max_regions, max_rounds, ridge, mark,
+    prior = torch.cat([ref.V, torch.ones(ref.V.shape[0], 1, dtype=_F64)], 1) @ coef
+    return _adaptive_loop(ref, assign, prior, X, Y, e, t0, max_regions, max_rounds, ridge, mark,
                           outside, use_box, progress, history)
 
 
-def _adaptive_loop(ref: Refiner, assign: Tensor, X: Tensor, Y: Tensor, e: Tensor, t0: float,
-                   max_regions: int, max_rounds: int, ridge: float, mark: float, outside: str,
-                   use_box: bool,
-                   progress: bool | None, history: list) -> tuple[SCPLNN, FitReport]:
+def _adaptive_loop(ref: Refiner, assign: Tensor, prior: Tensor, X: Tensor, Y: Tensor,
+                   e: Tensor, t0: float, max_regions: int, max_rounds: int, ridge: float,
+                   mark: float, outside: str, use_box: bool, progress: bool | None,
+                   history: list) -> tuple[SCPLNN, FitReport]:
     """Step 3 of sec. 3.1.2: refit, split every region above eps at its max-error sample."""
     from tqdm.auto import tqdm
 
@@ -269,8 +304,8 @@ def _adaptive_loop(ref: Refiner, assign: Tensor, X: Tensor, Y: Tensor, e: Tensor
         V, S_all = ref.V, ref.S
         idx = S_all[assign]
         lam = ref.lam(X, assign)
-        live_S = S_all[ref.alive]
-        W = fit_weights(V.shape[0], idx, lam, Y, live_S, ridge)
+        W = fit_weights(V, idx, lam, Y, ridge, prior)
+        prior = W
         resid = (lam[..., None] * W[idx]).sum(1) - Y
         score = (resid.abs() / e).amax(-1)  # [N] error in units of eps
         worst = float(score.max())
@@ -295,14 +330,15 @@ def _adaptive_loop(ref: Refiner, assign: Tensor, X: Tensor, Y: Tensor, e: Tensor
             if out is None:
                 continue
             removed, children = out
+            new_prior = ref.last_weights @ prior[ref.last_face]  # current model at the new vertex
+            prior = torch.cat([prior, new_prior[None]], 0)
             moved = torch.isin(assign, removed).nonzero().flatten()
             assign[moved] = ref.relocate(X[moved], children)
             if ref.n_simplices >= max_regions:
                 break
     bar.close()
     if W is None or W.shape[0] != ref.V.shape[0]:  # split after the last fit: refit
-        W = fit_weights(ref.V.shape[0], ref.S[assign], ref.lam(X, assign), Y, ref.S[ref.alive],
-                        ridge)
+        W = fit_weights(ref.V, ref.S[assign], ref.lam(X, assign), Y, ridge, prior)
     V, S, _ = ref.compact()
     return _finish(V, S, None, W, X, Y, e, t0, rounds, reason, history, outside, use_box)
 

@@ -168,14 +168,20 @@ def check_conforming(vertices: Tensor, simplices: Tensor, atol: float = 1e-9) ->
     n = vertices.shape[-1]
     vol = simplex_volumes(vertices, simplices)
     assert bool((vol > 0).all()), "degenerate simplex"
-    hull = ConvexHull(vertices.numpy())
-    assert abs(float(vol.sum()) - hull.volume) <= atol * max(1.0, hull.volume), "volume mismatch"
+    if n == 1:  # scipy's hull needs 2-D; the hull of points on a line is [min, max]
+        lo, hi = vertices.min(), vertices.max()
+        hv = float(hi - lo)
+        eq = torch.tensor([[-1.0, float(lo)], [1.0, -float(hi)]], dtype=vertices.dtype)
+    else:
+        hull = ConvexHull(vertices.numpy())
+        hv = hull.volume
+        eq = torch.as_tensor(hull.equations)  # [F, n+1]: a.x + b <= 0 inside
+    assert abs(float(vol.sum()) - hv) <= atol * max(1.0, hv), "volume mismatch"
     faces = torch.cat([torch.cat([simplices[:, :j], simplices[:, j + 1 :]], 1)
                        for j in range(n + 1)])
     faces = faces.sort(-1).values
     uniq, counts = torch.unique(faces, dim=0, return_counts=True)
     assert int(counts.max()) <= 2, "a face is shared by more than two simplices"
-    eq = torch.as_tensor(hull.equations)  # [F, n+1]: a.x + b <= 0 inside
     bnd = uniq[counts == 1]
     if len(bnd):
         pts = vertices[bnd]  # [f, n, n]
@@ -257,15 +263,20 @@ class Refiner:
     """Mutable partition under refinement (seed 004 sec. 3.1.2 Step 3), stored with spare
     capacity: ``V [nv, n]``, ``S [M, n+1]`` with a liveness mask, and the barycentric matrices.
 
-    ``split(p, s)`` inserts ``p`` (a point of simplex ``s``) by stellar subdivision of a face of
-    s: the face F spanned by the vertices whose barycentric coordinate is at least ``snap``
-    (at least the two largest, i.e. an edge); p is projected onto F and its coordinates in F
-    are clipped to at least ``snap`` (so new simplices are not slivers); then every live simplex
-    that has the face F is replaced by the simplices obtained by swapping one vertex of F for
-    the new point. For a point well inside s (all coordinates >= snap) this is exactly seed 004's
-    "connect p to the region's vertices"; near a face it splits that face and every simplex
-    sharing it, which keeps the partition conforming and lets long edges be refined (pure
-    interior splits never shorten an edge, and the error along an edge never decreases).
+    ``split(p, s)`` inserts a new vertex for the max-error sample ``p`` of simplex ``s``:
+
+    * ``rule="interior"`` (default) and p well inside s (every barycentric coordinate at least
+      ``snap``): p is connected to the vertices of s (seed 004 Step 3, n+1 children);
+    * otherwise (p near a face of s, where connecting it would create slivers, or
+      ``rule="edge"``): the longest edge of s is cut at p's projection, clipped to
+      ``[edge_clip, 1 - edge_clip]`` of the edge (default: the midpoint), and every simplex
+      sharing that edge is split in two (stellar subdivision of the edge).
+
+    Both are stellar subdivisions of a face, applied to every live simplex containing the face,
+    so the partition stays conforming. The edge rule is a deviation from seed 004: with interior
+    splits only, no edge is ever shortened, the model is linear along the original long edges
+    and the loop stalls on slivers (measured: 10x more vertices, see docs/pwl.md).
+    ``last_face``/``last_weights`` give the new vertex as a convex combination of a face.
     """
 
     def __init__(self, vertices: Tensor, simplices: Tensor, snap: float = 0.2,
@@ -297,6 +308,7 @@ class Refiner:
         lam = self.lam(p[None], torch.tensor([s]))[0]
         if self.rule == "interior" and bool((lam >= self.snap).all()):
             face, q = self.S[s], p  # seed 004: connect p to the region's vertices
+            self.last_face, self.last_weights = face, lam
         else:  # longest edge of s, cut at p's projection (clipped to the middle third)
             Vs = self.V[self.S[s]] / self.scale  # [n+1, n]
             d = torch.cdist(Vs, Vs)
@@ -307,6 +319,8 @@ class Refiner:
             t = min(max(t, self.edge_clip), 1 - self.edge_clip)
             face = self.S[s, [a, b]]
             q = va + t * (vb - va)
+            self.last_face = face
+            self.last_weights = torch.tensor([1 - t, t], dtype=self.V.dtype)
         live = self.alive.nonzero().flatten()
         has = (self.S[live][:, :, None] == face[None, None, :]).any(1).all(-1)
         affected = live[has]
