@@ -403,3 +403,35 @@ def test_plot_bounds_and_volumes(tmp_path):
     plt.close(fig)
     with pytest.raises(ValueError, match="dim"):
         plot_bounds(ax1, res, dim=2)
+
+
+def test_intersect_strip_volume_lambda_near_lp_optimum_3d():
+    """n-D volume-lambda vs the exact LP optimum (scipy linprog on numpy cofactors), with the
+    family's volume measured by ConvexHull."""
+    Z = rand_zono(3, 5, seed=70)
+    G = Z.generators.numpy()
+    p = np.array([0.7, -1.0, 0.4])
+    rad = np.abs(p @ G).sum()
+    y, sig = p @ Z.center.numpy() + 0.3 * rad, 0.3 * rad
+    R = Z.intersect_strip(ds.Strip(torch.as_tensor(p), y, sig), "volume")
+    Q = np.array(
+        [
+            [np.linalg.det(np.column_stack([G[:, list(T)], e])) for e in np.eye(3)]
+            for T in itertools.combinations(range(5), 2)
+        ]
+    )
+    K = len(Q)
+    res = linprog(
+        np.r_[np.zeros(3), np.ones(K)],
+        A_ub=np.block([[Q, -np.eye(K)], [-Q, -np.eye(K)]]),
+        b_ub=np.zeros(2 * K),
+        A_eq=np.r_[p, np.zeros(K)][None],
+        b_eq=[1.0],
+        bounds=[(None, None)] * (3 + K),
+        method="highs",
+    )
+    lam = res.x[:3]
+    Gl = np.concatenate([G - np.outer(lam, p @ G), sig * lam[:, None]], 1)
+    s = np.array(list(itertools.product((-1.0, 1.0), repeat=6)))
+    best = min(ConvexHull(s @ Gl.T).volume, ConvexHull(all_vertices(Z)).volume)
+    assert R.volume().item() <= best * 1.005

@@ -218,11 +218,11 @@ class Parallelotope(ConvexSet):
         An empty intersection (eq. 31-32: ``eps0+ < -1`` or ``eps0- > 1``) returns the input
         unchanged (never NaN); use :meth:`intersects_strip` to flag it.
         """
-        from diffsmf.sets.zonotope import _strip_fields
+        from diffsmf.sets.zonotope import _strip_batch, _strip_fields
 
         a, y, sig = _strip_fields(strip, self)
         n = self.dim
-        batch = torch.broadcast_shapes(self.batch_shape, a.shape[:-1], y.shape, sig.shape)
+        batch = _strip_batch(self.batch_shape, a, y, sig)
         xc, T = self._c.expand(*batch, n), self.T.expand(*batch, n, n)
         a, y, sig = a.expand(*batch, n), y.expand(batch), sig.expand(batch)
         tiny = torch.finfo(T.dtype).tiny

@@ -396,7 +396,7 @@ class Zonotope(ConvexSet):
             raise ValueError(f"method: unknown strip method {method!r}")
         p, y, sig = _strip_fields(strip, self)
         c, G = self._c, self.generators
-        batch = torch.broadcast_shapes(c.shape[:-1], p.shape[:-1], y.shape, sig.shape)
+        batch = _strip_batch(self.batch_shape, p, y, sig)
         c = c.expand(*batch, self.dim)
         G = G.expand(*batch, *G.shape[-2:])
         p, y, sig = p.expand(*batch, self.dim), y.expand(batch), sig.expand(batch)
@@ -454,6 +454,17 @@ def _strip_fields(strip: Any, ref: ConvexSet) -> tuple[Tensor, Tensor, Tensor]:
     if p.shape[-1] != ref.dim:
         raise ValueError(f"strip: normal has dim {p.shape[-1]}, set has dim {ref.dim}")
     return p, y.to(p.dtype), sig.to(p.dtype)
+
+
+def _strip_batch(batch: torch.Size, p: Tensor, y: Tensor, sig: Tensor) -> torch.Size:
+    """Common batch shape of a set and a strip; ``ValueError`` naming ``strip`` otherwise."""
+    try:
+        return torch.broadcast_shapes(batch, p.shape[:-1], y.shape, sig.shape)
+    except RuntimeError as exc:
+        raise ValueError(
+            f"strip: batch shape {tuple(y.shape)} does not broadcast with the set's "
+            f"batch shape {tuple(batch)}"
+        ) from exc
 
 
 def _outer_parallelotope(G: Tensor) -> Tensor:
@@ -550,35 +561,91 @@ def _alamo_lambda(c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, metho
     if method == "fradius":
         return lam_f
     n, m = G.shape[-2], G.shape[-1]
+    if m < n - 1 or (m >= n and math.comb(m, n) > MAX_VOLUME_SUBSETS):
+        return lam_f  # no facets / too many subsets for the exact volume: F-radius lambda
+    if math.comb(m, n - 1) > MAX_VOLUME_SUBSETS:
+        return lam_f
     safe = torch.where(Gp.abs() > 0, Gp, torch.ones_like(Gp))
     lam_g = (G / safe.unsqueeze(-2)).transpose(-1, -2)  # [..., m, n] : g_j / (p.g_j)
-    cands = torch.cat([torch.zeros_like(lam_f).unsqueeze(-2), lam_f.unsqueeze(-2), lam_g], -2)
+    cands = [torch.zeros_like(lam_f).unsqueeze(-2), lam_f.unsqueeze(-2), lam_g]
+    bad = [torch.zeros_like(Gp[..., :2], dtype=torch.bool), Gp.detach().abs() == 0]
+    idx1 = _combinations(m, n - 1, G.device)
     with torch.no_grad():
-        cd = cands.detach()
-        bad = torch.cat(
-            [torch.zeros_like(Gp[..., :2], dtype=torch.bool), Gp.detach().abs() == 0], -1
-        )
-        if m >= n and math.comb(m, n) > MAX_VOLUME_SUBSETS:
-            return lam_f  # too many subsets for the exact volume: F-radius lambda
+        Gd, pd = G.detach(), p.detach()
+        q = _cofactor_normals(
+            Gd, idx1
+        )  # [..., K, n]: vol(lam) = 2^n (|1-p.lam| V0 + sig |q lam|_1)
         V0 = (
-            _sum_abs_det(G.detach(), _combinations(m, n, G.device))
+            _sum_abs_det(Gd, _combinations(m, n, G.device))
             if m >= n
-            else G.new_zeros(G.shape[:-2])
+            else Gd.new_zeros(Gd.shape[:-2])
         )
-        vol = (1 - (cd * p.detach().unsqueeze(-2)).sum(-1)).abs() * V0.unsqueeze(-1)
-        if n == 1:
-            qsum = cd.abs().squeeze(-1)
-        elif m >= n - 1 and math.comb(m, n - 1) <= MAX_VOLUME_SUBSETS:
-            q = _cofactor_normals(G.detach(), _combinations(m, n - 1, G.device))  # [..., K, n]
-            qsum = (cd @ q.transpose(-1, -2)).abs().sum(-1)  # [..., C]
-        else:  # too many subsets: fall back to the F-radius lambda
-            return lam_f
-        vol = vol + sig.detach().unsqueeze(-1) * qsum
-        vol = torch.where(bad, torch.full_like(vol, float("inf")), vol)
-        # prefer lambda = 0 on (near) ties
-        vol[..., 0] = vol[..., 0] * (1 - 1e-9)
+    if n >= 2 and idx1.shape[0] >= n - 1:
+        lam_v, ok_v = _l1_vertex(G, p, q, idx1)
+        cands.append(lam_v)
+        bad.append(~ok_v)
+    cands_t = torch.cat(cands, -2)  # [..., C, n]
+    with torch.no_grad():
+        cd = cands_t.detach()
+        vol = (1 - (cd * pd.unsqueeze(-2)).sum(-1)).abs() * V0.unsqueeze(-1)
+        vol = vol + sig.detach().unsqueeze(-1) * (cd @ q.transpose(-1, -2)).abs().sum(-1)
+        vol = torch.where(torch.cat(bad, -1), torch.full_like(vol, float("inf")), vol)
+        vol[..., 0] = vol[..., 0] * (1 - 1e-9)  # prefer lambda = 0 on (near) ties
         k = vol.argmin(-1)
-    return torch.gather(cands, -2, k.reshape(*k.shape, 1, 1).expand(*k.shape, 1, n)).squeeze(-2)
+    return torch.gather(cands_t, -2, k.reshape(*k.shape, 1, 1).expand(*k.shape, 1, n)).squeeze(-2)
+
+
+def _l1_vertex(
+    G: Tensor, p: Tensor, q: Tensor, idx1: Tensor, iters: int = 15
+) -> tuple[Tensor, Tensor]:
+    """Candidates for the minimiser of ``sum_T |q_T . lam|`` s.t. ``p . lam = 1`` (the
+    volume-optimal lambda on the hyperplane; an LP whose optimum is a vertex where n-1 of the
+    ``q_T . lam`` vanish). IRLS (detached, ``iters`` steps, best iterate kept) locates it; the
+    s = n + 2 subsets with the smallest ``|q_T . lam|`` are then combined n-1 at a time and each
+    vertex ``[q_T; p] lam = e_n`` is solved differentiably in G and p.
+    Returns the IRLS iterate ``[..., 1, n]`` (detached) and the vertices ``[..., V, n]``
+    concatenated ``[..., 1 + V, n]``, and their regularity flags ``[..., 1 + V]``."""
+    n, m = G.shape[-2], G.shape[-1]
+    with torch.no_grad():
+        pd = p.detach()
+        lam = pd / (pd * pd).sum(-1, keepdim=True)
+        r = (q @ lam.unsqueeze(-1)).squeeze(-1).abs()
+        best, bestf = lam, r.sum(-1)
+        eps = r.mean(-1, keepdim=True).clamp_min(1e-300)
+        eye = torch.eye(n, dtype=G.dtype, device=G.device)
+        for _ in range(iters):
+            w = 1 / torch.maximum(r, eps)
+            M = q.transpose(-1, -2) @ (w.unsqueeze(-1) * q)
+            tr = torch.diagonal(M, dim1=-2, dim2=-1).sum(-1)
+            M = M + (1e-12 * tr / n).reshape(*tr.shape, 1, 1) * eye
+            z = torch.linalg.solve_ex(M, pd.unsqueeze(-1))[0].squeeze(-1)
+            lam = z / (pd * z).sum(-1, keepdim=True)
+            r = (q @ lam.unsqueeze(-1)).squeeze(-1).abs()
+            f = r.sum(-1)
+            better = (f < bestf) & torch.isfinite(lam).all(-1)
+            best = torch.where(better.unsqueeze(-1), lam, best)
+            bestf = torch.where(better, f, bestf)
+            eps = eps * 0.3
+        r = (q @ best.unsqueeze(-1)).squeeze(-1).abs()
+        k_s = min(q.shape[-2], n + 2)
+        near = r.topk(k_s, dim=-1, largest=False).indices  # [..., s]
+    cols = idx1[near]  # [..., s, n-1] generator indices of the near-active subsets
+    Gx = G.unsqueeze(-3).expand(*cols.shape[:-1], n, m)
+    Gsub = torch.gather(Gx, -1, cols.unsqueeze(-2).expand(*cols.shape[:-1], n, n - 1))
+    Qs = _cross_normal(Gsub)  # [..., s, n], differentiable
+    combo = _combinations(k_s, n - 1, G.device)  # [V, n-1]
+    Qa = Qs[..., combo, :]  # [..., V, n-1, n]
+    pe = p.expand(*Qs.shape[:-2], n).unsqueeze(-2).unsqueeze(-2)
+    A = torch.cat([Qa, pe.expand(*Qa.shape[:-2], 1, n)], -2)  # [..., V, n, n]
+    with torch.no_grad():
+        Ad = A.detach()
+        ok = torch.linalg.det(Ad).abs() > 1e-12 * Ad.norm(dim=-1).prod(-1)
+    A = torch.where(ok.unsqueeze(-1).unsqueeze(-1), A, torch.eye(n, dtype=G.dtype, device=G.device))
+    e = torch.zeros(n, 1, dtype=G.dtype, device=G.device)
+    e[-1] = 1.0
+    verts = torch.linalg.solve(A, e).squeeze(-1)
+    ok = torch.cat([torch.ones_like(ok[..., :1]), ok], -1)
+    return torch.cat([best.unsqueeze(-2), verts], -2), ok
 
 
 def _facet_directions(G: Tensor) -> tuple[Tensor, Tensor | None]:
