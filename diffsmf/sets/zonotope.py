@@ -385,9 +385,13 @@ class Zonotope(ConvexSet):
         * ``"volume"``: ``vol Z(lambda) = 2^n (|1 - p.lambda| V0 + sigma sum_T |q_T.lambda|)``
           (V0 = sum |det G_S|, q_T the cross products of the (n-1)-subsets), a convex
           piecewise-linear function; its minimum is at lambda = 0 or at a vertex on
-          ``p.lambda = 1``. We evaluate it at the candidates {0, F-radius lambda,
-          g_j / (p.g_j)} and keep the least (exact in 2-D, where the vertices are exactly
-          the g_j / (p.g_j); a candidate search in n-D).
+          ``p.lambda = 1`` (an LP). We evaluate it exactly at the candidates {0, F-radius
+          lambda, g_j / (p.g_j), an IRLS solution of the LP (15 steps), the vertices
+          through the n + 2 nearly active subsets} and keep the least. Exact in 2-D (the
+          vertices are the g_j / (p.g_j)); within 0.7% of the LP optimum in 3-6 D in our
+          tests. Vertices are differentiable functions of (G, p); if the (detached) IRLS
+          iterate wins, lambda acts as a constant for autograd. Falls back to the F-radius
+          lambda when C(m, n) or C(m, n-1) > ``MAX_VOLUME_SUBSETS``.
 
         If the strip contains Z, lambda = 0 (Z itself, padded). If ``Z cap S`` is empty
         (:meth:`intersects_strip`) the input padded with a zero generator is returned.
