@@ -612,7 +612,17 @@ class _MeasFamily:
         c2 = c + (rr * self.PH @ De).squeeze(-1)
         PHt = self.PH.mT.expand(*L.shape[:-2], *self.PH.mT.shape[-2:])
         W = torch.cholesky_solve(PHt, L)  # D^-1 H P
-        P2 = (xi / (1 - rho))[..., None, None] * (self.P - rr * self.PH @ W)
+        KHP = rr * self.PH @ W
+        core = self.P - KHP
+        # guarantee floor (added by the filters engineer): as rho -> 1 with H P H' >> R the
+        # difference cancels (e.g. 6e4 - 6e4 -> 3e-8); its absolute rounding error is below
+        # 16 (n + m) eps (||P||_F + ||K H P||_F), so that much is added on the diagonal.
+        eps = torch.finfo(core.dtype).eps
+        err = 16 * (self.P.shape[-1] + self.H.shape[-2]) * eps
+        err = err * (torch.linalg.matrix_norm(self.P) + torch.linalg.matrix_norm(KHP)).detach()
+        eye = torch.eye(core.shape[-1], dtype=core.dtype, device=core.device)
+        core = core + err[..., None, None] * eye
+        P2 = (xi / (1 - rho))[..., None, None] * core
         return c2, _sym(P2)
 
     def log_volume(self, rho: Tensor) -> Tensor:
