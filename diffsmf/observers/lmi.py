@@ -188,7 +188,7 @@ def lmi_matrix(A, C, L, P, lam, mu, alpha, lipschitz, structure=None, time="cont
 
 # ----------------------------------------------------------------------------- cvxpy problems
 @lru_cache(maxsize=32)
-def _problem(n: int, l: int, nf: int, time: str, fixed_gain: bool, margin: float, capped: bool):
+def _problem(n: int, l: int, nf: int, time: str, fixed_gain: bool, capped: bool):
     """Build ONCE (cached per shape) the SDP min mu s.t. LMI(alpha) < -margin I, P >= I.
 
     capped: add |Y|_2 <= kappa (Parameter), which with P >= I gives |L|_2 = |P^-1 Y|_2 <= kappa.
@@ -198,6 +198,7 @@ def _problem(n: int, l: int, nf: int, time: str, fixed_gain: bool, margin: float
     G = cp.Parameter((n, n), name="G", PSD=True)  # gamma^2 H'H
     Bf = cp.Parameter((n, nf), name="Bf")
     alpha = cp.Parameter(nonneg=True, name="alpha")
+    margin = cp.Parameter(nonneg=True, name="margin")  # strictness, raised on a failed check
     P = cp.Variable((n, n), symmetric=True, name="P")
     lam = cp.Variable(nonneg=True, name="lam")
     mu = cp.Variable(nonneg=True, name="mu")
@@ -231,13 +232,13 @@ def _problem(n: int, l: int, nf: int, time: str, fixed_gain: bool, margin: float
         )
     k = M.shape[0]
     Ms = 0.5 * (M + M.T)  # symmetric by construction; makes cvxpy's symmetry check exact
-    cons = [P >> In, Ms << -margin * np.eye(k)]
+    cons = [P >> In, Ms << -margin * np.eye(k)]  # matrix margin, not a scalar >>
     kappa2 = None
     if capped and Y is not None:
         kappa2 = cp.Parameter(nonneg=True, name="kappa2")
         cons.append(cp.bmat([[kappa2 * np.eye(l), Y.T], [Y, In]]) >> 0)
     prob = cp.Problem(cp.Minimize(mu), cons)
-    params = dict(A=A, C=C, G=G, Bf=Bf, alpha=alpha, L=Lpar, kappa2=kappa2)
+    params = dict(A=A, C=C, G=G, Bf=Bf, alpha=alpha, L=Lpar, kappa2=kappa2, margin=margin)
     return prob, params, dict(P=P, Y=Y, lam=lam, mu=mu)
 
 
@@ -339,7 +340,8 @@ def design_lipschitz_observer(
     t0 = _time.perf_counter()
     if max_gain is not None and not max_gain > 0:
         raise ValueError(f"max_gain must be positive, got {max_gain}")
-    prob, par, var = _problem(n, l, nf, time, False, float(margin), max_gain is not None)
+    prob, par, var = _problem(n, l, nf, time, False, max_gain is not None)
+    par["margin"].value = float(margin)
     par["A"].value, par["C"].value, par["Bf"].value = A, C, Bf
     if max_gain is not None:
         par["kappa2"].value = float(max_gain) ** 2
@@ -378,7 +380,8 @@ def analyze_observer_gain(
     n, l, nf = A.shape[0], C.shape[0], Bf.shape[1]
     alpha_max = (100.0 if time == "continuous" else 1.0) if alpha_max is None else alpha_max
     t0 = _time.perf_counter()
-    prob, par, var = _problem(n, l, nf, time, True, float(margin), False)
+    prob, par, var = _problem(n, l, nf, time, True, False)
+    par["margin"].value = float(margin)
     par["A"].value, par["C"].value, par["Bf"].value = A - L @ C, np.zeros((l, n)), Bf
     par["L"].value = L
     G = gamma**2 * H.T @ H
@@ -399,14 +402,30 @@ def _first_verified(search, alpha, A, C, L_fixed, gamma, eps, structure, base, t
     order = [alpha] + [a for a, v in sorted(search.cache.items(), key=lambda kv: kv[1][0])
                        if a != alpha and v[1] is not None]
     first = None
-    for a in order[:tries]:
-        vals = search(a)[1]
+
+    def check(vals, a):
         P = vals["P"]
         L = np.linalg.solve(P, vals["Y"]) if L_fixed is None else L_fixed  # eq. 22: L = P^-1 R
-        res = _verify(A, C, L, P, vals["lam"], vals["mu"], a, gamma, eps, structure, base)
+        return _verify(A, C, L, P, vals["lam"], vals["mu"], a, gamma, eps, structure, base)
+
+    for a in order[:tries]:
+        res = check(search(a)[1], a)
         if res.feasible:
             return res
         first = first or res
+    # solver tolerance is relative to the size of P: raise the matrix margin and re-solve
+    m0 = float(search.params["margin"].value)
+    scale = max(1.0, float(np.abs(first.P).max()) if first.P is not None else 1.0)
+    for m in (1e2 * m0 * scale, 1e4 * m0 * scale):
+        search.params["margin"].value = m
+        search.cache.pop(alpha, None)
+        vals = search(alpha)[1]
+        if vals is not None:
+            res = check(vals, alpha)
+            if res.feasible:
+                search.params["margin"].value = m0
+                return res
+    search.params["margin"].value = m0
     return first
 
 
