@@ -9,6 +9,8 @@ Parts (``--part``; each prints a table and writes JSON under ``--out``):
   fixed at b*) on ``bilinear`` (HSNSMF) and ``fermenter`` (HSNSMF); held-out containment.
 * ``grad``: the gradient of the log-area at every step of a 100-step horizon w.r.t. every
   hyperparameter (finite?).
+* ``tightness``: outer/inner width ratios (diffsmf.tightness) of HSNSMF, MSZM and CDSMF on
+  both seed 000 examples (bilinear, spring_damper) at steps 5, 20 and the last.
 * ``timing``: seconds per epoch of the 64 trajectories x 100 steps run, extrapolated to 200.
 
     python examples/tune_spring_damper.py --part bounds --epochs 40
@@ -112,8 +114,8 @@ def part_bounds(a: argparse.Namespace) -> dict:
             f"  held out ({after['trajectories']} vertex traj x 100): mean area "
             f"{before['mean_area']:.4g} -> {after['mean_area']:.4g} "
             f"({100 * (row['area_reduction'] or 0):.1f} % less); violations "
-            f"{before['violations']} -> {after['violations']}; consistent {before['consistent_frac']:.4f} -> "
-            f"{after['consistent_frac']:.4f}"
+            f"{before['violations']} -> {after['violations']}; consistent "
+            f"{before['consistent_frac']:.4f} -> {after['consistent_frac']:.4f}"
         )
     return out
 
@@ -188,6 +190,38 @@ def part_grad(a: argparse.Namespace) -> dict:
     return out
 
 
+def part_tightness(a: argparse.Namespace) -> dict:
+    """Outer/inner width ratios of HSNSMF, MSZM, CDSMF on both seed 000 examples."""
+    from diffsmf.tightness import inner_bounds, tightness
+
+    out = {}
+    for name in ("bilinear", "spring_damper"):
+        sys_ = ds.systems.get(name)
+        T = int(getattr(sys_, "horizon", 100) or 100)
+        tr = simulate_finite(sys_, T, 1, a.seed, "vertex")
+        steps = [5, 20, T]
+        t0 = time.perf_counter()
+        inner = inner_bounds(ds.filters.HSNSMF(sys_), sys_, tr, steps, starts=a.starts)
+        out[name] = {
+            "inner_seconds": time.perf_counter() - t0,
+            "solves": inner.solves,
+            "feasible_solves": inner.feasible_solves,
+        }
+        print(
+            f"\n{name}: inner estimates {inner.feasible_solves}/{inner.solves} feasible solves "
+            f"({out[name]['inner_seconds']:.0f} s)"
+        )
+        print(f"{'filter':<8} {'step':>4} {'ratio x1':>9} {'ratio x2':>9} {'failures':>8}")
+        for fname in ("hsnsmf", "mszm", "cdsmf"):
+            rep = tightness(ds.filters.by_name(fname)(sys_), sys_, tr, steps, inner=inner)
+            out[name][fname] = rep.to_dict()
+            for k in steps:
+                r = [row["ratio"] for row in rep.rows if row["step"] == k]
+                nf = sum(1 for f in rep.failures if f["step"] == k)
+                print(f"{fname:<8} {k:>4} {r[0]:>9.3f} {r[1]:>9.3f} {nf:>8}")
+    return out
+
+
 def part_timing(a: argparse.Namespace) -> dict:
     sys_ = ds.systems.get("spring_damper")
     train = simulate_finite(sys_, 100, 64, a.seed, "vertex")
@@ -206,7 +240,11 @@ def part_timing(a: argparse.Namespace) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--part", default="all", choices=["all", "bounds", "stirling", "grad", "timing"])
+    p.add_argument(
+        "--part",
+        default="all",
+        choices=["all", "bounds", "stirling", "grad", "timing", "tightness"],
+    )
     p.add_argument("--epochs", type=int, default=40)
     p.add_argument("--stirling-epochs", type=int, default=20)
     p.add_argument("--stirling-steps", type=int, default=100)
@@ -220,10 +258,12 @@ def main() -> None:
     p.add_argument("--patience", type=int, default=6)
     p.add_argument("--timing-epochs", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--starts", type=int, default=2, help="optimiser starts (tightness)")
     p.add_argument("--out", default="out/training")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args()
-    parts = ["bounds", "stirling", "grad", "timing"] if a.part == "all" else [a.part]
+    parts = ["bounds", "stirling", "grad", "timing", "tightness"]
+    parts = parts if a.part == "all" else [a.part]
     outdir = Path(a.out)
     outdir.mkdir(parents=True, exist_ok=True)
     for part in parts:

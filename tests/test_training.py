@@ -207,3 +207,29 @@ def test_tune_parameter_selection_and_bad_input(data):
         tune(f, traj, validation=1.5, epochs=1, progress=False)
     with pytest.raises(ValueError, match="trajectories"):
         tune(f, "abc", epochs=1, progress=False)
+
+
+def test_cli_with_toml_config_writes_outputs(tmp_path):
+    import json
+
+    from diffsmf.cli import main as diffsmf_main
+
+    cfg = tmp_path / "sd.toml"
+    cfg.write_text(
+        'system = "spring_damper"\nfilter = "hsnsmf"\nepochs = 2\ntrajectories = 3\n'
+        "val_trajectories = 2\ntest_trajectories = 2\nsteps = 3\nbatch_size = 3\n"
+        "init_scale = 5.0\nval_every = 1\n"
+    )
+    out = tmp_path / "run"
+    rc = diffsmf_main(["tune", "--config", str(cfg), "--out", str(out), "--no-progress"])
+    assert rc == 0
+    hp = json.loads((out / "hyperparameters.json").read_text())
+    assert hp["true_bounds"]["measurement_noise"] == pytest.approx([1e-3])
+    assert hp["initial"]["measurement_noise"] == pytest.approx([5e-3])
+    assert set(hp["tuned"]) == {"process_noise", "measurement_noise", "stirling_step"}
+    assert (out / "loss_curve.csv").read_text().startswith("consistency,epoch")
+    assert (out / "tuning.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="config"):
+        bad = tmp_path / "bad.toml"
+        bad.write_text("nonsense = 1\n")
+        diffsmf_main(["tune", "--config", str(bad), "--out", str(out)])

@@ -51,8 +51,8 @@ class LossWeights:
     training measurements go inconsistent in the toy test). ``margin=0.1``: a measurement
     less than 0.1 noise units (:func:`consistency_excess`) inside the edge of the predicted
     output set is already penalised, a safety buffer because outer-bounding filters detect
-    inconsistency late (their predicted sets are larger than the true feasible sets). ``skip`` initial steps are left out of the
-    volume term (the initial set is not tunable).
+    inconsistency late (their predicted sets are larger than the true feasible sets).
+    ``skip`` initial steps are left out of the volume term (the initial set is not tunable).
     """
 
     volume: float = 1.0
