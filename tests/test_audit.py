@@ -1,0 +1,67 @@
+"""Containment audit (diffsmf.audit) and the comparison/demo helpers (diffsmf.filters.compare)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import torch
+
+import diffsmf as ds
+from diffsmf import audit, filters, systems
+from diffsmf.filters.compare import compare, demo, format_table
+
+
+def test_gauge_matches_the_scale_of_a_scaled_point():
+    c = torch.tensor([0.3, -0.2])
+    T = torch.tensor([[0.2, 0.05], [-0.1, 0.3]])
+    alpha = torch.tensor([[1.0, -0.4], [0.2, 0.7], [-1.0, 1.0]])  # inf-norms 1, 0.7, 1
+    scale = torch.tensor([1.5, 0.5, 1.0 + 1e-6])
+    x = c + (scale[:, None] * alpha) @ T.T
+    expect = scale * alpha.abs().amax(-1)
+    P = ds.Parallelotope(c, T)
+    torch.testing.assert_close(audit.gauge(P, x), expect)
+    Z = ds.Zonotope(c, T)
+    g = audit.gauge(Z, x)
+    inside = expect <= 1
+    assert (g[inside] == 0).all()  # inside points are not measured for zonotopes
+    torch.testing.assert_close(g[~inside], expect[~inside], atol=1e-8, rtol=0)
+    I = ds.Interval(c - torch.tensor([0.1, 0.2]), c + torch.tensor([0.1, 0.2]))
+    torch.testing.assert_close(audit.gauge(I, c + torch.tensor([0.15, 0.0])), torch.tensor(1.5))
+    E = ds.Ellipsoid(c, torch.diag(torch.tensor([4.0, 1.0])))
+    torch.testing.assert_close(audit.gauge(E, c + torch.tensor([0.0, 3.0])), torch.tensor(3.0))
+
+
+def test_audit_detects_a_filter_with_too_small_noise_bounds():
+    system = systems.get("spring_damper")
+    honest = audit.containment(filters.HSNSMF(system), system, trials=50, steps=10)
+    assert honest.violations == 0 and honest.pairs == 50 * 11
+    liar = filters.HSNSMF(system, process_noise=torch.full((2,), 1e-5))
+    rep = audit.containment(liar, system, trials=50, steps=10)
+    assert rep.violations > 0 and rep.worst_distance > 1e-9
+    assert 0 < rep.fraction <= 1 and "outside" in str(rep)
+
+
+def test_cli_main_prints_reports(capsys):
+    args = argparse.Namespace(
+        system="bilinear", filter="mszm", trials=20, steps=4, noise="both", seed=0, json=True
+    )
+    assert audit.main(args) == 0
+    lines = [json.loads(s) for s in capsys.readouterr().out.strip().splitlines()]
+    assert [r["noise"] for r in lines] == ["vertex", "uniform"]
+    assert all(r["violations"] == 0 and r["pairs"] == 20 * 5 for r in lines)
+    parser = argparse.ArgumentParser()
+    audit.add_arguments(parser)
+    ns = parser.parse_args(["--system", "vdp", "--filter", "esmf"])
+    assert ns.trials == 1000 and ns.noise == "both"
+
+
+def test_compare_rows_and_demo(tmp_path):
+    system = systems.get("spring_damper")
+    rows = compare(system, ["hsnsmf", "ekf"], trials=3, steps=6, noise="vertex")
+    assert [r["filter"] for r in rows] == ["hsnsmf", "ekf"]
+    assert rows[0]["guaranteed"] and not rows[1]["guaranteed"] and rows[0]["violations"] == 0
+    text = format_table(rows)
+    assert "not guaranteed" in text and "hsnsmf" in text
+    out = demo(tmp_path, trials=2, steps=6)
+    assert "HSNSMF" in out and "CDSMF" in out and (tmp_path / "filters_demo.png").exists()
