@@ -26,6 +26,8 @@ class PWLObserver(nn.Module):
     A [n, n], B [n, m], C [l, n], L [n, l]; ``fhat`` maps [..., q] -> [..., r] (an SCPLNN or
     any torch module/function); B_f [n, r] and H [q, n] default to identities (f̂ of the full
     state). time: "continuous" (fixed-step RK4) or "discrete" (x̂+ = right-hand side).
+    Give an SCPLNN ``outside="clamp"``: x̂ may leave the model's domain during transients, and
+    the clamped model keeps its Lipschitz bound (which the LMI design uses).
     """
 
     def __init__(self, A, B, C, L, fhat: Callable[[Tensor], Tensor], B_f=None, H=None,
