@@ -104,7 +104,7 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def demo(outdir: Path, trials: int = 20, steps: int = 100, seed: int = 0) -> str:
+def demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
     """Seed 000 comparison on ``spring_damper``: table text + figure ``filters_demo.png``.
 
     Runs HSNSMF, MSZM, CDSMF (guaranteed) and the EKF on ``trials`` worst-case (vertex-noise)
