@@ -65,7 +65,7 @@ def test_general_lipschitz_more_conservative_than_structured():
 def test_random_systems_verified_or_cleanly_infeasible(time):
     rng = np.random.default_rng(0 if time == "continuous" else 1)
     feasible = 0
-    for trial in range(8):
+    for trial in range(6):
         n, l = int(rng.integers(2, 5)), int(rng.integers(1, 3))
         A = rng.standard_normal((n, n)) * (0.6 if time == "continuous" else 0.45)
         C = rng.standard_normal((l, n))
@@ -79,7 +79,7 @@ def test_random_systems_verified_or_cleanly_infeasible(time):
                 assert simulate_error_check(d, steps=400, dt=5e-3, batch=16, seed=trial)["ok"]
         else:
             assert d.L is None and d.bound == float("inf") and d.message
-    assert feasible >= 4
+    assert feasible >= 3
 
 
 @pytest.mark.parametrize("time", ["continuous", "discrete"])
