@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.pwl._threads import single_thread
 from diffsmf.pwl.partition import (
     Refiner,
     cone_partition,
@@ -231,13 +232,9 @@ def fit_scplnn(
     The loop is made of many small tensor operations, so it runs with one intra-op thread
     (restored afterwards): on a loaded 2-core machine thread hand-offs cost more than the work.
     """
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with single_thread():
         return _fit(X, Y, eps, max_regions, domain, max_rounds, ridge, snap, mark, rule,
                     edge_clip, outside, progress)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: int, ridge: float,

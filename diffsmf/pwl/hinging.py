@@ -5,7 +5,8 @@ Fitting (Breiman 1993, sec. III; Pucar and Sjoberg 1998): hinges are added one a
 found by the hinge-finding algorithm on the current residual (split the samples by the hinge
 hyperplane, fit one affine function on each side by least squares, move the hyperplane to where
 the two fits cross, repeat until the split no longer changes), from several random starts and
-both max/min types; after each addition all hinges are refitted by backfitting.
+both max/min types; after each addition all hinges are refitted by backfitting, then jointly
+(all hinge sides fixed, one least squares over every coefficient, repeat while it improves).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from diffsmf.pwl._threads import single_thread
 from diffsmf.pwl.fit import as_xy
 
 __all__ = ["HingingHyperplanes"]
@@ -92,6 +94,10 @@ class HingingHyperplanes(nn.Module):
 
     def fit(self, X: Any, y: Any) -> HingingHyperplanes:
         """Fit to X [N, n], y [N] (or [N, 1]); returns self."""
+        with single_thread():
+            return self._fit(X, y)
+
+    def _fit(self, X: Any, y: Any) -> HingingHyperplanes:
         X, Y = as_xy(X, y)
         if Y.shape[1] != 1:
             raise ValueError(f"y: HingingHyperplanes fits one output, got {Y.shape[1]}")
@@ -112,6 +118,7 @@ class HingingHyperplanes(nn.Module):
                     rest = self._sum(Xa, betas[:k] + betas[k + 1:], signs[:k] + signs[k + 1:])
                     b, s, _ = self._refit(Xa, r_all - rest, betas[k], signs[k])
                     betas[k], signs[k] = b, s
+            betas = self._joint_refit(Xa, r_all, betas, signs)
         self.beta = torch.stack(betas)
         self.sign = torch.tensor(signs, dtype=_F64)
         return self
@@ -132,6 +139,25 @@ class HingingHyperplanes(nn.Module):
             mask = new
         s = torch.tensor(sign, dtype=_F64)
         return beta, sign, float(((r - _hinge_eval(Xa, beta[None], s[None])[:, 0]) ** 2).sum())
+
+    def _joint_refit(self, Xa: Tensor, y: Tensor, betas: list[Tensor], signs: list[float]
+                     ) -> list[Tensor]:
+        """All hinges at once (Pucar and Sjoberg 1998): with the hinge sides fixed the model is
+        linear in every beta; least squares, update the sides, repeat while the error drops."""
+        sg = torch.tensor(signs, dtype=_F64)
+        beta = torch.stack(betas)
+        sse = float(((y - _hinge_eval(Xa, beta, sg).sum(-1)) ** 2).sum())
+        for _ in range(self.max_iter):
+            m = (sg * (Xa @ (beta[:, 0] - beta[:, 1]).T) >= 0).to(_F64)  # [N, K]
+            D = torch.cat([m[:, :, None] * Xa[:, None], (1 - m)[:, :, None] * Xa[:, None]], 2)
+            D = D.reshape(Xa.shape[0], -1)  # [N, K * 2 (n+1)], per hinge: side 1 then side 2
+            sol = _lstsq(D, y, torch.ones(Xa.shape[0], dtype=torch.bool))
+            new = sol.reshape(len(betas), 2, Xa.shape[1])
+            new_sse = float(((y - _hinge_eval(Xa, new, sg).sum(-1)) ** 2).sum())
+            if new_sse >= sse * (1 - 1e-12):
+                break
+            beta, sse = new, new_sse
+        return list(beta.unbind(0))
 
     @staticmethod
     def _sum(Xa: Tensor, betas: list[Tensor], signs: list[float]) -> Tensor:
