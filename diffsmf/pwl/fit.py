@@ -198,7 +198,7 @@ def fit_scplnn(
     domain: Any = None,
     *,
     max_rounds: int = 200,
-    ridge: float = 1e-6,
+    ridge: float = 0.1,
     snap: float | None = None,
     mark: float = 0.0,
     rule: str = "interior",

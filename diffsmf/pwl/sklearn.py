@@ -33,7 +33,7 @@ class PWLRegressor(RegressorMixin, BaseEstimator):
     """
 
     def __init__(self, eps: Any = None, rel_eps: float = 0.01, max_regions: int = 2000,
-                 domain: Any = None, outside: str = "clamp", ridge: float = 1e-6):
+                 domain: Any = None, outside: str = "clamp", ridge: float = 0.1):
         self.eps = eps
         self.rel_eps = rel_eps
         self.max_regions = max_regions
