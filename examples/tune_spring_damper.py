@@ -69,7 +69,7 @@ def part_bounds(a: argparse.Namespace) -> dict:
     val = simulate_finite(sys_, a.train_steps, a.val, a.seed + 1, "vertex")
     test = simulate_finite(sys_, 100, a.test, a.seed + 2, "vertex")
     out = {"b_star": {"process_noise": b_w.tolist(), "measurement_noise": b_v.tolist()}}
-    for start in (5.0, 0.2):
+    for start in [float(v) for v in a.bound_starts.split(",")]:
         f = ds.filters.HSNSMF(sys_, process_noise=start * b_w, measurement_noise=start * b_v)
         # before-tuning audit on all held-out trajectories at 5 b* (the area reduction), on
         # the first 200 at 0.2 b* (only its consistency is of interest; saves CPU time)
@@ -170,7 +170,7 @@ def part_grad(a: argparse.Namespace) -> dict:
     sys_ = ds.systems.get("spring_damper")
     tr = simulate_finite(sys_, 100, 4, a.seed + 5, "vertex")
     out = {}
-    for fname in ("hsnsmf", "mszm", "cdsmf"):
+    for fname in a.grad_filters.split(","):
         f = ds.filters.by_name(fname)(sys_)
         params = [p for p in f.parameters() if p.requires_grad]
         res = f(tr.y, u=tr.u)
@@ -258,6 +258,8 @@ def main() -> None:
     p.add_argument("--patience", type=int, default=6)
     p.add_argument("--timing-epochs", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--bound-starts", default="5,0.2", help="initial bounds / b*")
+    p.add_argument("--grad-filters", default="hsnsmf,cdsmf,mszm")
     p.add_argument("--starts", type=int, default=2, help="optimiser starts (tightness)")
     p.add_argument("--out", default="out/training")
     p.add_argument("--no-progress", action="store_true")
