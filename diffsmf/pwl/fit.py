@@ -220,7 +220,8 @@ def fit_scplnn(
         snap: barycentric threshold of the split rule (see :class:`Refiner`); default
             0.5 / (n + 1).
         rule: ``"interior"`` (seed 004: connect the sample to the region's vertices when it is
-            well inside, else cut the longest edge) or ``"edge"`` (always the longest edge).
+            well inside, else cut the longest edge), ``"edge"`` (always the longest edge) or
+            ``"paper"`` (always connect the sample to the vertices; stalls on slivers).
         edge_clip: where the longest edge is cut: the sample's projection clipped to
             ``[edge_clip, 1 - edge_clip]`` (0.5: the midpoint).
         mark: split only regions whose error exceeds ``max(eps, mark * current max error)``

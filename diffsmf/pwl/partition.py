@@ -267,6 +267,8 @@ class Refiner:
 
     * ``rule="interior"`` (default) and p well inside s (every barycentric coordinate at least
       ``snap``): p is connected to the vertices of s (seed 004 Step 3, n+1 children);
+    * ``rule="paper"``: always connect p to the vertices of s (of the face of s containing p
+      when p lies on one), seed 004 literally; kept for comparison;
     * otherwise (p near a face of s, where connecting it would create slivers, or
       ``rule="edge"``): the longest edge of s is cut at p's projection, clipped to
       ``[edge_clip, 1 - edge_clip]`` of the edge (default: the midpoint), and every simplex
@@ -281,8 +283,8 @@ class Refiner:
 
     def __init__(self, vertices: Tensor, simplices: Tensor, snap: float = 0.2,
                  rule: str = "interior", edge_clip: float = 0.5):
-        if rule not in ("interior", "edge"):
-            raise ValueError(f"rule: expected 'interior' or 'edge', got {rule!r}")
+        if rule not in ("interior", "edge", "paper"):
+            raise ValueError(f"rule: expected 'interior', 'edge' or 'paper', got {rule!r}")
         self.n = vertices.shape[-1]
         self.snap = snap
         self.rule = rule
@@ -306,7 +308,15 @@ class Refiner:
         """Insert point p [n] lying in simplex s. Returns (removed ids, new ids) or None when p
         is at a vertex already (never, with the edge rule), in which case nothing changes."""
         lam = self.lam(p[None], torch.tensor([s]))[0]
-        if self.rule == "interior" and bool((lam >= self.snap).all()):
+        if self.rule == "paper":  # seed 004 literally: connect p to the vertices of its face
+            face_pos = (lam > 1e-9).nonzero().flatten()
+            if face_pos.numel() < 2:
+                return None  # p is a vertex already
+            face = self.S[s, face_pos]
+            w = lam[face_pos] / lam[face_pos].sum()
+            q = w @ self.V[face]
+            self.last_face, self.last_weights = face, w
+        elif self.rule == "interior" and bool((lam >= self.snap).all()):
             face, q = self.S[s], p  # seed 004: connect p to the region's vertices
             self.last_face, self.last_weights = face, lam
         else:  # longest edge of s, cut at p's projection (clipped to the middle third)
