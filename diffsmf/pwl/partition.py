@@ -213,34 +213,38 @@ class PointLocator:
         pad = 1e-9 * width
         smin = ((V.amin(1) - pad - self.lo) / self.cell).floor().clamp(0, g - 1).long()
         smax = ((V.amax(1) + pad - self.lo) / self.cell).floor().clamp(0, g - 1).long()
-        bins = torch.stack(
-            torch.meshgrid(*[torch.arange(g)] * n, indexing="ij"), -1
-        ).reshape(-1, n)  # [g^n, n]
-        pairs_b, pairs_s = [], []
-        chunk = max(1, 4_000_000 // max(M, 1))
-        for i in range(0, bins.shape[0], chunk):
-            b = bins[i : i + chunk]
-            hit = ((b[:, None] >= smin[None]) & (b[:, None] <= smax[None])).all(-1)  # [c, M]
-            bi, si = hit.nonzero(as_tuple=True)
-            pairs_b.append(bi + i)
-            pairs_s.append(si)
-        pb, ps = torch.cat(pairs_b), torch.cat(pairs_s)
-        counts = torch.bincount(pb, minlength=bins.shape[0])
+        nbins = g**n
+        self.strides = torch.tensor([g ** (n - 1 - i) for i in range(n)])
+        # enumerate (bin, simplex) pairs: each simplex's range of bins, decoded in mixed radix
+        span = smax - smin + 1  # [M, n]
+        cnt = span.prod(-1)
+        sid = torch.repeat_interleave(torch.arange(M), cnt)
+        local = torch.arange(int(cnt.sum())) - torch.repeat_interleave(torch.cumsum(cnt, 0) - cnt,
+                                                                       cnt)
+        flat = torch.zeros_like(local)
+        for d in range(n - 1, -1, -1):
+            sp = span[sid, d]
+            flat = flat + (smin[sid, d] + local % sp) * self.strides[d]
+            local = local // sp
+        order = torch.argsort(flat, stable=True)
+        pb, ps = flat[order], sid[order]
+        counts = torch.bincount(pb, minlength=nbins)
         C = int(counts.max())
         start = torch.cumsum(counts, 0) - counts
-        slot = torch.arange(pb.shape[0]) - start[pb]  # pb is sorted (nonzero is row-major)
-        table = torch.full((bins.shape[0], C), M, dtype=torch.long)
+        slot = torch.arange(pb.shape[0]) - start[pb]  # pb is sorted
+        table = torch.full((nbins, C), M, dtype=torch.long)
         table[pb, slot] = ps
         self.table = table  # [bins, C], M = padding
-        self.strides = torch.tensor([g ** (n - 1 - i) for i in range(n)])
         # padding row: a "simplex" whose barycentric coordinates are all -inf
         padrow = torch.full((1, n + 1, n + 1), 0.0, dtype=bary.dtype)
         padrow[0, :, n] = -math.inf
         self.bary_pad = torch.cat([bary, padrow], 0)
 
-    def locate(self, x: Tensor, chunk: int = 65536) -> tuple[Tensor, Tensor]:
+    def locate(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """x [N, n] -> (simplex index [N] long, barycentric coords [N, n+1]); no gradient."""
         x = x.detach()
+        n1 = self.bary.shape[-1]
+        chunk = max(1, 4_000_000 // (self.table.shape[1] * n1 * n1))  # ~32 MB of float64
         out_s, out_l = [], []
         for i in range(0, x.shape[0], chunk):
             xc = x[i : i + chunk]
