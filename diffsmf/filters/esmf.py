@@ -48,13 +48,15 @@ class ESMF(SetFilter):
 
     Args:
         system: the system to filter (``system.parameters`` = the mismatch interval, or None).
-        rho_rule: weight rho of the update (eq. 36-39). ``"eq13"`` (default): the paper's own
-            intersection rule eq. 13 with the prior as ellipsoid 1,
-            ``rho = sqrt(d2) / (sqrt(d1) + sqrt(d2))``, d1 = sigma_max(Rhat),
-            d2 = sigma_max(H P H'). ``"eq40"``: eq. 40 as printed (d1 and d2 swapped), which
-            gives the measurement the *least* weight when it is most precise; measured in
-            docs/filters.md (sets 4x-1000x larger, and on fermenter the prior then grows into
-            the pole of mu). Both are guaranteed.
+        rho_rule: weight rho of the update (eq. 36-39). ``"volume"`` (default): the rho that
+            minimises the volume of the updated ellipsoid (``Ellipsoid.intersect_measurement``
+            1-D search). ``"eq40"``: eq. 40 as printed, ``rho = sqrt(d1)/(sqrt(d1)+sqrt(d2))``,
+            d1 = sigma_max(Rhat), d2 = sigma_max(H P H'), which gives the measurement the
+            *least* weight when it is most precise. ``"eq13"``: the paper's intersection rule
+            eq. 13 with the prior as ellipsoid 1 (d1, d2 swapped). All are guaranteed; the
+            printed rules diverge on built-in systems (docs/filters.md): eq. 40 into the pole
+            of the fermenter's mu, eq. 13 on spring_damper (m < n: rho -> 1 inflates the
+            unobserved direction by 1 / (1 - rho)).
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
@@ -64,14 +66,14 @@ class ESMF(SetFilter):
         self,
         system: System,
         *,
-        rho_rule: str = "eq13",
+        rho_rule: str = "volume",
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
         super().__init__(system, **kw)
         C.check_initial_set("initial_set", initial_set, system.n)
-        if rho_rule not in ("eq40", "eq13"):
-            raise ValueError(f"rho_rule: expected 'eq40' or 'eq13', got {rho_rule!r}")
+        if rho_rule not in ("eq40", "eq13", "volume"):
+            raise ValueError(f"rho_rule: expected 'eq13', 'eq40' or 'volume', got {rho_rule!r}")
         self.rho_rule = rho_rule
         given = initial_set if initial_set is not None else system.x0_set
         self._x0 = C.as_ellipsoid(given)
@@ -125,6 +127,18 @@ class ESMF(SetFilter):
         Rhat = noise.to_ellipsoid().shape  # diag(m r^2): covering ellipsoid of the box
         nu = y - hc - noise.center  # innovation
         HPH = _sym(H @ P @ H.mT)
+        ylin = nu + (H @ c.unsqueeze(-1)).squeeze(-1)  # y' = H x + v', v' in E(0, Rhat)
+        if self.rho_rule == "volume":
+            # xi(rho) = 1 - rho (1 - rho) nu' D(rho)^-1 nu; the intersection is empty iff
+            # xi < 0 for some rho (checked on a grid; eq. 36)
+            grid = torch.linspace(0.02, 0.98, 49, dtype=c.dtype)
+            r = grid.reshape(-1, *([1] * (nu.dim() - 1)))  # [G, 1..]
+            D = _sym(r[..., None, None] * HPH + (1 - r)[..., None, None] * Rhat)
+            Dnu = torch.linalg.solve(D, nu.expand(grid.shape[0], *nu.shape).unsqueeze(-1))
+            xi = (1 - r * (1 - r) * (nu * Dnu.squeeze(-1)).sum(-1)).amin(0)
+            ok = xi > 0
+            new = E.intersect_measurement(H, ylin, Rhat, method="volume")
+            return state.replace(set=where(ok, new, E), consistent=ok)
         d1, d2 = _max_sv(Rhat), _max_sv(HPH)
         if self.rho_rule == "eq13":
             d1, d2 = d2, d1
@@ -133,6 +147,5 @@ class ESMF(SetFilter):
         Dnu = torch.linalg.solve(D, nu.unsqueeze(-1)).squeeze(-1)
         xi = 1 - rho * (1 - rho) * (nu * Dnu).sum(-1)  # eq. 36 (times rho (1 - rho))
         ok = xi > 0  # seed 001: xi <= 0 means the bounds are violated (a fault)
-        ylin = nu + (H @ c.unsqueeze(-1)).squeeze(-1)  # y' = H x + v', v' in E(0, Rhat)
         new = E.intersect_measurement(H, ylin, Rhat, rho=torch.where(ok, rho, 0.5 * rho))
         return state.replace(set=where(ok, new, E), consistent=ok)
