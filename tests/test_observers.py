@@ -146,6 +146,24 @@ def test_certified_error_bounds_dense_sampling():
                                                                      sysm.hess_bound))
 
 
+def test_scplnn_model_certified_and_auto_uses_it():
+    """fit_scplnn (vertex values from phi, split on the certified bound) meets eps as certified
+    and checked on dense samples, with a Lipschitz bound close to the grid interpolant's."""
+    sysm = vdp_model()
+    model, info = fit_nonlinearity(sysm, 0.3, method="scplnn")
+    grid, ginfo = fit_nonlinearity(sysm, 0.3, method="grid")
+    assert info["method"] == "scplnn" and info["fit_converged"]
+    assert info["certified_error"] <= 0.3 and info["lipschitz"] <= 1.1 * ginfo["lipschitz"]
+    lo, hi = torch.as_tensor(sysm.lower), torch.as_tensor(sysm.upper)
+    X = lo + torch.rand(50000, 2, generator=torch.Generator().manual_seed(3),
+                        dtype=torch.float64) * (hi - lo)
+    with torch.no_grad():
+        assert float((sysm.phi(X) - model(X)).abs().max()) <= info["certified_error"]
+    auto = design_observer_pipeline("vdp", 0.3, simulate_system=False)
+    assert auto.fit["method"] == "scplnn" and "fallback" not in auto.fit
+    assert auto.design.feasible
+
+
 def test_pipeline_vdp_error_within_guarantee_and_bound_shrinks():
     res = design_observer_pipeline("vdp", 0.3, method="grid", T=4.0, dt=1e-2)
     assert res.design.feasible

@@ -135,6 +135,32 @@ def test_adaptive_fit_reaches_eps_on_seed_function(eps):
     assert float(held) < 10 * eps
 
 
+def test_fit_with_known_vertex_values_and_region_bound():
+    """vertex_fn + region_bound: interpolant of f split until a whole-simplex bound < eps; the
+    bound (vertex mismatch 0 + (|Hess|/2) R^2, Hess f = 2 I) is checked on dense samples."""
+    f = lambda X: (X ** 2).sum(-1, keepdim=True)  # noqa: E731
+
+    def bound(V, W):  # [M, 3, 2], [M, 3, 1] -> [M, 1]
+        mis = (f(V) - W).abs().amax(-2)
+        d2 = (V[:, :, None] - V[:, None]).pow(2).sum(-1).amax((-1, -2))
+        return mis + 1.0 * d2[:, None] / 3  # Jung: R^2 <= diam^2 / 3 in 2-D
+
+    X = torch.rand(300, 2, generator=_gen(1), dtype=F64) * 2 - 1
+    model, rep = fit_scplnn(X, f(X), 0.05, domain=(-torch.ones(2), torch.ones(2)),
+                            vertex_fn=f, region_bound=bound, rule="edge")
+    assert rep.converged and float(rep.bound_max) < 0.05
+    check_conforming(model.vertices, model.simplices)
+    assert torch.allclose(model.weight.detach(), f(model.vertices))
+    Z = torch.rand(20000, 2, generator=_gen(2), dtype=F64) * 2 - 1
+    with torch.no_grad():
+        assert float((model(Z) - f(Z)).abs().max()) <= float(rep.bound_max)
+    V = model.vertices[model.simplices]
+    e = V[:, [1, 2, 0]] - V
+    area = 0.5 * (e[:, 0, 0] * e[:, 1, 1] - e[:, 0, 1] * e[:, 1, 0]).abs()
+    aspect = e.pow(2).sum(-1).amax(-1) / area
+    assert float(aspect.max()) < 8  # diam^2 / area: 4 for the Kuhn right triangle
+
+
 def test_fit_multi_output_eps_per_output_and_simplex_domain():
     X = torch.rand(1500, 3, generator=_gen(4), dtype=F64)
     Y = torch.stack([X.sum(-1) ** 2, torch.cos(2 * X[:, 0])], -1)

@@ -32,6 +32,7 @@ __all__ = [
     "ContinuousModel",
     "PipelineResult",
     "certified_error",
+    "simplex_error_bound",
     "design_observer_pipeline",
     "fit_nonlinearity",
     "plot_pipeline",
@@ -94,17 +95,24 @@ def vdp_model() -> ContinuousModel:
     )
 
 
-def certified_error(model, phi: Callable[[Tensor], Tensor], hess_bound) -> float:
-    """sup over the model's domain of |phi - model| (2-norm over outputs), certified per simplex
-    (module docstring). model: an SCPLNN (vertices, simplices, weight)."""
+def simplex_error_bound(V: Tensor, W: Tensor, phi: Callable[[Tensor], Tensor],
+                        hess_bound) -> Tensor:
+    """Per-simplex bound ``[M, r]`` of sup |phi_i - f̂_i| over each simplex (module docstring):
+    vertex mismatch + (M/2) R^2. V: simplex vertices [M, q+1, q]; W: their weights [M, q+1, r]."""
     with torch.no_grad():
-        V = model.vertices[model.simplices]  # [M, q+1, q]
-        W = model.weight[model.simplices]  # [M, q+1, r]
         vert = (phi(V) - W).abs().amax(-2)  # [M, r] vertex mismatch (the affine part's max)
         d2 = (V[:, :, None, :] - V[:, None, :, :]).pow(2).sum(-1).amax((-1, -2))  # diam^2
         q = V.shape[-1]
         R2 = d2 * q / (2 * (q + 1))  # Jung's theorem
-        err = vert + 0.5 * hess_bound(V) * R2[:, None]
+        return (vert + 0.5 * hess_bound(V) * R2[:, None]) * (1 + 1e-9) + 1e-12
+
+
+def certified_error(model, phi: Callable[[Tensor], Tensor], hess_bound) -> float:
+    """sup over the model's domain of |phi - model| (2-norm over outputs), certified per simplex
+    (module docstring). model: an SCPLNN (vertices, simplices, weight)."""
+    with torch.no_grad():
+        err = simplex_error_bound(model.vertices[model.simplices],
+                                  model.weight[model.simplices], phi, hess_bound)
         return float(err.norm(dim=-1).max()) * (1 + 1e-9) + 1e-12
 
 
@@ -124,15 +132,18 @@ def fit_nonlinearity(
     eps: float,
     method: str = "auto",
     samples: int = 4000,
-    max_regions: int = 4000,
+    max_regions: int = 20000,
     seed: int = 0,
 ) -> tuple[object, dict]:
     """SCPLNN model of phi on the domain with certified error, and a report dict.
 
-    method "scplnn": ``diffsmf.pwl.fit_scplnn`` on uniform random samples (seed 004 sec. 3.1.2);
-    "grid": interpolation on a Kuhn-triangulated grid refined until the certified error <= eps;
-    "auto": "scplnn", falling back to "grid" when its certified error exceeds 2 eps or its
-    Lipschitz bound is above 10x the grid model's.
+    method "scplnn": ``diffsmf.pwl.fit_scplnn`` (seed 004 sec. 3.1.2) on ``samples`` uniform
+    random samples, with the vertex values taken from phi (``vertex_fn``) and every region also
+    split until its certified bound (:func:`simplex_error_bound`) is below eps
+    (``region_bound``); without ``hess_bound`` a plain least-squares fit (uncertified).
+    "grid": interpolation on a Kuhn-triangulated grid refined until the certified error <= eps.
+    "auto": "scplnn", falling back to "grid" when its certified error exceeds eps or its
+    Lipschitz bound is above 2x the grid model's.
     """
     if method not in ("auto", "scplnn", "grid"):
         raise ValueError(f"method must be 'auto', 'scplnn' or 'grid', got {method!r}")
@@ -142,31 +153,15 @@ def fit_nonlinearity(
     info: dict = {}
     model = None
     if method in ("auto", "scplnn"):
-        from diffsmf.pwl import fit_scplnn
-
-        g = torch.Generator().manual_seed(seed)
-        lo, hi = torch.as_tensor(sysm.lower), torch.as_tensor(sysm.upper)
-        X = lo + torch.rand(samples, lo.shape[0], generator=g, dtype=torch.float64) * (hi - lo)
-        with torch.no_grad():
-            Y = sysm.phi(X)
-        model, rep = fit_scplnn(X, Y, eps, max_regions=max_regions, domain=(lo, hi))
-        model.outside = "clamp"
-        info.update(method="scplnn", fit_converged=bool(rep.converged), regions=int(rep.regions),
-                    sample_max_error=float(rep.max_error.max()), fit_seconds=float(rep.seconds))
+        model = _scplnn_model(sysm, eps, samples, max_regions, seed, info)
     if method in ("auto", "grid"):
-        span = sysm.upper - sysm.lower
-        cells = [max(2, int(math.ceil(s))) for s in span]
-        while True:  # refine until the certified error meets eps
-            gm = _grid_model(sysm, cells)
-            ce = certified_error(gm, sysm.phi, sysm.hess_bound)
-            if ce <= eps or min(cells) > 2000:
-                break
-            cells = [int(math.ceil(c * min(2.0, 1.05 * math.sqrt(ce / eps)))) for c in cells]
+        gm, cells = _refined_grid(sysm, eps)
         if model is not None:
             sc = certified_error(model, sysm.phi, sysm.hess_bound)
-            lip_s, lip_g = float(model.lipschitz_bound()), float(gm.lipschitz_bound())
+            with torch.no_grad():
+                lip_s, lip_g = float(model.lipschitz_bound()), float(gm.lipschitz_bound())
             info.update(scplnn_certified_error=sc, scplnn_lipschitz=lip_s)
-            if sc <= 2 * eps and lip_s <= 10 * lip_g:
+            if sc <= eps and lip_s <= 2 * lip_g:
                 gm = None
             else:
                 info["fallback"] = (f"fit_scplnn model rejected (certified error {sc:.3g}, "
@@ -179,6 +174,42 @@ def fit_nonlinearity(
         info["lipschitz"] = float(model.lipschitz_bound())
     info["seconds"] = _time.perf_counter() - t0
     return model, info
+
+
+def _scplnn_model(sysm: ContinuousModel, eps: float, samples: int, max_regions: int, seed: int,
+                  info: dict):
+    """fit_scplnn on uniform random samples of phi; certified when sysm.hess_bound is given."""
+    from diffsmf.pwl import fit_scplnn
+
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = torch.as_tensor(sysm.lower), torch.as_tensor(sysm.upper)
+    X = lo + torch.rand(samples, lo.shape[0], generator=g, dtype=torch.float64) * (hi - lo)
+    with torch.no_grad():
+        Y = sysm.phi(X)
+    kw: dict = {}
+    eps_i = eps
+    if sysm.hess_bound is not None:  # certify inside the fit: interpolate phi, split on bound
+        eps_i = eps / math.sqrt(Y.shape[1])  # per-output bounds -> 2-norm over outputs <= eps
+        kw = dict(vertex_fn=sysm.phi, region_bound=lambda V, W: simplex_error_bound(
+            V, W, sysm.phi, sysm.hess_bound), rule="edge")
+    model, rep = fit_scplnn(X, Y, eps_i, max_regions=max_regions, domain=(lo, hi), **kw)
+    model.outside = "clamp"
+    info.update(method="scplnn", fit_converged=bool(rep.converged), regions=int(rep.regions),
+                sample_max_error=float(rep.max_error.max()), fit_seconds=float(rep.seconds),
+                fit_stop=rep.stop_reason)
+    return model
+
+
+def _refined_grid(sysm: ContinuousModel, eps: float):
+    """Grid interpolant refined until its certified error is <= eps. Returns (model, cells)."""
+    span = sysm.upper - sysm.lower
+    cells = [max(2, int(math.ceil(s))) for s in span]
+    while True:
+        gm = _grid_model(sysm, cells)
+        ce = certified_error(gm, sysm.phi, sysm.hess_bound)
+        if ce <= eps or min(cells) > 2000:
+            return gm, cells
+        cells = [int(math.ceil(c * min(2.0, 1.05 * math.sqrt(ce / eps)))) for c in cells]
 
 
 def simulate(sysm: ContinuousModel, observer: PWLObserver, T: float, dt: float) -> dict:

@@ -12,6 +12,7 @@ vertices (:class:`Refiner`); repeat until no region exceeds eps.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -54,6 +55,7 @@ class FitReport:
     seconds: float
     stop_reason: str
     history: list[tuple[int, float]] = field(default_factory=list)
+    bound_max: Tensor | None = None  # [p] max of ``region_bound`` over the regions, if given
 
     def summary(self) -> str:
         me = ", ".join(f"{v:.4g}" for v in self.max_error.tolist())
@@ -61,7 +63,9 @@ class FitReport:
         return (f"SCPLNN fit: {self.regions} regions, {self.vertices} vertices, "
                 f"{self.parameters} weights; max training error [{me}] (eps [{ep}]), "
                 f"converged={self.converged} ({self.stop_reason}), {self.rounds} rounds, "
-                f"{self.seconds:.3f} s")
+                f"{self.seconds:.3f} s" + ("" if self.bound_max is None else
+                "; certified bound [" + ", ".join(f"{v:.4g}" for v in self.bound_max.tolist())
+                + "]"))
 
 
 def as_xy(X: Any, Y: Any) -> tuple[Tensor, Tensor]:
@@ -205,6 +209,8 @@ def fit_scplnn(
     edge_clip: float = 0.5,
     outside: str = "error",
     progress: bool | None = None,
+    vertex_fn: Callable[[Tensor], Tensor] | None = None,
+    region_bound: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> tuple[SCPLNN, FitReport]:
     """Fit an SCPLNN to samples X ``[N, n]``, Y ``[N, p]`` (or [N]) by adaptive splitting.
 
@@ -228,6 +234,14 @@ def fit_scplnn(
             each round (0: every region above eps, as in seed 004).
         outside: policy of the returned model for points outside the domain.
         progress: tqdm progress bar (None: shown only for fits longer than 2 s on a terminal).
+        vertex_fn: known function ``[k, n] -> [k, p]``; when given, the vertex weights are its
+            values at the vertices (interpolation) instead of least squares (a deviation from
+            sec. 3.1.1 for functions known in closed form: no vertex is extrapolated from
+            samples that do not pin it down).
+        region_bound: ``(simplex vertices [M, n+1, n], weights [M, n+1, p]) -> [M, p]``, an
+            upper bound of the error on each whole simplex (e.g. vertex mismatch plus a
+            curvature term); when given, every region whose bound is not below eps is also
+            split (bisection of its longest edge) and ``converged`` requires it everywhere.
 
     Returns ``(model, report)``; ``report.converged`` says whether max error < eps everywhere.
     The loop is made of many small tensor operations, so it runs with one intra-op thread
@@ -235,12 +249,36 @@ def fit_scplnn(
     """
     with single_thread():
         return _fit(X, Y, eps, max_regions, domain, max_rounds, ridge, snap, mark, rule,
-                    edge_clip, outside, progress)
+                    edge_clip, outside, progress, _Known(vertex_fn, region_bound))
+
+
+@dataclass
+class _Known:
+    """Optional knowledge of the target: its values at vertices, a per-simplex error bound."""
+
+    vertex_fn: Callable[[Tensor], Tensor] | None = None
+    region_bound: Callable[[Tensor, Tensor], Tensor] | None = None
+
+    def weights(self, V: Tensor, p: int) -> Tensor:
+        """Vertex values ``[nv, p]`` of the known function."""
+        with torch.no_grad():
+            W = torch.as_tensor(self.vertex_fn(V), dtype=_F64).reshape(V.shape[0], p)
+        if not bool(torch.isfinite(W).all()):
+            raise ValueError("vertex_fn: returned NaN or inf")
+        return W
+
+    def bound(self, V: Tensor, S: Tensor, W: Tensor) -> Tensor | None:
+        """``region_bound`` ``[M, p]`` of simplices S [M, n+1] (None if not given)."""
+        if self.region_bound is None:
+            return None
+        with torch.no_grad():
+            return torch.as_tensor(self.region_bound(V[S], W[S]), dtype=_F64).reshape(
+                S.shape[0], W.shape[1])
 
 
 def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: int, ridge: float,
          snap: float, mark: float, rule: str, edge_clip: float, outside: str,
-         progress: bool | None
+         progress: bool | None, known: _Known
          ) -> tuple[SCPLNN, FitReport]:
     t0 = time.perf_counter()
     X, Y = as_xy(X, Y)
@@ -261,8 +299,9 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: in
     coef = torch.linalg.lstsq(Xa, Y, driver="gelsd").solution  # [n+1, p]
     score = ((Y - Xa @ coef).abs() / e).amax(-1)
     history = [(1, float(score.max()))]
+    affine_ok = float(score.max()) < 1 and known.vertex_fn is None and known.region_bound is None
     if use_box:
-        if float(score.max()) < 1:
+        if affine_ok:
             V, S = grid_partition(lo, hi, 1)
             return _finish(V, S, coef, None, X, Y, e, t0, 0, "affine fit below eps", history,
                            outside, True)
@@ -275,7 +314,7 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: in
     else:
         Vd = simplex_domain(lo, hi)
         S0 = torch.arange(n + 1)[None]
-        if float(score.max()) < 1:
+        if affine_ok:
             return _finish(Vd, S0, coef, None, X, Y, e, t0, 0, "affine fit below eps", history,
                            outside, False)
         ref = Refiner(Vd, S0, snap=snap, rule=rule, edge_clip=edge_clip)
@@ -283,13 +322,13 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: in
     assign = ref.relocate(X, ref.alive.nonzero().flatten())
     prior = torch.cat([ref.V, torch.ones(ref.V.shape[0], 1, dtype=_F64)], 1) @ coef
     return _adaptive_loop(ref, assign, prior, X, Y, e, t0, max_regions, max_rounds, ridge, mark,
-                          outside, use_box, progress, history)
+                          outside, use_box, progress, history, known)
 
 
 def _adaptive_loop(ref: Refiner, assign: Tensor, prior: Tensor, X: Tensor, Y: Tensor,
                    e: Tensor, t0: float, max_regions: int, max_rounds: int, ridge: float,
                    mark: float, outside: str, use_box: bool, progress: bool | None,
-                   history: list) -> tuple[SCPLNN, FitReport]:
+                   history: list, known: _Known) -> tuple[SCPLNN, FitReport]:
     """Step 3 of sec. 3.1.2: refit, split every region above eps at its max-error sample."""
     from tqdm.auto import tqdm
 
@@ -302,11 +341,17 @@ def _adaptive_loop(ref: Refiner, assign: Tensor, prior: Tensor, X: Tensor, Y: Te
         V, S_all = ref.V, ref.S
         idx = S_all[assign]
         lam = ref.lam(X, assign)
-        W = fit_weights(V, idx, lam, Y, ridge, prior)
+        if known.vertex_fn is None:
+            W = fit_weights(V, idx, lam, Y, ridge, prior)
+        else:
+            W = known.weights(V, Y.shape[1])
         prior = W
         resid = (lam[..., None] * W[idx]).sum(1) - Y
         score = (resid.abs() / e).amax(-1)  # [N] error in units of eps
-        worst = float(score.max())
+        live = ref.alive.nonzero().flatten()
+        rb = known.bound(V, S_all[live], W)
+        rscore = None if rb is None else (rb / e).amax(-1)  # [M] region bound in units of eps
+        worst = max(float(score.max()), 0.0 if rscore is None else float(rscore.max()))
         history.append((ref.n_simplices, worst))
         bar.update(1)
         bar.set_postfix(regions=ref.n_simplices, max_err_over_eps=f"{worst:.3g}")
@@ -316,15 +361,26 @@ def _adaptive_loop(ref: Refiner, assign: Tensor, prior: Tensor, X: Tensor, Y: Te
         if ref.n_simplices >= max_regions:
             reason = "max_regions reached"
             break
-        cands = _split_candidates(assign, score, ref.S.shape[0], max(1.0, mark * worst))
-        if cands.numel() == 0:
+        level = max(1.0, mark * worst)
+        cands = _split_candidates(assign, score, ref.S.shape[0], level)
+        bad = None
+        if rscore is not None:  # regions whose whole-simplex bound fails: longest-edge midpoint
+            bad = live[rscore >= level]
+            bad = bad[torch.argsort(rscore[rscore >= level], descending=True)]
+            is_bad = torch.zeros(ref.S.shape[0], dtype=torch.bool)
+            is_bad[bad] = True
+            cands = cands[~is_bad[assign[cands]]]  # bisected anyway: no extra sample split
+        jobs = [(q, -1) for q in cands.tolist()]  # sample q: split its region at q
+        if bad is not None:
+            jobs += [(-1, s) for s in bad.tolist()]
+        if not jobs:
             reason = "no splittable region left (max-error samples at vertices)"
             break
-        for q in cands.tolist():
-            s = int(assign[q])
+        for q, s in jobs:
+            s = int(assign[q]) if q >= 0 else s  # a sample's current region (may be a child)
             if not bool(ref.alive[s]):
                 continue  # already split this round through a shared face
-            out = ref.split(X[q], s)
+            out = ref.split(X[q] if q >= 0 else _longest_edge_midpoint(ref, s), s)
             if out is None:
                 continue
             removed, children = out
@@ -336,9 +392,19 @@ def _adaptive_loop(ref: Refiner, assign: Tensor, prior: Tensor, X: Tensor, Y: Te
                 break
     bar.close()
     if W is None or W.shape[0] != ref.V.shape[0]:  # split after the last fit: refit
-        W = fit_weights(ref.V, ref.S[assign], ref.lam(X, assign), Y, ridge, prior)
+        W = (fit_weights(ref.V, ref.S[assign], ref.lam(X, assign), Y, ridge, prior)
+             if known.vertex_fn is None else known.weights(ref.V, Y.shape[1]))
     V, S, _ = ref.compact()
-    return _finish(V, S, None, W, X, Y, e, t0, rounds, reason, history, outside, use_box)
+    return _finish(V, S, None, W, X, Y, e, t0, rounds, reason, history, outside, use_box, known)
+
+
+def _longest_edge_midpoint(ref: Refiner, s: int) -> Tensor:
+    """Midpoint ``[n]`` of the longest edge of live simplex s (in the Refiner's scaled metric),
+    so that :meth:`Refiner.split` bisects that edge (conforming newest-edge refinement)."""
+    Vs = ref.V[ref.S[s]]
+    d = torch.cdist(Vs / ref.scale, Vs / ref.scale)
+    k = int(d.argmax())
+    return 0.5 * (Vs[k // d.shape[0]] + Vs[k % d.shape[0]])
 
 
 def _split_candidates(assign: Tensor, score: Tensor, cap: int, level: float) -> Tensor:
@@ -363,7 +429,7 @@ def _first_per_group(g: Tensor) -> tuple[Tensor, Tensor]:
 
 def _finish(V: Tensor, S: Tensor, coef: Tensor | None, W: Tensor | None, X: Tensor, Y: Tensor,
             e: Tensor, t0: float, rounds: int, reason: str, history: list, outside: str,
-            box: bool) -> tuple[SCPLNN, FitReport]:
+            box: bool, known: _Known | None = None) -> tuple[SCPLNN, FitReport]:
     """Build the model (weights W, or the affine ``coef`` at the vertices) and the report."""
     if W is None:
         W = torch.cat([V, torch.ones(V.shape[0], 1, dtype=_F64)], 1) @ coef
@@ -375,9 +441,12 @@ def _finish(V: Tensor, S: Tensor, coef: Tensor | None, W: Tensor | None, X: Tens
         model = SCPLNN(V[used], newid[S], W[used], outside=outside, box_domain=box)
     with torch.no_grad():
         err = (model(X, outside="clamp") - Y).abs()
+    rb = None if known is None else known.bound(model.vertices, model.simplices, model.weight)
+    bmax = None if rb is None else rb.amax(0)
     report = FitReport(
         regions=model.n_regions, vertices=model.vertices.shape[0],
         parameters=model.n_parameters(), max_error=err.amax(0), rms_error=err.pow(2).mean(0).sqrt(),
-        eps=e, converged=bool((err.amax(0) < e).all()), rounds=rounds,
-        seconds=time.perf_counter() - t0, stop_reason=reason, history=history)
+        eps=e, converged=bool((err.amax(0) < e).all()) and (bmax is None or bool((bmax < e).all())),
+        rounds=rounds, seconds=time.perf_counter() - t0, stop_reason=reason, history=history,
+        bound_max=bmax)
     return model, report
