@@ -15,7 +15,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eps", type=float, default=0.05,
                         help="target model error bound (the certified value is used)")
     parser.add_argument("--method", default="auto", choices=["auto", "scplnn", "grid"],
-                        help="model: fit_scplnn, grid interpolant, or fit with grid fallback")
+                        help="model: fit_scplnn split to a certified eps, grid interpolant, "
+                             "or fit_scplnn with grid fallback")
     parser.add_argument("--T", type=float, default=20.0, help="simulated time")
     parser.add_argument("--dt", type=float, default=5e-3, help="RK4 step")
     parser.add_argument("--max-gain", type=float, default=1e4, help="bound on |L|_2")
