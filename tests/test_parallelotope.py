@@ -177,3 +177,19 @@ def test_gradcheck_intersect_strip_and_volume():
     assert torch.autograd.gradcheck(f, (c, T, y, h))
     A = torch.randn(3, 3, generator=g, requires_grad=True)
     assert torch.autograd.gradcheck(lambda T, A: Parallelotope(c, T).linear_map(A).volume(), (T, A))
+
+
+def test_empty_strip_intersection_has_finite_gradients():
+    """Regression: the unused branch of an empty intersection gave NaN gradients (0 * inf)."""
+
+
+    for offset in (5.0, -5.0, 1.4):
+        c = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+        T = torch.tensor([[1.0, 0.2], [0.1, 1.0]], dtype=torch.float64, requires_grad=True)
+        strip = ds.Strip(torch.tensor([1.0, 0.0], dtype=torch.float64), offset, 0.1)
+        P = ds.Parallelotope(c, T)
+        R = P.intersect_strip(strip)
+        gc, gT = torch.autograd.grad(R.volume(), (c, T))
+        assert torch.isfinite(gc).all() and torch.isfinite(gT).all()
+        assert not bool(P.intersects_strip(strip))
+        assert torch.equal(R.T, P.T)

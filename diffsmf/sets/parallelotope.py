@@ -238,6 +238,10 @@ class Parallelotope(ConvexSet):
         spread = pt.sum(-1)
         eps0p, eps0m = mid + spread, mid - spread  # eq. 31-32
         empty = (eps0p < -1) | (eps0m > 1)
+        # double-where: an empty element computes with a harmless full-overlap range so that
+        # the unused branch gives no inf/NaN in the backward pass (its output is the input)
+        eps0p = torch.where(empty, torch.ones_like(eps0p), eps0p)
+        eps0m = torch.where(empty, -torch.ones_like(eps0m), eps0m)
         marg = 16 * _EPS * (1 + mid.abs() + spread)  # outward rounding margin
         # step 1, eq. 33-36: tightened strip |p_bar x - c_bar| <= 1
         rp = torch.minimum(torch.ones_like(eps0p), eps0p) + marg
