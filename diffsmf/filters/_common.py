@@ -15,6 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -210,8 +211,38 @@ def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:
     return S.expand(1 if batch is None else batch)
 
 
+def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: int) -> None:
+    """Validate and register the learnable Stirling step ``h [n]`` (seed 000 eq. 12-13)."""
+    from diffsmf.utils import register_positive
+
+    h = torch.as_tensor(value, dtype=torch.float64)
+    if (h <= 0).any() or h.dim() > 1:
+        raise ValueError("stirling_step: must be a positive scalar or [n] tensor")
+    register_positive(module, "stirling_step", h.expand(n).clone())
+
+
+class EllipsoidalSetFilter(SetFilter):
+    """Shared start of the ellipsoidal filters (CDSMF, ESMF): the covering ellipsoid of the
+    initial set, and its interval hull kept in ``extras["x0_box"]`` so that the first
+    remainder is bounded over (ellipsoid hull) ∩ (initial box), see :func:`remainder_box`."""
+
+    def __init__(self, system: System, initial_set: ConvexSet | None = None, **kw) -> None:
+        super().__init__(system, **kw)
+        check_initial_set("initial_set", initial_set, system.n)
+        given = initial_set if initial_set is not None else system.x0_set
+        self._x0 = as_ellipsoid(given)
+        self._x0_box = given.interval_hull()
+
+    def initial_state(self, batch: int | None = None) -> FilterState:
+        S = expand_state_set(self._x0, batch)
+        ok = torch.ones(S.batch_shape, dtype=torch.bool)
+        return FilterState(set=S, consistent=ok, extras={"x0_box": self._x0_box})
+
+
 __all__ = [
     "ROUND_REL",
+    "EllipsoidalSetFilter",
+    "register_stirling_step",
     "as_ellipsoid",
     "as_parallelotope",
     "as_zonotope",

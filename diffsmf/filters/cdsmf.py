@@ -13,23 +13,22 @@ pieces as :class:`~diffsmf.filters.HSNSMF` so that the comparison isolates the s
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from diffsmf.filters import _common as C
-from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.filters.base import FilterState
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, register_positive
+from diffsmf.utils import Positive
 
 __all__ = ["CDSMF"]
 
 SHAPE_MARGIN = 1e-10  # relative outward margin on the shape matrix (float64 rounding)
 
 
-class CDSMF(SetFilter):
+class CDSMF(C.EllipsoidalSetFilter):
     """Central-difference ellipsoidal filter (guaranteed).
 
     Args:
@@ -52,21 +51,9 @@ class CDSMF(SetFilter):
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
-        super().__init__(system, **kw)
-        C.check_initial_set("initial_set", initial_set, system.n)
-        h = torch.as_tensor(stirling_step, dtype=torch.float64)
-        if (h <= 0).any() or h.dim() > 1:
-            raise ValueError("stirling_step: must be a positive scalar or [n] tensor")
-        register_positive(self, "stirling_step", h.expand(system.n).clone())
+        super().__init__(system, initial_set=initial_set, **kw)
+        C.register_stirling_step(self, stirling_step, system.n)
         self.sum_method = sum_method
-        given = initial_set if initial_set is not None else system.x0_set
-        self._x0 = C.as_ellipsoid(given)
-        self._x0_box = given.interval_hull()
-
-    def initial_state(self, batch: int | None = None) -> FilterState:
-        S = C.expand_state_set(self._x0, batch)
-        ok = torch.ones(S.batch_shape, dtype=torch.bool)
-        return FilterState(set=S, consistent=ok, extras={"x0_box": self._x0_box})
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (E - c) (+) cover(remainder box + W)``."""

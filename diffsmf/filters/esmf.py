@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters import _common as C
-from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.filters.base import FilterState
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -43,7 +43,7 @@ def _max_sv(M: Tensor) -> Tensor:
     return torch.linalg.eigvalsh(_sym(M))[..., -1].clamp_min(0.0)
 
 
-class ESMF(SetFilter):
+class ESMF(C.EllipsoidalSetFilter):
     """Extended set-membership filter of seed 001 (guaranteed, ellipsoidal).
 
     Args:
@@ -70,19 +70,10 @@ class ESMF(SetFilter):
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
-        super().__init__(system, **kw)
-        C.check_initial_set("initial_set", initial_set, system.n)
+        super().__init__(system, initial_set=initial_set, **kw)
         if rho_rule not in ("eq40", "eq13", "volume"):
             raise ValueError(f"rho_rule: expected 'eq13', 'eq40' or 'volume', got {rho_rule!r}")
         self.rho_rule = rho_rule
-        given = initial_set if initial_set is not None else system.x0_set
-        self._x0 = C.as_ellipsoid(given)
-        self._x0_box = given.interval_hull()
-
-    def initial_state(self, batch: int | None = None) -> FilterState:
-        S = C.expand_state_set(self._x0, batch)
-        ok = torch.ones(S.batch_shape, dtype=torch.bool)
-        return FilterState(set=S, consistent=ok, extras={"x0_box": self._x0_box})
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Eq. 24-35: ``E(f(c) + a, A P A') (+) [(Qbar (+) Q) (+) Delta]``."""

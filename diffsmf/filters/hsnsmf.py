@@ -19,7 +19,7 @@ from diffsmf.filters import _common as C
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, register_positive
+from diffsmf.utils import Positive
 
 __all__ = ["HSNSMF"]
 
@@ -51,10 +51,7 @@ class HSNSMF(SetFilter):
     ) -> None:
         super().__init__(system, **kw)
         C.check_initial_set("initial_set", initial_set, system.n)
-        h = torch.as_tensor(stirling_step, dtype=torch.float64)
-        if (h <= 0).any() or h.dim() > 1:
-            raise ValueError("stirling_step: must be a positive scalar or [n] tensor")
-        register_positive(self, "stirling_step", h.expand(system.n).clone())
+        C.register_stirling_step(self, stirling_step, system.n)
         self._x0 = C.as_parallelotope(initial_set if initial_set is not None else system.x0_set)
 
     def initial_state(self, batch: int | None = None) -> FilterState:

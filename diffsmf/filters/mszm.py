@@ -23,7 +23,7 @@ from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, register_positive
+from diffsmf.utils import Positive
 
 __all__ = ["MSZM"]
 
@@ -59,10 +59,7 @@ class MSZM(SetFilter):
         C.check_initial_set("initial_set", initial_set, system.n)
         if not isinstance(order, int) or order < 1:
             raise ValueError(f"order: must be an integer >= 1, got {order!r}")
-        h = torch.as_tensor(stirling_step, dtype=torch.float64)
-        if (h <= 0).any() or h.dim() > 1:
-            raise ValueError("stirling_step: must be a positive scalar or [n] tensor")
-        register_positive(self, "stirling_step", h.expand(system.n).clone())
+        C.register_stirling_step(self, stirling_step, system.n)
         self.order = order
         self.reduce_method = reduce_method
         self.strip_method = strip_method
