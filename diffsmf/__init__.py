@@ -12,7 +12,24 @@ from diffsmf.systems import System, Trajectory
 
 __version__ = "0.1.0"
 
+_LAZY = ("audit", "linearize", "observers", "plot", "pwl", "tightness")
+
+
+def __getattr__(name: str):
+    """Import the heavier sub-packages on first use (``ds.pwl``, ``ds.observers``, ...)."""
+    if name in _LAZY:
+        import importlib
+
+        return importlib.import_module(f"diffsmf.{name}")
+    raise AttributeError(f"module 'diffsmf' has no attribute {name!r}")
+
 __all__ = [
+    "audit",
+    "linearize",
+    "observers",
+    "plot",
+    "pwl",
+    "tightness",
     "Ellipsoid",
     "Interval",
     "Parallelotope",

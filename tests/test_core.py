@@ -135,3 +135,10 @@ def test_cli_help_and_unknown_command(capsys):
     assert "demo" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         cli_main(["no-such-command"])
+
+
+def test_lazy_subpackages_resolve_and_unknown_names_raise():
+    assert callable(ds.audit.containment) and callable(ds.pwl.fit_scplnn)
+    assert callable(ds.observers.design_lipschitz_observer)
+    with pytest.raises(AttributeError, match="no_such_name"):
+        ds.no_such_name
