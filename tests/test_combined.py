@@ -17,9 +17,10 @@ from scipy.linalg import eigh as sp_eigh
 from scipy.optimize import brentq, minimize_scalar
 
 import diffsmf as ds
-from diffsmf.filters.combined import CombinedFilter, outer_sum_shape
+from diffsmf.filters.combined import CombinedFilter
 from diffsmf.linearize import axis_points, statistical_linearization
 from diffsmf.sets import Ellipsoid
+from diffsmf.sets.ellipsoid import outer_sum_shape
 from diffsmf.systems import System
 
 torch.set_default_dtype(torch.float64)

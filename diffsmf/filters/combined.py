@@ -30,7 +30,7 @@ from torch import Tensor
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.linearize.statistical import _check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
-from diffsmf.sets.ellipsoid import INFLATE, Ellipsoid, minkowski_weight, unit_ball_volume
+from diffsmf.sets.ellipsoid import Ellipsoid, outer_sum_shape, unit_ball_volume
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive, register_positive
 
@@ -47,40 +47,6 @@ _GAINS = ("auto", "kalman", "set")
 
 def _sym(M: Tensor) -> Tensor:
     return 0.5 * (M + M.mT)
-
-
-def _trace(M: Tensor) -> Tensor:
-    return torch.diagonal(M, dim1=-2, dim2=-1).sum(-1)
-
-
-def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
-    """Shape of the outer ellipsoid of ``F(0, S1) + F(0, S2)`` (seed 003 eq. 34-36, erratum).
-
-    ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` times ``1 + INFLATE`` (the rounding margin of
-    :mod:`diffsmf.sets.ellipsoid`), with p from :func:`diffsmf.sets.ellipsoid.minkowski_weight`
-    (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"volume"``: the erratum's root, differentiable).
-    Unlike ``Ellipsoid.minkowski_sum`` the operands may be positive *semi*definite (degenerate
-    or zero ellipsoids, e.g. ``Gamma D Gamma'`` or a collapsed mean set): ``S2 = 0`` gives
-    ``S1`` exactly (``S1 = 0`` gives ``S2``), and where the volume rule is undefined (``S1``
-    singular) the trace weight is used. Any ``p > 0`` gives an outer bound (eq. 25-33), so the
-    guarantee never depends on the weight.
-    """
-    if method not in _WEIGHTS:
-        raise ValueError(f"weight: expected one of {_WEIGHTS}, got {method!r}")
-    t1, t2 = _trace(S1), _trace(S2)
-    zero1, zero2 = (t1 <= 0).unsqueeze(-1).unsqueeze(-1), (t2 <= 0).unsqueeze(-1).unsqueeze(-1)
-    eye = torch.eye(S1.shape[-1], dtype=S1.dtype, device=S1.device)
-    S1s = torch.where(zero1, eye, S1)  # placeholders keep the unused branches finite
-    S2s = torch.where(zero2, eye, S2)  # (also their gradients: no 0/0 in sqrt's backward)
-    p = minkowski_weight(S1s, S2s, "trace")
-    if method == "volume":
-        pd = torch.linalg.cholesky_ex(S1s.detach())[1] == 0
-        pd_m = pd.unsqueeze(-1).unsqueeze(-1)
-        pv = minkowski_weight(torch.where(pd_m, S1s, eye), torch.where(pd_m, S2s, eye), "volume")
-        p = torch.where(pd, pv, p)
-    p = p.unsqueeze(-1).unsqueeze(-1)
-    S = ((1.0 + 1.0 / p) * S1s + (1.0 + p) * S2s) * (1.0 + INFLATE)
-    return _sym(torch.where(zero2, S1, torch.where(zero1, S2, S)))
 
 
 def _scaled(M0: Tensor, v: Tensor, v0: Tensor) -> Tensor:

@@ -20,7 +20,7 @@ from diffsmf.sets.base import ConvexSet, as_tensor, check_finite
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
 
-__all__ = ["Ellipsoid", "minkowski_weight"]
+__all__ = ["Ellipsoid", "minkowski_weight", "outer_sum_shape"]
 
 INFLATE = 1e-10
 
@@ -714,3 +714,34 @@ def _minimize_rho(
     step = torch.where(ok, g / torch.where(ok, h, torch.ones_like(h)), torch.zeros_like(g))
     # value: the Newton-polished root; derivative: -d(obj')/d(theta) / obj'' (r is constant)
     return (rho0 - step).detach().clamp(0.0, top) - (step - step.detach())
+
+
+def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
+    """Shape of the outer ellipsoid of ``F(0, S1) + F(0, S2)`` (seed 003 eq. 34-36, erratum).
+
+    ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` times ``1 + INFLATE`` (this module's rounding margin),
+    with p from :func:`minkowski_weight`
+    (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"volume"``: the erratum's root, differentiable).
+    Unlike ``Ellipsoid.minkowski_sum`` the operands may be positive *semi*definite (degenerate
+    or zero ellipsoids, e.g. ``Gamma D Gamma'`` or a collapsed mean set): ``S2 = 0`` gives
+    ``S1`` exactly (``S1 = 0`` gives ``S2``), and where the volume rule is undefined (``S1``
+    singular) the trace weight is used. Any ``p > 0`` gives an outer bound (eq. 25-33), so the
+    guarantee never depends on the weight.
+    """
+    if method not in ("trace", "volume"):
+        raise ValueError(f"weight: expected 'trace' or 'volume', got {method!r}")
+    t1 = torch.diagonal(S1, dim1=-2, dim2=-1).sum(-1)
+    t2 = torch.diagonal(S2, dim1=-2, dim2=-1).sum(-1)
+    zero1, zero2 = (t1 <= 0).unsqueeze(-1).unsqueeze(-1), (t2 <= 0).unsqueeze(-1).unsqueeze(-1)
+    eye = torch.eye(S1.shape[-1], dtype=S1.dtype, device=S1.device)
+    S1s = torch.where(zero1, eye, S1)  # placeholders keep the unused branches finite
+    S2s = torch.where(zero2, eye, S2)  # (also their gradients: no 0/0 in sqrt's backward)
+    p = minkowski_weight(S1s, S2s, "trace")
+    if method == "volume":
+        pd = torch.linalg.cholesky_ex(S1s.detach())[1] == 0
+        pd_m = pd.unsqueeze(-1).unsqueeze(-1)
+        pv = minkowski_weight(torch.where(pd_m, S1s, eye), torch.where(pd_m, S2s, eye), "volume")
+        p = torch.where(pd, pv, p)
+    p = p.unsqueeze(-1).unsqueeze(-1)
+    S = ((1.0 + 1.0 / p) * S1s + (1.0 + p) * S2s) * (1.0 + INFLATE)
+    return _sym(torch.where(zero2, S1, torch.where(zero1, S2, S)))
