@@ -1,5 +1,6 @@
 """LMI observer design (seed 004), PWL-model observer pipeline, ILC fault estimation (seed 003)."""
 
+from diffsmf.observers.differentiable import DifferentiableObserverDesign
 from diffsmf.observers.ilc import (
     ILCDesign,
     ILCFaultEstimator,
@@ -28,6 +29,7 @@ from diffsmf.observers.pipeline import (
 
 __all__ = [
     "ContinuousModel",
+    "DifferentiableObserverDesign",
     "ILCDesign",
     "ILCFaultEstimator",
     "ObserverDesign",
