@@ -73,17 +73,7 @@ class HingingHyperplanes(nn.Module):
             c = Xa[int(torch.randint(N, (1,), generator=gen)), :-1]
             delta = torch.cat([normal, -(normal @ c)[None]])
             for sign in (1.0, -1.0):
-                mask = sign * (Xa @ delta) >= 0
-                beta = None
-                for _ in range(self.max_iter):
-                    if int(mask.sum()) < d or int((~mask).sum()) < d:
-                        break
-                    b1, b2 = _lstsq(Xa, r, mask), _lstsq(Xa, r, ~mask)
-                    beta = torch.stack([b1, b2])
-                    new = sign * (Xa @ (b1 - b2)) >= 0
-                    if bool((new == mask).all()):
-                        break
-                    mask = new
+                beta = self._iterate_split(Xa, r, sign * (Xa @ delta) >= 0, sign)
                 if beta is None:
                     continue
                 s = torch.tensor(sign, dtype=_F64)
@@ -123,11 +113,12 @@ class HingingHyperplanes(nn.Module):
         self.sign = torch.tensor(signs, dtype=_F64)
         return self
 
-    def _refit(self, Xa: Tensor, r: Tensor, beta: Tensor, sign: float
-               ) -> tuple[Tensor, float, float]:
-        """Hinge-finding iterations started from the current hinge (backfitting step)."""
+    def _iterate_split(self, Xa: Tensor, r: Tensor, mask: Tensor, sign: float) -> Tensor | None:
+        """Breiman's hinge-finding iterations from the split ``mask [N]``: fit one affine map
+        per side by least squares, re-split where they cross, until the split is stable.
+        Returns ``beta [2, d]`` or ``None`` when a side has fewer than d samples at once."""
         d = Xa.shape[1]
-        mask = sign * (Xa @ (beta[0] - beta[1])) >= 0
+        beta = None
         for _ in range(self.max_iter):
             if int(mask.sum()) < d or int((~mask).sum()) < d:
                 break
@@ -137,6 +128,13 @@ class HingingHyperplanes(nn.Module):
             if bool((new == mask).all()):
                 break
             mask = new
+        return beta
+
+    def _refit(self, Xa: Tensor, r: Tensor, beta: Tensor, sign: float
+               ) -> tuple[Tensor, float, float]:
+        """Hinge-finding iterations started from the current hinge (backfitting step)."""
+        found = self._iterate_split(Xa, r, sign * (Xa @ (beta[0] - beta[1])) >= 0, sign)
+        beta = beta if found is None else found
         s = torch.tensor(sign, dtype=_F64)
         return beta, sign, float(((r - _hinge_eval(Xa, beta[None], s[None])[:, 0]) ** 2).sum())
 
