@@ -142,3 +142,15 @@ def test_lazy_subpackages_resolve_and_unknown_names_raise():
     assert callable(ds.observers.design_lipschitz_observer)
     with pytest.raises(AttributeError, match="no_such_name"):
         ds.no_such_name
+
+
+def test_sets_promote_lower_precision_inputs_to_float64():
+    """The outward rounding margins are float64 margins: float32 input must not stay float32."""
+    f32 = torch.float32
+    Z = ds.Zonotope(torch.tensor([0.4, 0.15], dtype=f32), torch.eye(2, dtype=f32))
+    E = ds.Ellipsoid(torch.zeros(2, dtype=f32), torch.eye(2, dtype=f32))
+    I = ds.Interval(torch.zeros(2, dtype=f32), torch.ones(2, dtype=f32))
+    P = ds.Parallelotope(torch.zeros(2, dtype=f32), torch.eye(2))
+    for S in (Z, E, I, P):
+        assert S.center.dtype == torch.float64
+    assert I.contains(torch.full((2,), 0.5, dtype=f32))

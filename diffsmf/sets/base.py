@@ -26,13 +26,16 @@ DEFAULT_DTYPE = torch.float64
 
 
 def as_tensor(name: str, value: Any, *, like: Tensor | None = None, min_dim: int = 0) -> Tensor:
-    """Convert ``value`` to a floating tensor (float64 unless ``like``/value is floating).
+    """Convert ``value`` to a float64 tensor (or to ``like``'s dtype and device).
 
-    Raises ``ValueError`` naming ``name`` on NaN, on non-numeric input or on too few dims.
+    Floating tensors of lower precision are promoted to float64: the guaranteed (outward)
+    rounding margins of the sets are float64 margins, so a float32 set would silently lose
+    its guarantee. Raises ``ValueError`` naming ``name`` on NaN, on non-numeric input or on
+    too few dims.
     """
     if isinstance(value, Tensor):
         t = value
-        if not t.is_floating_point():
+        if not t.is_floating_point() or torch.finfo(t.dtype).bits < 64:
             t = t.to(like.dtype if like is not None else DEFAULT_DTYPE)
     else:
         try:
