@@ -143,6 +143,27 @@ def sequential_strip_update(
     return where(ok, cur, _like(S, cur)), ok
 
 
+def stirling_strip_update(
+    filt: SetFilter,
+    S: ConvexSet,
+    region: ConvexSet,
+    y: Tensor,
+    intersect: Callable[[ConvexSet, object], ConvexSet],
+) -> tuple[ConvexSet, Tensor]:
+    """Seed 000 Theorem 3 update shared by HSNSMF, MSZM and CDSMF: Stirling slopes of ``h`` at
+    the centre (eq. 13), DC remainder of ``h`` over ``region`` folded into the strips
+    (eq. 23-29), strips intersected one by one with ``intersect`` -> (set, consistent ``[B]``).
+    """
+    from diffsmf.linearize import dc_remainder, stirling_jacobian
+
+    c = S.center
+    H = stirling_jacobian(filt.system.h, c, filt.stirling_step)  # eq. 13
+    a, d, w = measurement_strips(
+        filt.system.h, dc_remainder, region, c, H, y, filt.measurement_noise_box()
+    )
+    return sequential_strip_update(S, a, d, w, intersect)
+
+
 def _like(S: ConvexSet, ref: ConvexSet) -> ConvexSet:
     """``S`` padded (zonotope generators) to the field shapes of ``ref``."""
     if hasattr(S, "pad_generators") and S.generators.shape[-1] < ref.generators.shape[-1]:
@@ -253,5 +274,6 @@ __all__ = [
     "rounding_margin",
     "sequential_strip_update",
     "step_function",
+    "stirling_strip_update",
     "widen",
 ]

@@ -79,13 +79,8 @@ class CDSMF(C.EllipsoidalSetFilter):
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Seed 000 Theorem 3 strips intersected one by one with the ellipsoid."""
-        from diffsmf.linearize import dc_remainder, stirling_jacobian
-
         E = state.set
-        c = E.center
-        H = stirling_jacobian(self.system.h, c, self.stirling_step)
-        a, d, w = C.measurement_strips(
-            self.system.h, dc_remainder, E.interval_hull(), c, H, y, self.measurement_noise_box()
+        new, ok = C.stirling_strip_update(
+            self, E, E.interval_hull(), y, lambda S, st: S.intersect_strip(st)
         )
-        new, ok = C.sequential_strip_update(E, a, d, w, lambda S, st: S.intersect_strip(st))
         return state.replace(set=new, consistent=ok)

@@ -79,13 +79,6 @@ class HSNSMF(SetFilter):
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Theorem 3 strips (eq. 23-29) intersected one by one (eq. 30-41)."""
-        from diffsmf.linearize import dc_remainder, stirling_jacobian
-
-        P = state.set
-        c = P.center
-        H = stirling_jacobian(self.system.h, c, self.stirling_step)  # eq. 13
-        a, d, w = C.measurement_strips(
-            self.system.h, dc_remainder, P, c, H, y, self.measurement_noise_box()
-        )
-        new, ok = C.sequential_strip_update(P, a, d, w, lambda S, st: S.intersect_strip(st))
+        P = state.set  # remainder of h at the parallelotope's vertices
+        new, ok = C.stirling_strip_update(self, P, P, y, lambda S, st: S.intersect_strip(st))
         return state.replace(set=new, consistent=ok)

@@ -116,16 +116,10 @@ class MSZM(SetFilter):
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Strips (seed 000 eq. 23-29) intersected with Alamo 2005 Property 2, then reduced."""
-        from diffsmf.linearize import dc_remainder, stirling_jacobian
-
         Z = state.set
-        c = Z.center
-        H = stirling_jacobian(self.system.h, c, self.stirling_step)
-        a, d, w = C.measurement_strips(
-            self.system.h, dc_remainder, Z.interval_hull(), c, H, y, self.measurement_noise_box()
-        )
-        new, ok = C.sequential_strip_update(
-            Z, a, d, w, lambda S, st: S.intersect_strip(st, method=self.strip_method)
+        new, ok = C.stirling_strip_update(
+            self, Z, Z.interval_hull(), y,
+            lambda S, st: S.intersect_strip(st, method=self.strip_method),
         )
         new = where(ok, self._fit(new), Z)  # inconsistent: keep the predicted set exactly
         return state.replace(set=new, consistent=ok)
