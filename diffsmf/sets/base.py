@@ -55,6 +55,14 @@ def as_tensor(name: str, value: Any, *, like: Tensor | None = None, min_dim: int
     return t
 
 
+def as_offset(b: Any, like: Tensor, dim: int) -> Tensor:
+    """Offset vector ``b [..., dim]`` of a translation or affine map, validated against ``like``."""
+    b = as_tensor("b", b, like=like, min_dim=1)
+    if b.shape[-1] != dim:
+        raise ValueError(f"b: expected [..., {dim}], got {tuple(b.shape)}")
+    return b
+
+
 def check_finite(name: str, t: Tensor) -> Tensor:
     """Raise ``ValueError`` naming ``name`` if ``t`` has NaN or inf; return ``t``."""
     if not torch.isfinite(t.detach()).all():

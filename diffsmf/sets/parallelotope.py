@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_tensor, check_finite
+from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -135,18 +135,12 @@ class Parallelotope(ConvexSet):
             return self.to_zonotope().linear_map(A, b)
         c = (A @ self._c.unsqueeze(-1)).squeeze(-1)
         if b is not None:
-            b = as_tensor("b", b, like=self._c, min_dim=1)
-            if b.shape[-1] != self.dim:
-                raise ValueError(f"b: expected [..., {self.dim}], got {tuple(b.shape)}")
-            c = c + b
+            c = c + as_offset(b, self._c, self.dim)
         return Parallelotope._make(c, A @ self.T)
 
     def translate(self, b: Tensor) -> Parallelotope:
         """``{x + b}``, ``b [..., n]``."""
-        b = as_tensor("b", b, like=self._c, min_dim=1)
-        if b.shape[-1] != self.dim:
-            raise ValueError(f"b: expected [..., {self.dim}], got {tuple(b.shape)}")
-        return Parallelotope._make(self._c + b, self.T)
+        return Parallelotope._make(self._c + as_offset(b, self._c, self.dim), self.T)
 
     def minkowski_sum(self, other: ConvexSet | Tensor) -> Zonotope:
         """Exact Minkowski sum as a Zonotope (generators ``[T, G_other]``)."""

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_tensor, check_finite
+from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -210,18 +210,12 @@ class Zonotope(ConvexSet):
             raise ValueError(f"A: expected [..., k, {self.dim}], got {tuple(A.shape)}")
         c = (A @ self._c.unsqueeze(-1)).squeeze(-1)
         if b is not None:
-            b = as_tensor("b", b, like=self._c, min_dim=1)
-            if b.shape[-1] != A.shape[-2]:
-                raise ValueError(f"b: expected [..., {A.shape[-2]}], got {tuple(b.shape)}")
-            c = c + b
+            c = c + as_offset(b, self._c, A.shape[-2])
         return Zonotope._make(c, A @ self.generators)
 
     def translate(self, b: Tensor) -> Zonotope:
         """``{x + b}``, ``b [..., n]``."""
-        b = as_tensor("b", b, like=self._c, min_dim=1)
-        if b.shape[-1] != self.dim:
-            raise ValueError(f"b: expected [..., {self.dim}], got {tuple(b.shape)}")
-        return Zonotope._make(self._c + b, self.generators)
+        return Zonotope._make(self._c + as_offset(b, self._c, self.dim), self.generators)
 
     def minkowski_sum(self, other: ConvexSet | Tensor) -> Zonotope:
         """Exact Minkowski sum with a Zonotope, Interval (box), Parallelotope or a point.
