@@ -42,9 +42,11 @@ def _point(t: Any, like: Tensor) -> Interval:
 
 def _unsq(c: Any, k: int) -> Any:
     """Append ``k`` singleton dims to a tensor / Interval (numbers unchanged)."""
-    if isinstance(c, (Tensor, Interval)):
-        for _ in range(k):
-            c = c.unsqueeze(-1)
+    if isinstance(c, Interval):
+        idx = (..., *([None] * k))
+        return Interval._make(c.lower[idx], c.upper[idx])
+    if isinstance(c, Tensor):
+        return c[(..., *([None] * k))]
     return c
 
 
@@ -54,31 +56,69 @@ def _outer(a: Interval, b: Interval) -> Interval:
 
 
 def _outer_sym(g: Interval) -> Interval:
-    """``g_i g_j`` with the exact squares on the diagonal (tighter than products)."""
+    """``g_i g_j`` with the exact squares on the diagonal (tighter than products).
+
+    The product enclosure of ``g_i g_i`` has the square's upper bound; its lower bound is the
+    square's once clamped at 0 (the only product below the square's range is ``lo * hi < 0``).
+    """
     o = _outer(g, g)
     n = g.shape[-1]
-    sq = g.square()
-    diag = Interval(torch.diag_embed(sq.lower), torch.diag_embed(sq.upper))
     eye = torch.eye(n, dtype=torch.bool, device=g.lower.device)
-    return torch.where(eye, diag, o)
+    return Interval._make(torch.where(eye, o.lower.clamp_min(0.0), o.lower), o.upper)
+
+
+def _hadd(*hs: Interval | None) -> Interval | None:
+    """Sum of Hessian enclosures where ``None`` is the structural zero."""
+    out = None
+    for h in hs:
+        if h is not None:
+            out = h if out is None else out + h
+    return out
+
+
+def _hmul(h: Interval | None, c: Any) -> Interval | None:
+    """``h * c`` with ``None`` the structural zero (``c`` already broadcast to ``[..., 1, 1]``)."""
+    return None if h is None else h * c
 
 
 class Jet:
     """Interval enclosures of a value ``[...]``, gradient ``[..., n]`` and Hessian ``[..., n, n]``.
 
-    ``hess`` is ``None`` in first-order mode (interval Jacobians only).
+    ``hess`` is ``None`` in first-order mode (interval Jacobians only). In second-order mode
+    the Hessian is stored as ``None`` while it is *structurally* zero (inputs, constants and
+    affine expressions of them), so affine parts cost no Hessian arithmetic and an affine
+    function is recognised exactly (:attr:`hess_is_zero`); :attr:`hess` materialises zeros.
     """
 
-    __slots__ = ("grad", "hess", "val")
+    __slots__ = ("_h", "grad", "order", "val")
 
-    def __init__(self, val: Interval, grad: Interval, hess: Interval | None) -> None:
+    def __init__(
+        self, val: Interval, grad: Interval, hess: Interval | None, order: int | None = None
+    ) -> None:
         self.val = val
         shape = val.shape
         n = grad.shape[-1]
         self.grad = grad if grad.shape[:-1] == shape else grad.broadcast_to((*shape, n))
         if hess is not None and hess.shape[:-2] != shape:
             hess = hess.broadcast_to((*shape, n, n))
-        self.hess = hess
+        self._h = hess
+        self.order = order if order is not None else (1 if hess is None else 2)
+
+    @property
+    def hess(self) -> Interval | None:
+        """Hessian enclosure ``[..., n, n]`` (``None`` in first-order mode)."""
+        if self.order == 1:
+            return None
+        if self._h is None:
+            lo = self.val.lower
+            z = torch.zeros((*self.shape, self.n, self.n), dtype=lo.dtype, device=lo.device)
+            return Interval._make(z, z)
+        return self._h
+
+    @property
+    def hess_is_zero(self) -> bool:
+        """True when the Hessian is structurally zero (the function is affine on R^n)."""
+        return self.order == 2 and self._h is None
 
     # ---------------------------------------------------------------- structure
     @property
@@ -99,10 +139,6 @@ class Jet:
     def n(self) -> int:
         return self.grad.shape[-1]
 
-    @property
-    def order(self) -> int:
-        return 1 if self.hess is None else 2
-
     def __repr__(self) -> str:
         return f"Jet(shape={tuple(self.shape)}, n={self.n}, order={self.order})"
 
@@ -111,31 +147,31 @@ class Jet:
         like = self.val.lower
         v = c if isinstance(c, Interval) else _point(c, like)
         z = torch.zeros((*v.shape, self.n), dtype=like.dtype, device=like.device)
-        h = None
-        if self.hess is not None:
-            zh = torch.zeros((*v.shape, self.n, self.n), dtype=like.dtype, device=like.device)
-            h = Interval(zh, zh)
-        return Jet(v, Interval(z, z), h)
+        return Jet(v, Interval._make(z, z), None, self.order)
+
+    def _new(self, val: Interval, grad: Interval, hess: Interval | None) -> Jet:
+        """A jet of the same order (``hess=None``: structural zero in second-order mode)."""
+        return Jet(val, grad, hess, self.order)
 
     def __getitem__(self, idx: Any) -> Jet:
         if not isinstance(idx, tuple):
             idx = (idx,)
         s = slice(None)
-        hess = None if self.hess is None else self.hess[idx + (s, s)]
-        return Jet(self.val[idx], self.grad[idx + (s,)], hess)
+        hess = None if self._h is None else self._h[idx + (s, s)]
+        return self._new(self.val[idx], self.grad[idx + (s,)], hess)
 
     # ---------------------------------------------------------------- arithmetic
     def __neg__(self) -> Jet:
-        return Jet(-self.val, -self.grad, None if self.hess is None else -self.hess)
+        return self._new(-self.val, -self.grad, None if self._h is None else -self._h)
 
     def __pos__(self) -> Jet:
         return self
 
     def __add__(self, other: Any) -> Jet:
         if isinstance(other, Jet):
-            hess = None if self.hess is None else self.hess + other.hess
-            return Jet(self.val + other.val, self.grad + other.grad, hess)
-        return Jet(self.val + other, self.grad, self.hess)
+            hess = _hadd(self._h, other._h)
+            return self._new(self.val + other.val, self.grad + other.grad, hess)
+        return self._new(self.val + other, self.grad, self._h)
 
     __radd__ = __add__
 
@@ -148,16 +184,16 @@ class Jet:
     def __mul__(self, other: Any) -> Jet:
         if isinstance(other, Jet):
             return _mul(self, other)
-        hess = None if self.hess is None else self.hess * _unsq(other, 2)
-        return Jet(self.val * other, self.grad * _unsq(other, 1), hess)
+        hess = _hmul(self._h, _unsq(other, 2))
+        return self._new(self.val * other, self.grad * _unsq(other, 1), hess)
 
     __rmul__ = __mul__
 
     def __truediv__(self, other: Any) -> Jet:
         if isinstance(other, Jet):
             return self * other.reciprocal()
-        hess = None if self.hess is None else self.hess / _unsq(other, 2)
-        return Jet(self.val / other, self.grad / _unsq(other, 1), hess)
+        hess = None if self._h is None else self._h / _unsq(other, 2)
+        return self._new(self.val / other, self.grad / _unsq(other, 1), hess)
 
     def __rtruediv__(self, other: Any) -> Jet:
         return self.reciprocal() * other
@@ -173,7 +209,7 @@ class Jet:
         if pv == 2:
             return _mul(self, self)
         x = self.val
-        d2 = x ** (pv - 2) * (pv * (pv - 1)) if self.hess is not None else None
+        d2 = x ** (pv - 2) * (pv * (pv - 1)) if self.order == 2 else None
         return _chain(self, x**pv, x ** (pv - 1) * pv, d2)
 
     def __rpow__(self, base: Any) -> Jet:
@@ -231,7 +267,7 @@ class Jet:
     def abs(self) -> Jet:
         lo, hi = self.val.lower, self.val.upper
         straddle = (lo < 0) & (hi > 0)
-        if self.hess is not None and bool(straddle.detach().any()):
+        if self.order == 2 and bool(straddle.detach().any()):
             raise NotImplementedError(
                 "abs: interval Hessian of |q| is undefined where q's range contains 0"
             )
@@ -244,8 +280,8 @@ class Jet:
         nd = self.ndim
         dims = tuple(range(nd)) if dim is None else (dim,) if isinstance(dim, int) else dim
         dims = tuple(d % nd for d in dims)
-        hess = None if self.hess is None else self.hess.sum(dims, keepdim)
-        return Jet(self.val.sum(dims, keepdim), self.grad.sum(dims, keepdim), hess)
+        hess = None if self._h is None else self._h.sum(dims, keepdim)
+        return self._new(self.val.sum(dims, keepdim), self.grad.sum(dims, keepdim), hess)
 
     # ---------------------------------------------------------------- torch hook
     @classmethod
@@ -269,24 +305,24 @@ def _mul(a: Jet, b: Jet) -> Jet:
     if a is b:
         grad = a.grad * _unsq(a.val, 1) * 2.0
         hess = None
-        if a.hess is not None:
-            hess = (a.hess * _unsq(a.val, 2) + _outer_sym(a.grad)) * 2.0
-        return Jet(a.val.square(), grad, hess)
+        if a.order == 2:
+            hess = _hadd(_hmul(a._h, _unsq(a.val, 2)), _outer_sym(a.grad)) * 2.0
+        return a._new(a.val.square(), grad, hess)
     grad = a.grad * _unsq(b.val, 1) + b.grad * _unsq(a.val, 1)
     hess = None
-    if a.hess is not None:
+    if a.order == 2:
         o = _outer(a.grad, b.grad)
-        hess = a.hess * _unsq(b.val, 2) + b.hess * _unsq(a.val, 2) + o + o.mT
-    return Jet(a.val * b.val, grad, hess)
+        hess = _hadd(_hmul(a._h, _unsq(b.val, 2)), _hmul(b._h, _unsq(a.val, 2)), o + o.mT)
+    return a._new(a.val * b.val, grad, hess)
 
 
 def _chain(a: Jet, v: Interval, d1: Interval, d2: Interval | None) -> Jet:
     """``phi(a)`` from enclosures of ``phi``, ``phi'``, ``phi''`` over ``a.val``."""
     grad = a.grad * _unsq(d1, 1)
     hess = None
-    if a.hess is not None:
-        hess = a.hess * _unsq(d1, 2) + _outer_sym(a.grad) * _unsq(d2, 2)
-    return Jet(v, grad, hess)
+    if a.order == 2:
+        hess = _hadd(_hmul(a._h, _unsq(d1, 2)), _outer_sym(a.grad) * _unsq(d2, 2))
+    return a._new(v, grad, hess)
 
 
 def _as_matrix(A: Any, like: Tensor) -> Tensor:
@@ -304,11 +340,11 @@ def _matmul(x: Jet, A: Any) -> Jet:
     n = x.n
     grad = At @ x.grad  # [..., k, n]
     hess = None
-    if x.hess is not None:
-        Hf = x.hess.reshape(*x.hess.shape[:-2], n * n)  # [..., m, n*n]
+    if x._h is not None:
+        Hf = x._h.reshape(*x._h.shape[:-2], n * n)  # [..., m, n*n]
         hess = At @ Hf
         hess = hess.reshape(*hess.shape[:-1], n, n)
-    return Jet(x.val @ A, grad, hess)
+    return x._new(x.val @ A, grad, hess)
 
 
 def _rmatmul(A: Any, x: Jet) -> Jet:
@@ -335,9 +371,9 @@ def _stack(items: Sequence[Any], dim: int = 0, *, out: Any = None) -> Jet:
     jets = _lift_all(items)
     d = dim % (jets[0].ndim + 1)
     hess = None
-    if jets[0].hess is not None:
+    if any(j._h is not None for j in jets):
         hess = torch.stack([j.hess for j in jets], d)
-    return Jet(
+    return jets[0]._new(
         torch.stack([j.val for j in jets], d), torch.stack([j.grad for j in jets], d), hess
     )
 
@@ -348,17 +384,19 @@ def _cat(items: Sequence[Any], dim: int = 0, *, out: Any = None) -> Jet:
     jets = [t if isinstance(t, Jet) else ref._const(t) for t in items]
     d = dim % jets[0].ndim
     hess = None
-    if jets[0].hess is not None:
+    if any(j._h is not None for j in jets):
         hess = torch.cat([j.hess for j in jets], d)
-    return Jet(torch.cat([j.val for j in jets], d), torch.cat([j.grad for j in jets], d), hess)
+    val, grad = torch.cat([j.val for j in jets], d), torch.cat([j.grad for j in jets], d)
+    return jets[0]._new(val, grad, hess)
 
 
 def _where(cond: Tensor, a: Jet, b: Jet) -> Jet:
     """Elementwise select between two jets of one shape (``cond`` over the value dims)."""
     hess = None
-    if a.hess is not None:
+    if a._h is not None or b._h is not None:
         hess = torch.where(cond[..., None, None], a.hess, b.hess)
-    return Jet(torch.where(cond, a.val, b.val), torch.where(cond[..., None], a.grad, b.grad), hess)
+    val, grad = torch.where(cond, a.val, b.val), torch.where(cond[..., None], a.grad, b.grad)
+    return a._new(val, grad, hess)
 
 
 def _atan2(y: Any, x: Any) -> Jet:
@@ -454,11 +492,7 @@ def _seed(box: Interval, order: int) -> Jet:
     lo = box.lower
     n = box.shape[-1]
     eye = torch.eye(n, dtype=lo.dtype, device=lo.device).expand(*box.shape, n)
-    hess = None
-    if order == 2:
-        z = torch.zeros((*box.shape, n, n), dtype=lo.dtype, device=lo.device)
-        hess = Interval(z, z)
-    return Jet(box, Interval(eye, eye), hess)
+    return Jet(box, Interval._make(eye, eye), None, order)  # Hessian: structural zero
 
 
 def jet_eval(fn: Callable[[Any], Any], box: Interval, order: int = 2) -> Jet:

@@ -15,6 +15,7 @@ by ``fn``. ``fn`` must be batch-elementwise (see :mod:`diffsmf.linearize.jacobia
 from __future__ import annotations
 
 import itertools
+import weakref
 from collections.abc import Callable
 
 import torch
@@ -44,6 +45,42 @@ _MAX_TANGENTS = 64
 _TANGENT_ELEMS = 4_000_000
 #: Padding of float evaluations, in units of eps times the magnitudes involved.
 _PAD_ULPS = 64.0
+
+
+#: Functions whose interval jet had a structurally zero Hessian: affine on all of R^n (the
+#: jets build a Hessian for every non-affine operation), so later calls skip the jets.
+_AFFINE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _known_affine(fn: Fn) -> bool:
+    try:
+        return bool(_AFFINE.get(fn, False))
+    except TypeError:  # unhashable callable
+        return False
+
+
+def _remember(fn: Fn, jet: Jet) -> bool:
+    """Record ``fn`` as affine when ``jet``'s Hessian is structurally zero -> that flag."""
+    if jet.hess_is_zero:
+        try:
+            _AFFINE[fn] = True
+        except TypeError:
+            pass
+    return jet.hess_is_zero
+
+
+def _affine_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None) -> Interval:
+    """Remainder of an affine ``fn``: exactly ``(J_exact - J)(x - c)`` over ``S`` (support
+    function), padded by the float error of evaluating ``fn`` and ``J (x - c)`` on the hull."""
+    Jx = jacobian(fn, c)  # [..., k, n], constant for affine fn
+    box = _hull_with(S, c)
+    mag = box.lower.abs().maximum(box.upper.abs())
+    scale = fn(c).abs() + ((Jx.abs() + (0.0 if J is None else J.abs())) * mag.unsqueeze(-2)).sum(-1)
+    if J is None:
+        z = torch.zeros_like(scale)
+        return _padded(z, z, scale)
+    R = _linear_range(S, Jx - J, c)
+    return _padded(R.lower, R.upper, scale)
 
 
 def _eps(t: Tensor) -> float:
@@ -115,8 +152,12 @@ def lagrange_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None)
     (support function) is added. ``J=None`` means the exact Jacobian.
     """
     c, J = _check(S, c, J)
+    if _known_affine(fn):
+        return _affine_remainder(fn, S, c, J)
     box = _hull_with(S, c)
     jet = jet_eval(fn, box, order=2)  # value and Hessian enclosures over the hull
+    if _remember(fn, jet):
+        return _affine_remainder(fn, S, c, J)
     D = None if J is None else jacobian(fn, c) - J
     return _lagrange(jet, box, S, c, J, D)
 
@@ -281,10 +322,14 @@ def dc_remainder(
     ``with_lagrange=True`` also intersects with the Lagrange bound (same interval Hessian).
     """
     c, J = _check(S, c, J)
+    if _known_affine(fn):
+        return _affine_remainder(fn, S, c, J)
     V, exact = _extreme_points(S, max_vertices)
     with_lagrange = with_lagrange or not exact
     box = _hull_with(S, c)
     jet = jet_eval(fn, box, order=2)
+    if _remember(fn, jet):  # same result as every later call (which skips the jets)
+        return _affine_remainder(fn, S, c, J)
     H = jet.hess  # [..., k, n, n]
     if bool((H.lower.detach() == 0).all() and (H.upper.detach() == 0).all()):
         # fn is affine on the hull: r(x) = (J_exact - J)(x - c) exactly, no vertices needed
@@ -296,14 +341,18 @@ def dc_remainder(
     W_pos = [alpha.unsqueeze(-1) * ones, diagonal_shift(H)]  # r + q convex
     W_neg = [beta.unsqueeze(-1) * ones, diagonal_shift(-H)]  # -r + q convex
     Vf = _front(V)  # [N, ..., n]
-    fc = fn(c)  # [..., k]
-    Jc = jacobian(fn, c)  # [..., k, n]
+    tangents = V.shape[-2] <= _MAX_TANGENTS  # tangent planes at the vertices too
+    cb, Vb = torch.broadcast_tensors(c.unsqueeze(0), Vf)
+    pts = torch.cat([cb[:1], Vb])  # [1 + N, ..., n]: c, then the vertices
+    Jall = jacobian(fn, pts if tangents else c)  # one batched autograd call
+    Jc = Jall[0] if tangents else Jall  # [..., k, n]
+    fall = fn(pts)  # [1 + N, ..., k]
+    fc, fv = fall[0], fall[1:]
     J = Jc if J is None else J
     dv = Vf - c  # [N, ..., n]
-    fv = fn(Vf)  # [N, ..., k]
     rv = fv - fc - (J * dv.unsqueeze(-2)).sum(-1)  # remainder at the vertices
     grad_c = Jc - J
-    grad_v = jacobian(fn, Vf) - J if V.shape[-2] <= _MAX_TANGENTS else None
+    grad_v = Jall[1:] - J if tangents else None
     dv2 = (dv * dv).unsqueeze(-2)  # [N, ..., 1, n]
     uppers, lowers, wmax = [], [], []
     for W in W_pos:

@@ -40,25 +40,42 @@ _TWO_PI = 2.0 * math.pi
 
 
 # ---------------------------------------------------------------------------- rounding helpers
-def _step(x: Tensor, k: int, direction: float) -> Tensor:
-    """Move ``x`` by ``k`` ulps towards ``direction`` (+-inf); gradient passes unchanged."""
+def _step(x: Tensor, k: int, direction: float, absolute: bool = True) -> Tensor:
+    """Move ``x`` outward by at least ``k`` ulps towards ``direction`` (+-inf).
+
+    For a float ``x`` whose exact value ``v`` is within ``k`` ulps (a correctly rounded
+    operation: ``k = 1``), the result bounds ``v``: the offset is ``2 k eps |x|`` (``ulp(x) <=
+    eps |x|`` for normal ``x``; the factor 2 absorbs the rounding of the subtraction itself).
+    ``absolute`` also adds the smallest subnormal, which covers results in the subnormal range
+    or underflowed to 0 (products, quotients, library functions); correctly rounded sums need
+    no absolute term (a sum in the subnormal range is exact), so exact zero sums stay exact.
+    An overflowed bound (a lower bound of +inf, an upper bound of -inf) first becomes the
+    largest finite float, like ``nextafter``. The offset is computed on detached values and
+    added, so the gradient passes unchanged. A chain of 4-5 elementwise ops: this is the hot
+    path of the interval jets.
+    """
     if k <= 0:
         return x
-    xd = x.detach()
-    y = xd
-    target = torch.full_like(xd, direction)
-    for _ in range(k):
-        y = torch.nextafter(y, target)
-    delta = torch.where(torch.isfinite(xd), y - xd, torch.zeros_like(xd))
-    return x + delta
+    big = torch.finfo(x.dtype).max
+    x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
+    pad = x.detach().abs() * (2.0 * k * _eps(x))
+    if absolute:
+        pad = pad + _subnormal(x)
+    return x + pad if direction > 0 else x - pad
 
 
-def _down(x: Tensor, k: int = 1) -> Tensor:
-    return _step(x, k, -math.inf)
+def _down(x: Tensor, k: int = 1, absolute: bool = True) -> Tensor:
+    return _step(x, k, -math.inf, absolute)
 
 
-def _up(x: Tensor, k: int = 1) -> Tensor:
-    return _step(x, k, math.inf)
+def _up(x: Tensor, k: int = 1, absolute: bool = True) -> Tensor:
+    return _step(x, k, math.inf, absolute)
+
+
+def _subnormal(t: Tensor) -> float:
+    """Smallest positive subnormal of ``t``'s dtype."""
+    fi = torch.finfo(t.dtype)
+    return fi.tiny * fi.eps
 
 
 def _eps(t: Tensor) -> float:
@@ -222,21 +239,33 @@ class Interval(ConvexSet):
         return self
 
     def __add__(self, other: Any) -> Interval:
+        if _number(other):
+            return _shift(self, float(other))
         return _add(self, _as_interval(other, self))
 
     def __radd__(self, other: Any) -> Interval:
+        if _number(other):
+            return _shift(self, float(other))
         return _add(_as_interval(other, self), self)
 
     def __sub__(self, other: Any) -> Interval:
+        if _number(other):
+            return _shift(self, -float(other))
         return _add(self, -_as_interval(other, self))
 
     def __rsub__(self, other: Any) -> Interval:
+        if _number(other):
+            return _shift(-self, float(other))
         return _add(_as_interval(other, self), -self)
 
     def __mul__(self, other: Any) -> Interval:
+        if _number(other):
+            return _scale(self, float(other))
         return _mul(self, _as_interval(other, self))
 
     def __rmul__(self, other: Any) -> Interval:
+        if _number(other):
+            return _scale(self, float(other))
         return _mul(_as_interval(other, self), self)
 
     def __truediv__(self, other: Any) -> Interval:
@@ -275,7 +304,9 @@ class Interval(ConvexSet):
         return Interval._make(low, mag)
 
     def square(self) -> Interval:
-        return _pow(self, 2)
+        """Exact-range square: the four products, lower bound clamped at 0."""
+        p = _mul(self, self)
+        return Interval._make(p.lower.clamp_min(0.0), p.upper)
 
     def sqrt(self) -> Interval:
         _check_domain(self, "sqrt", strict=False)
@@ -499,21 +530,38 @@ def _as_interval(x: Any, like: Interval | None = None) -> Interval:
 def _add(a: Interval, b: Interval) -> Interval:
     # seed 001 sec. 3: [a] + [b] = [a_lo + b_lo, a_hi + b_hi]; a zero sum is exact
     lo, hi = a.lower + b.lower, a.upper + b.upper
-    return Interval._make(torch.where(lo == 0, lo, _down(lo)), torch.where(hi == 0, hi, _up(hi)))
+    return Interval._make(_down(lo, absolute=False), _up(hi, absolute=False))
 
 
 def _mul(a: Interval, b: Interval) -> Interval:
-    # seed 001 sec. 3: [a] * [b] = [min, max] of the four endpoint products
+    # seed 001 sec. 3: [a] * [b] = [min, max] of the four endpoint products (0 * inf := 0)
     al, au, bl, bu = torch.broadcast_tensors(a.lower, a.upper, b.lower, b.upper)
-    fa = torch.stack([al, al, au, au])
-    fb = torch.stack([bl, bu, bl, bu])
-    p = _nan0(fa * fb)
-    lo, hi = p.amin(0), p.amax(0)
-    # a zero product is exact unless some product underflowed (non-zero factors, zero result)
-    under = ((p == 0) & (fa != 0) & (fb != 0)).any(0)
-    lo = torch.where((lo == 0) & ~under, lo, _down(lo))
-    hi = torch.where((hi == 0) & ~under, hi, _up(hi))
-    return Interval._make(lo, hi)
+    p = torch.stack([al, au]).unsqueeze(1) * torch.stack([bl, bu]).unsqueeze(0)  # [2, 2, ...]
+    p = torch.nan_to_num(p.flatten(0, 1), nan=0.0, posinf=math.inf, neginf=-math.inf)
+    lo, hi = torch.aminmax(p, dim=0)
+    return Interval._make(_down(lo), _up(hi))
+
+
+def _scale(a: Interval, s: float) -> Interval:
+    """``[a] * s`` for a Python number ``s`` (two products instead of four)."""
+    if s == 0:
+        z = torch.zeros_like(a.lower)
+        return Interval._make(z, z)
+    lo, hi = (a.lower * s, a.upper * s) if s > 0 else (a.upper * s, a.lower * s)
+    if s in (1.0, -1.0):
+        return Interval._make(lo, hi)
+    return Interval._make(_down(lo), _up(hi))
+
+
+def _shift(a: Interval, s: float) -> Interval:
+    """``[a] + s`` for a Python number ``s``."""
+    if s == 0:
+        return a
+    return Interval._make(_down(a.lower + s, absolute=False), _up(a.upper + s, absolute=False))
+
+
+def _number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
 def _recip(b: Interval) -> Interval:
@@ -568,6 +616,8 @@ def _pow(x: Interval, p: Any) -> Interval:
             return x
         if pi < 0:
             return _recip(_pow(x, -pi))
+        if pi == 2:
+            return x.square()
         k = pi + 1
         lo_p, hi_p = torch.pow(x.lower, pi), torch.pow(x.upper, pi)
         if pi % 2 == 1:
