@@ -334,12 +334,15 @@ def dc_remainder(
     if bool((H.lower.detach() == 0).all() and (H.upper.detach() == 0).all()):
         # fn is affine on the hull: r(x) = (J_exact - J)(x - c) exactly, no vertices needed
         return _lagrange(jet, box, S, c, J, None if J is None else jacobian(fn, c) - J)
-    n = S.dim
-    ones = torch.ones(n, dtype=S.dtype, device=S.device)
-    alpha = (-hessian_eig_lower_bound(H)).clamp(min=0) * 0.5  # [..., k]
-    beta = (-hessian_eig_lower_bound(-H)).clamp(min=0) * 0.5  # for -r
-    W_pos = [alpha.unsqueeze(-1) * ones, diagonal_shift(H)]  # r + q convex
-    W_neg = [beta.unsqueeze(-1) * ones, diagonal_shift(-H)]  # -r + q convex
+    # the four convexifications at once (leading dim 4): r + q convex with q the ball
+    # (alpha |x - c|^2) or the diagonal shift, and -r + q convex with the same two forms
+    Hpm = Interval._make(torch.stack([H.lower, -H.upper]), torch.stack([H.upper, -H.lower]))
+    ball = (-hessian_eig_lower_bound(Hpm)).clamp(min=0) * 0.5  # [2, ..., k]: alpha, beta
+    diag = diagonal_shift(Hpm)  # [2, ..., k, n]
+    ball = ball.unsqueeze(-1).expand_as(diag)
+    W = torch.stack([ball[0], diag[0], ball[1], diag[1]])  # [4, ..., k, n]
+    finite = torch.isfinite(W)
+    Wf = torch.where(finite, W, torch.zeros_like(W))
     Vf = _front(V)  # [N, ..., n]
     tangents = V.shape[-2] <= _MAX_TANGENTS  # tangent planes at the vertices too
     cb, Vb = torch.broadcast_tensors(c.unsqueeze(0), Vf)
@@ -350,37 +353,31 @@ def dc_remainder(
     fc, fv = fall[0], fall[1:]
     J = Jc if J is None else J
     dv = Vf - c  # [N, ..., n]
-    rv = fv - fc - (J * dv.unsqueeze(-2)).sum(-1)  # remainder at the vertices
+    rv = fv - fc - (J * dv.unsqueeze(-2)).sum(-1)  # remainder at the vertices [N, ..., k]
     grad_c = Jc - J
     grad_v = Jall[1:] - J if tangents else None
     dv2 = (dv * dv).unsqueeze(-2)  # [N, ..., 1, n]
-    uppers, lowers, wmax = [], [], []
-    for W in W_pos:
-        Wf = torch.where(torch.isfinite(W), W, torch.zeros_like(W))
-        qv = (Wf * dv2).sum(-1)  # [N, ..., k]
-        uppers.append(_dc_upper(rv, qv))
-        lowers.append(_dc_lower(rv, qv, grad_c, grad_v, Wf, dv))
-        wmax.append(Wf)
-    for W in W_neg:
-        Wf = torch.where(torch.isfinite(W), W, torch.zeros_like(W))
-        qv = (Wf * dv2).sum(-1)
-        lowers.append(-_dc_upper(-rv, qv))
-        neg_v = None if grad_v is None else -grad_v
-        uppers.append(-_dc_lower(-rv, qv, -grad_c, neg_v, Wf, dv))
-        wmax.append(Wf)
-    bad_u = [~torch.isfinite(W).all(-1) for W in W_pos + W_neg]
-    inf = torch.full_like(fc, torch.inf)
-    upper = torch.stack([torch.where(b, inf, u) for u, b in zip(uppers, bad_u)])
-    lower = torch.stack([torch.where(b, -inf, lo) for lo, b in zip(lowers, bad_u)])
-    upper, lower = upper.amin(0), lower.amax(0)
+    sgn = torch.tensor([1.0, 1.0, -1.0, -1.0], dtype=rv.dtype, device=rv.device)
+    sgn = sgn.reshape(4, *([1] * (rv.dim() - 1)))  # [4, 1.., 1] against [..., k]
+    rs = rv.unsqueeze(1) * sgn  # [N, 4, ..., k]: r, r, -r, -r
+    qv = (Wf * dv2.unsqueeze(1)).sum(-1)  # [N, 4, ..., k]
+    gs = sgn.unsqueeze(-1)
+    gv = None if grad_v is None else grad_v.unsqueeze(1) * gs
+    up = _dc_upper(rs, qv)  # [4, ..., k]
+    lo = _dc_lower(rs, qv, grad_c * gs, gv, Wf, dv.unsqueeze(1))
+    bad = ~finite.all(-1)  # [4, ..., k]: no convexification (unbounded Hessian)
+    inf = torch.full_like(up, torch.inf)
+    upper = torch.where(bad, inf, torch.cat([up[:2], -lo[2:]])).amin(0)
+    lower = torch.where(bad, -inf, torch.cat([lo[:2], -up[2:]])).amax(0)
     # rounding scale: magnitudes of every term summed above
     adv = dv.abs()
+    wmax = Wf.amax(0)
     scale = (fv.abs() + fc.abs() + (J.abs() * adv.unsqueeze(-2)).sum(-1)).amax(0)
     scale = scale + _abs_max(jet.val)  # rounding of fn at interior points
-    scale = scale + (torch.stack(wmax).amax(0) * dv2).sum(-1).amax(0)
+    scale = scale + (wmax * dv2).sum(-1).amax(0)
     gm = grad_c.abs() if grad_v is None else grad_c.abs() + grad_v.abs().amax(0)
     scale = scale + 4 * (gm * adv.amax(0).unsqueeze(-2)).sum(-1)
-    scale = scale + 4 * (torch.stack(wmax).amax(0) * (adv.amax(0) ** 2).unsqueeze(-2)).sum(-1)
+    scale = scale + 4 * (wmax * (adv.amax(0) ** 2).unsqueeze(-2)).sum(-1)
     out = _padded(lower, upper, scale)
     if with_lagrange:
         out = out.intersect(_lagrange(jet, box, S, c, J, grad_c))
