@@ -56,11 +56,15 @@ def _step(x: Tensor, k: int, direction: float, absolute: bool = True) -> Tensor:
     """
     if k <= 0:
         return x
-    big = torch.finfo(x.dtype).max
-    x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
     pad = x.detach().abs() * (2.0 * k * _eps(x))
     if absolute:
         pad = pad + _subnormal(x)
+    if bool(torch.isinf(pad).any()):  # rare: clamp overflowed bounds (an autograd node)
+        big = torch.finfo(x.dtype).max
+        x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
+        pad = torch.nan_to_num(x.detach().abs() * (2.0 * k * _eps(x)), posinf=0.0)
+        if absolute:
+            pad = pad + _subnormal(x)
     return x + pad if direction > 0 else x - pad
 
 
