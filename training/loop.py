@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -26,6 +27,10 @@ from training.losses import LossWeights, filter_with_predictions, total_loss
 __all__ = ["Data", "TuneReport", "as_data", "evaluate", "resolve_params", "tune"]
 
 DEFAULT_PARAMS = ("process_noise", "measurement_noise", "stirling_step")
+# Hyperparameters of the diffsmf filters that are not tuned by default; like the default trio,
+# a name here that a filter lacks (EKF, CombinedFilter: no remainder margin) is skipped.
+OPTIONAL_PARAMS = ("remainder_margin",)
+KNOWN_PARAMS = DEFAULT_PARAMS + OPTIONAL_PARAMS
 LOSS_MODES = ("auto", "consistency", "containment", "both")
 
 
@@ -101,8 +106,10 @@ def resolve_params(
     """Map hyperparameter names to the ``nn.Parameter`` to optimise.
 
     ``name`` selects ``raw_name`` (softplus-positive hyperparameters) or the parameter ``name``
-    itself; ``"all"`` selects every parameter. Names of :data:`DEFAULT_PARAMS` that the filter
-    lacks are skipped (returned second); any other unknown name raises ``ValueError``.
+    itself; ``"all"`` selects every parameter. Names of :data:`KNOWN_PARAMS` (the default
+    trio and ``remainder_margin``) that the filter lacks are skipped (returned second); any
+    other unknown name raises ``ValueError``. A softplus-positive hyperparameter whose scale is
+    0 everywhere (e.g. the default ``remainder_margin=0``) cannot move: a warning says so.
     """
     named = dict(filt.named_parameters())
     if names == "all":
@@ -113,9 +120,16 @@ def resolve_params(
     for n in names:
         if f"raw_{n}" in named:
             out[n] = named[f"raw_{n}"]
+            scale = getattr(filt, f"{n}_scale", None)
+            if isinstance(scale, Tensor) and not bool((scale != 0).any()):
+                warnings.warn(
+                    f"params: {n!r} is 0 (scale * softplus(raw) with scale 0) and stays 0 "
+                    f"while tuning; start it from a positive value to tune it",
+                    stacklevel=3,
+                )
         elif n in named:
             out[n] = named[n]
-        elif n in DEFAULT_PARAMS:
+        elif n in KNOWN_PARAMS:
             skipped.append(n)
         else:
             raise ValueError(f"params: filter {type(filt).__name__} has no parameter {n!r}")
@@ -308,7 +322,9 @@ def tune(
 
     Args:
         trajectories: :class:`diffsmf.Trajectory` (``x`` may be ``None``: no ground truth).
-        params: hyperparameter names (``raw_<name>`` or parameter ``<name>``) or ``"all"``.
+        params: hyperparameter names (``raw_<name>`` or parameter ``<name>``) or ``"all"``;
+            besides the default trio the filters have ``remainder_margin`` (HSNSMF, MSZM,
+            CDSMF, ESMF; start it from a positive value, a 0 margin stays 0).
         validation: ``None``, a fraction of ``trajectories`` held out, or a Trajectory.
         loss: ``"auto"`` (containment if ``x`` is given, else consistency), ``"consistency"``
             (no ground truth), ``"containment"`` or ``"both"``; always plus log-volume.

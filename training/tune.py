@@ -45,7 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--init-scale", type=float, default=d.init_scale, help="start from init_scale * b*")
     a("--ground-truth", action="store_true", help="train with the true states")
     a("--loss", default=d.loss, choices=list(LOSS_MODES))
-    a("--params", default=",".join(d.params), help="comma-separated hyperparameter names")
+    a(
+        "--params",
+        default=",".join(d.params),
+        help="comma-separated hyperparameter names (process_noise, measurement_noise, "
+        "stirling_step, remainder_margin)",
+    )
     a("--tie", default=d.tie, choices=["auto", "noise", "none"], help="shared noise scale")
     a("--optimizer", default=d.optimizer, choices=["adam", "adamw", "sgd"])
     a("--lr", type=float, default=d.lr)

@@ -74,6 +74,7 @@ def prediction_remainder(
     c: Tensor,
     J: Tensor,
     u: Tensor | None,
+    margin: Tensor | None = None,
 ) -> Interval:
     """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``.
 
@@ -81,7 +82,9 @@ def prediction_remainder(
     ``lagrange_remainder`` for seed 001); when the system has mismatched parameters the
     deviation ``f(x, u, theta) - f(x, u, theta_nom)`` over ``S`` x ``parameters``
     (``linearize.parameter_deviation``, seed 001 eq. 18-21, evaluated over the whole set, not
-    only at the centre as in the paper) is added.
+    only at the centre as in the paper) is added. ``margin [n]`` (>= 0, the filters'
+    ``remainder_margin``) then enlarges the computed box to ``[lo - m, hi + m]``
+    (:func:`add_remainder_margin`); it can only add to the guaranteed box, never replace it.
     """
     from diffsmf.linearize import parameter_deviation
 
@@ -89,7 +92,17 @@ def prediction_remainder(
     if system.parameters is not None:
         D = parameter_deviation(system.f, S, system.parameters, system.theta_nominal, u)
         R = Interval(R.lower + D.lower, R.upper + D.upper)
-    return finite_remainder(R, "f")
+    return add_remainder_margin(finite_remainder(R, "f"), margin)
+
+
+def add_remainder_margin(R: Interval, margin: Tensor | None) -> Interval:
+    """``[lo - m, hi + m]``: the guaranteed remainder box ``R`` enlarged by ``margin >= 0``.
+
+    ``None`` returns ``R`` itself. A zero margin gives bit-identical bounds (``x - 0 == x``).
+    """
+    if margin is None:
+        return R
+    return widen(R, margin)
 
 
 def measurement_strips(
@@ -242,6 +255,31 @@ def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: in
     register_positive(module, "stirling_step", h.expand(n).clone())
 
 
+def register_remainder_margin(module: torch.nn.Module, value: float | Tensor, n: int) -> None:
+    """Validate and register the learnable remainder margin ``m [n]`` (>= 0).
+
+    ``margin = scale * softplus(raw)`` (:func:`~diffsmf.utils.register_positive`), so it stays
+    >= 0 and a component that starts at 0 stays exactly 0 (tune it from a positive start). A
+    scalar broadcasts to ``[n]``. Raises ``ValueError`` for negative or NaN values or a shape
+    other than ``[]``, ``[1]`` or ``[n]``.
+    """
+    from diffsmf.utils import register_positive
+
+    try:
+        m = torch.as_tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ValueError(f"remainder_margin: expected a number or a tensor, got {value!r}") from e
+    if m.dim() > 1 or (m.dim() == 1 and m.shape[0] not in (1, n)):
+        raise ValueError(
+            f"remainder_margin: must be a scalar or a [{n}] tensor, got shape {tuple(m.shape)}"
+        )
+    if torch.isnan(m).any() or (m < 0).any() or torch.isinf(m).any():
+        raise ValueError(
+            f"remainder_margin: must be finite and non-negative, got {m.tolist()}"
+        )
+    register_positive(module, "remainder_margin", m.detach().expand(n).clone())
+
+
 class EllipsoidalSetFilter(SetFilter):
     """Shared start of the ellipsoidal filters (CDSMF, ESMF): the covering ellipsoid of the
     initial set, and its interval hull kept in ``extras["x0_box"]`` so that the first
@@ -263,6 +301,8 @@ class EllipsoidalSetFilter(SetFilter):
 __all__ = [
     "ROUND_REL",
     "EllipsoidalSetFilter",
+    "add_remainder_margin",
+    "register_remainder_margin",
     "register_stirling_step",
     "as_ellipsoid",
     "as_parallelotope",

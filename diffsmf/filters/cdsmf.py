@@ -36,23 +36,34 @@ class CDSMF(C.EllipsoidalSetFilter):
         stirling_step: Stirling step h (learnable).
         sum_method: ``Ellipsoid.minkowski_sum`` method (``"trace"`` | ``"volume"``).
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
+        remainder_margin: additive, learnable inflation ``m >= 0`` (scalar or ``[n]``) of the
+            guaranteed prediction remainder box, ``[lo - m, hi + m]``, for unmodelled dynamics
+            and model error. 0 (default) gives exactly the filter without it. The guarantee
+            needs the computed remainder, so the margin can only add to it, never shrink it.
+            It enters the predicted set the same way the process-noise box does; it is kept
+            separate because the noise bound is a property of the data and the margin one of
+            the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
+            stays 0, so to tune it start from a positive value.
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
 
     stirling_step = Positive()
+    remainder_margin = Positive()
 
     def __init__(
         self,
         system: System,
         *,
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
+        remainder_margin: float | Tensor = 0.0,
         sum_method: str = "trace",
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
         super().__init__(system, initial_set=initial_set, **kw)
         C.register_stirling_step(self, stirling_step, system.n)
+        C.register_remainder_margin(self, remainder_margin, system.n)
         self.sum_method = sum_method
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
@@ -65,7 +76,9 @@ class CDSMF(C.EllipsoidalSetFilter):
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, c, self.stirling_step)  # seed 000 eq. 12
         box = C.remainder_box(E, state.extras)
-        R = C.prediction_remainder(self.system, dc_remainder, fn, box, c, F, u)
+        R = C.prediction_remainder(
+            self.system, dc_remainder, fn, box, c, F, u, self.remainder_margin
+        )
         W = self.process_noise_box()
         fc = fn(c)
         rad = R.radius + W.radius

@@ -28,6 +28,7 @@ from diffsmf.filters.base import FilterState
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
+from diffsmf.utils import Positive
 
 __all__ = ["ESMF"]
 
@@ -58,19 +59,31 @@ class ESMF(C.EllipsoidalSetFilter):
             of the fermenter's mu, eq. 13 on spring_damper (m < n: rho -> 1 inflates the
             unobserved direction by 1 / (1 - rho)).
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
+        remainder_margin: additive, learnable inflation ``m >= 0`` (scalar or ``[n]``) of the
+            guaranteed prediction remainder box, ``[lo - m, hi + m]``, for unmodelled dynamics
+            and model error. 0 (default) gives exactly the filter without it. The guarantee
+            needs the computed remainder, so the margin can only add to it, never shrink it.
+            It enters the predicted set the same way the process-noise box does; it is kept
+            separate because the noise bound is a property of the data and the margin one of
+            the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
+            stays 0, so to tune it start from a positive value.
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
+
+    remainder_margin = Positive()
 
     def __init__(
         self,
         system: System,
         *,
         rho_rule: str = "volume",
+        remainder_margin: float | Tensor = 0.0,
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
         super().__init__(system, initial_set=initial_set, **kw)
+        C.register_remainder_margin(self, remainder_margin, system.n)
         if rho_rule not in ("eq40", "eq13", "volume"):
             raise ValueError(f"rho_rule: expected 'eq13', 'eq40' or 'volume', got {rho_rule!r}")
         self.rho_rule = rho_rule
@@ -88,6 +101,7 @@ class ESMF(C.EllipsoidalSetFilter):
         R = C.finite_remainder(lagrange_remainder(fn, box, c, A), "f")  # eq. 26-28
         fc = fn(c)
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
+        R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
         Qhat = R.to_ellipsoid().minkowski_sum(  # eq. 29-31
             self.process_noise_box().to_ellipsoid(), method="trace"
         )

@@ -33,6 +33,14 @@ class HSNSMF(SetFilter):
         system: the system to filter.
         stirling_step: Stirling central-difference step h (scalar or ``[n]``), learnable.
         initial_set: override of ``system.x0_set`` (converted to an outer parallelotope).
+        remainder_margin: additive, learnable inflation ``m >= 0`` (scalar or ``[n]``) of the
+            guaranteed prediction remainder box, ``[lo - m, hi + m]``, for unmodelled dynamics
+            and model error. 0 (default) gives exactly the filter without it. The guarantee
+            needs the computed remainder, so the margin can only add to it, never shrink it.
+            It enters the predicted set the same way the process-noise box does; it is kept
+            separate because the noise bound is a property of the data and the margin one of
+            the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
+            stays 0, so to tune it start from a positive value.
         **kw: ``process_noise``, ``measurement_noise``, ``skip_nan``, ``learn_noise``
             (see :class:`~diffsmf.filters.base.SetFilter`).
 
@@ -40,18 +48,21 @@ class HSNSMF(SetFilter):
     """
 
     stirling_step = Positive()
+    remainder_margin = Positive()
 
     def __init__(
         self,
         system: System,
         *,
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
+        remainder_margin: float | Tensor = 0.0,
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
         super().__init__(system, **kw)
         C.check_initial_set("initial_set", initial_set, system.n)
         C.register_stirling_step(self, stirling_step, system.n)
+        C.register_remainder_margin(self, remainder_margin, system.n)
         self._x0 = C.as_parallelotope(initial_set if initial_set is not None else system.x0_set)
 
     def initial_state(self, batch: int | None = None) -> FilterState:
@@ -67,7 +78,9 @@ class HSNSMF(SetFilter):
         c, T = P.center, P.T
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, c, self.stirling_step)  # eq. 12
-        E = C.prediction_remainder(self.system, dc_remainder, fn, P, c, F, u)  # eq. 14-18
+        E = C.prediction_remainder(
+            self.system, dc_remainder, fn, P, c, F, u, self.remainder_margin
+        )  # eq. 14-18 (+ margin)
         W = self.process_noise_box()
         fc, FT = fn(c), F @ T
         ctr = fc + E.center + W.center  # eq. 20

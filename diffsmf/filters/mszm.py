@@ -38,11 +38,20 @@ class MSZM(SetFilter):
         strip_method: ``Zonotope.intersect_strip`` method (``"fradius"`` | ``"volume"``).
         stirling_step: Stirling step h (learnable).
         initial_set: override of ``system.x0_set`` (converted to a zonotope).
+        remainder_margin: additive, learnable inflation ``m >= 0`` (scalar or ``[n]``) of the
+            guaranteed prediction remainder box, ``[lo - m, hi + m]``, for unmodelled dynamics
+            and model error. 0 (default) gives exactly the filter without it. The guarantee
+            needs the computed remainder, so the margin can only add to it, never shrink it.
+            It enters the predicted set the same way the process-noise box does; it is kept
+            separate because the noise bound is a property of the data and the margin one of
+            the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
+            stays 0, so to tune it start from a positive value.
 
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
     """
 
     stirling_step = Positive()
+    remainder_margin = Positive()
 
     def __init__(
         self,
@@ -52,6 +61,7 @@ class MSZM(SetFilter):
         reduce_method: str = "girard",
         strip_method: str = "fradius",
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
+        remainder_margin: float | Tensor = 0.0,
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
@@ -60,6 +70,7 @@ class MSZM(SetFilter):
         if not isinstance(order, int) or order < 1:
             raise ValueError(f"order: must be an integer >= 1, got {order!r}")
         C.register_stirling_step(self, stirling_step, system.n)
+        C.register_remainder_margin(self, remainder_margin, system.n)
         self.order = order
         self.reduce_method = reduce_method
         self.strip_method = strip_method
@@ -106,7 +117,9 @@ class MSZM(SetFilter):
         F = stirling_jacobian(fn, c, self.stirling_step)  # seed 000 eq. 12
         # remainder over the interval hull (Alamo 2005; seed 000 sec. 4.1: the baselines bound
         # the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
-        E = C.prediction_remainder(self.system, dc_remainder, fn, Z.interval_hull(), c, F, u)
+        E = C.prediction_remainder(
+            self.system, dc_remainder, fn, Z.interval_hull(), c, F, u, self.remainder_margin
+        )
         W = self.process_noise_box()
         fc, FG = fn(c), F @ G
         rad = E.radius + W.radius
