@@ -13,7 +13,9 @@ Parts (``--part``; each prints a table and writes JSON under ``--out``):
   hyperparameter (finite?).
 * ``tightness``: outer/inner width ratios (diffsmf.tightness) of HSNSMF, MSZM and CDSMF on
   both seed 000 examples (bilinear, spring_damper) at steps 5, 20 and the last.
-* ``timing``: seconds per epoch of the 64 trajectories x 100 steps run, extrapolated to 200.
+* ``timing``: a 200-epoch run of 64 trajectories x 100 steps with windowed back-propagation
+  (``tune(window=10)``, timed in full), and full-horizon back-propagation (a few epochs
+  timed, extrapolated to 200); both from 5 b* with the consistency loss, held-out audit.
 
     python examples/tune_spring_damper.py --part bounds --epochs 40
 """
@@ -249,19 +251,54 @@ def part_tightness(a: argparse.Namespace) -> dict:
 
 
 def part_timing(a: argparse.Namespace) -> dict:
+    """200 epochs of 64 trajectories x 100 steps: windowed (timed in full) and full-horizon
+    back-propagation (``--timing-epochs`` epochs timed, extrapolated to 200)."""
     sys_ = ds.systems.get("spring_damper")
+    ref = ds.filters.HSNSMF(sys_)
+    b_w, b_v = ref.process_noise.detach().clone(), ref.measurement_noise.detach().clone()
     train = simulate_finite(sys_, 100, 64, a.seed, "vertex")
-    f = ds.filters.HSNSMF(sys_)
-    rep, _ = tune(
-        f, Data(train.y), tie="noise", epochs=a.timing_epochs, batch_size=64, progress=False
-    )
-    per_epoch = rep.seconds / a.timing_epochs
-    print(
-        f"\ntiming: {a.timing_epochs} epochs of 64 x 100 (HSNSMF): {rep.seconds:.1f} s, "
-        f"{per_epoch:.2f} s/epoch -> 200 epochs ~ {200 * per_epoch / 60:.1f} min "
-        f"(torch threads {torch.get_num_threads()})"
-    )
-    return {"epochs": a.timing_epochs, "seconds": rep.seconds, "per_epoch": per_epoch}
+    test = simulate_finite(sys_, 100, a.test_timing, a.seed + 2, "vertex")
+    out = {}
+    for window, epochs in ((a.timing_window, 200), (None, a.timing_epochs)):
+        f = ds.filters.HSNSMF(sys_, process_noise=5 * b_w, measurement_noise=5 * b_v)
+        before = _audit(f, test)
+        rep, f = tune(
+            f,
+            Data(train.y),
+            params=("process_noise", "measurement_noise", "stirling_step"),
+            tie="noise",
+            loss="consistency",
+            epochs=epochs,
+            batch_size=64,
+            lr=a.lr,
+            seed=a.seed,
+            progress=not a.no_progress,
+            window=window,
+        )
+        after = _audit(f, test)
+        per_epoch = rep.seconds / epochs
+        key = f"window_{window}" if window else "full_horizon"
+        out[key] = {
+            "epochs": epochs,
+            "seconds": rep.seconds,
+            "per_epoch": per_epoch,
+            "seconds_200_epochs": 200 * per_epoch,
+            "scale": rep.final["measurement_noise"][0] / float(b_v[0]),
+            "stirling_step": rep.final["stirling_step"],
+            "before": before,
+            "after": after,
+        }
+        how = f"window {window}" if window else "full horizon"
+        print(
+            f"\ntiming, {how}: {epochs} epochs of 64 x 100 (HSNSMF, from 5 b*): "
+            f"{rep.seconds:.1f} s, {per_epoch:.3f} s/epoch -> 200 epochs "
+            f"{200 * per_epoch:.0f} s ({200 * per_epoch / 60:.2f} min; torch threads "
+            f"{torch.get_num_threads()})\n  learned / b* = {out[key]['scale']:.4f}, h "
+            f"{_fmt(rep.final['stirling_step'])}; held out ({after['trajectories']} vertex traj "
+            f"x 100): mean area {before['mean_area']:.4g} -> {after['mean_area']:.4g}, "
+            f"violations {before['violations']} -> {after['violations']}"
+        )
+    return out
 
 
 def main() -> None:
@@ -288,7 +325,9 @@ def main() -> None:
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--lr", type=float, default=0.2)
     p.add_argument("--patience", type=int, default=6)
-    p.add_argument("--timing-epochs", type=int, default=3)
+    p.add_argument("--timing-epochs", type=int, default=3, help="full-horizon epochs timed")
+    p.add_argument("--timing-window", type=int, default=10, help="window of the 200-epoch run")
+    p.add_argument("--test-timing", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--bound-starts", default="5,0.2", help="initial bounds / b*")
     p.add_argument("--grad-filters", default="hsnsmf,cdsmf,mszm")

@@ -26,7 +26,8 @@ class TuneConfig:
     margin starts from ``filter_kwargs.remainder_margin``, which must be > 0 to move);
     ``tie``: ``noise`` (one shared scale for all noise bounds), ``none``, or ``auto`` (``noise``
     without ground truth, where the split between process and measurement noise is not
-    identifiable, else ``none``).
+    identifiable, else ``none``); ``window``: steps per window of truncated
+    back-propagation (``tune(window=...)``, :mod:`training.windows`), 0 = the whole horizon.
     """
 
     system: str = "spring_damper"
@@ -52,6 +53,7 @@ class TuneConfig:
     val_every: int = 5
     checkpoint_every: int = 20
     seed: int = 0
+    window: int = 0
     out: str = "runs/tune"
     progress: bool = True
     weights: dict[str, float] = field(default_factory=dict)

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from diffsmf.filters.base import FilterResult, SetFilter
+from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet, where
 
 __all__ = [
@@ -67,10 +67,12 @@ class LossWeights:
 
 @dataclass
 class PassOutput:
-    """One filter pass: the result and the consistency excess ``[B, T, m]`` of every y_k."""
+    """One filter pass: the result, the consistency excess ``[B, T, m]`` of every y_k and the
+    state after the last step (``final``, to continue a pass: windowed tuning)."""
 
     result: FilterResult
     excess: Tensor
+    final: FilterState | None = None
 
 
 def log_volume_loss(result: FilterResult, skip: int = 1) -> Tensor:
@@ -152,7 +154,12 @@ def consistency_excess(filt: SetFilter, predicted: ConvexSet, y: Tensor) -> Tens
 
 
 def filter_with_predictions(
-    filt: SetFilter, y: Tensor, u: Tensor | None = None, *, guard_empty: bool = True
+    filt: SetFilter,
+    y: Tensor,
+    u: Tensor | None = None,
+    *,
+    guard_empty: bool = True,
+    state: FilterState | None = None,
 ) -> PassOutput:
     """Run ``filt`` on ``y [B, T, m]`` (``u [B, T, p]``) step by step through its public API.
 
@@ -166,11 +173,15 @@ def filter_with_predictions(
     intersections compute their unused non-empty branch on empty input and its backward gives
     0 * inf = NaN gradients (seen in ``Parallelotope.intersect_strip``); the guard keeps the
     gradients finite. With nonlinear h the excess is first order, so the guard is a heuristic.
+
+    ``state``: start from this state (batch ``[B]``) instead of ``filt.initial_state``.
     """
     if y.dim() != 3 or y.shape[-1] != filt.system.m:
         raise ValueError(f"y: expected shape [B, T, {filt.system.m}], got {tuple(y.shape)}")
     B, T, _ = y.shape
-    state = filt.initial_state(batch=B)
+    state = filt.initial_state(batch=B) if state is None else state
+    if state.set.batch_shape != (B,):
+        raise ValueError(f"state: expected batch shape [{B}], got {list(state.set.batch_shape)}")
     states = [state]
     excess = []
     for k in range(T):
@@ -187,7 +198,7 @@ def filter_with_predictions(
         else:
             state = filt.update(pred, yk)
         states.append(state)
-    return PassOutput(result=filt.collect(states), excess=torch.stack(excess, 1))
+    return PassOutput(result=filt.collect(states), excess=torch.stack(excess, 1), final=state)
 
 
 def _output_centre(filt: SetFilter, predicted: ConvexSet) -> Tensor:
