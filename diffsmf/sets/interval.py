@@ -10,9 +10,11 @@ An :class:`Interval` holds ``lower`` and ``upper`` tensors of one shape. It play
   every method of :class:`~diffsmf.sets.base.ConvexSet`.
 
 Outward rounding (guarantee): after every arithmetic operation the lower bound is moved down and
-the upper bound up by ``k`` units in the last place with ``torch.nextafter`` (``k = 1`` for
-correctly rounded IEEE operations ``+ - * / sqrt``, ``k = 2`` for library transcendental
-functions ``exp log sin cos tanh atan sigmoid``, ``k = |p| + 1`` for ``x ** p`` computed by
+the upper bound up by at least ``k`` units in the last place, by the relative offset
+``2 k eps |x|`` (plus the smallest subnormal for all but sums; see :func:`_step`) -- a few
+elementwise ops, cheaper than ``torch.nextafter`` with inf guards (``k = 1`` for correctly
+rounded IEEE operations ``+ - * / sqrt``, ``k = 2`` for library transcendental functions
+``exp log sin cos tanh atan sigmoid``, ``k = |p| + 1`` for ``x ** p`` computed by
 ``torch.pow``). Sums and matrix products add the classical a-priori bound
 ``gamma_k * sum |terms|`` (``gamma_k = (k + 4) eps``) before rounding. The rounding offsets are
 computed on detached values and added, so gradients of ``lower``/``upper`` flow unchanged.
