@@ -61,7 +61,10 @@ def _step(x: Tensor, k: int, direction: float, absolute: bool = True) -> Tensor:
     pad = x.detach().abs() * (2.0 * k * _eps(x))
     if absolute:
         pad = pad + _subnormal(x)
-    if bool(torch.isinf(pad).any()):  # rare: clamp overflowed bounds (an autograd node)
+    # Overflowed bounds must be clamped first (inf - inf = nan). On the CPU a host check is
+    # cheaper than an autograd node on every call; on accelerators it would synchronise, so
+    # the clamp is always applied there.
+    if x.device.type != "cpu" or bool(torch.isinf(pad).any()):
         big = torch.finfo(x.dtype).max
         x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
         pad = torch.nan_to_num(x.detach().abs() * (2.0 * k * _eps(x)), posinf=0.0)
