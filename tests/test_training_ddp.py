@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import socket
 
+import pytest
 import torch
 import torch.multiprocessing as mp
 from test_training_toy import V_BOUND, W_BOUND, ToyIntervalFilter, toy_system
@@ -22,7 +23,7 @@ def _problem():
     return f, Data(tr.y, tr.x)
 
 
-def _worker(rank: int, world: int, port: int, path: str) -> None:
+def _worker(rank: int, world: int, port: int, path: str, window: int | None = None) -> None:
     import torch.distributed as dist
 
     torch.set_default_dtype(torch.float64)
@@ -31,7 +32,7 @@ def _worker(rank: int, world: int, port: int, path: str) -> None:
     dist.init_process_group("gloo", rank=rank, world_size=world)
     try:
         f, data = _problem()
-        rep, f = tune(f, data, loss="both", **KW)
+        rep, f = tune(f, data, loss="both", window=window, **KW)
         if rank == 0:
             torch.save(
                 {"state": f.state_dict(), "history": rep.history, "ws": rep.world_size}, path
@@ -46,12 +47,14 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_two_gloo_processes_match_one_process(tmp_path):
+@pytest.mark.parametrize("window", [None, 5])
+def test_two_gloo_processes_match_one_process(tmp_path, window):
+    """Also windowed tuning: the carried window states are shared between the processes."""
     path = str(tmp_path / "ddp.pt")
-    mp.spawn(_worker, args=(2, _free_port(), path), nprocs=2, join=True)
+    mp.spawn(_worker, args=(2, _free_port(), path, window), nprocs=2, join=True)
     got = torch.load(path, weights_only=False)
     f, data = _problem()
-    rep, f = tune(f, data, loss="both", **KW)
+    rep, f = tune(f, data, loss="both", window=window, **KW)
     assert got["ws"] == 2 and rep.world_size == 1
     for k, v in f.state_dict().items():
         assert torch.allclose(got["state"][k], v, rtol=1e-10, atol=1e-14), k

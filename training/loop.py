@@ -29,8 +29,9 @@ __all__ = ["Data", "TuneReport", "as_data", "evaluate", "resolve_params", "tune"
 
 DEFAULT_PARAMS = ("process_noise", "measurement_noise", "stirling_step")
 # Hyperparameters of the diffsmf filters that are not tuned by default; like the default trio,
-# a name here that a filter lacks (EKF, CombinedFilter: no remainder margin) is skipped.
-OPTIONAL_PARAMS = ("remainder_margin",)
+# a name here that a filter lacks (EKF, CombinedFilter: no remainder margin; only CDSMF and
+# ESMF have a Minkowski-weight scale) is skipped.
+OPTIONAL_PARAMS = ("remainder_margin", "minkowski_scale")
 KNOWN_PARAMS = DEFAULT_PARAMS + OPTIONAL_PARAMS
 LOSS_MODES = ("auto", "consistency", "containment", "both")
 
@@ -109,9 +110,10 @@ def resolve_params(
 
     ``name`` selects ``raw_name`` (softplus-positive hyperparameters) or the parameter ``name``
     itself; ``"all"`` selects every parameter. Names of :data:`KNOWN_PARAMS` (the default
-    trio and ``remainder_margin``) that the filter lacks are skipped (returned second); any
-    other unknown name raises ``ValueError``. A softplus-positive hyperparameter whose scale is
-    0 everywhere (e.g. the default ``remainder_margin=0``) cannot move: a warning says so.
+    trio, ``remainder_margin`` and ``minkowski_scale``) that the filter lacks are skipped
+    (returned second); any other unknown name raises ``ValueError``. A softplus-positive
+    hyperparameter whose scale is 0 everywhere (e.g. the default ``remainder_margin=0``)
+    cannot move: a warning says so.
     """
     named = dict(filt.named_parameters())
     if names == "all":
@@ -327,7 +329,9 @@ def tune(
         trajectories: :class:`diffsmf.Trajectory` (``x`` may be ``None``: no ground truth).
         params: hyperparameter names (``raw_<name>`` or parameter ``<name>``) or ``"all"``;
             besides the default trio the filters have ``remainder_margin`` (HSNSMF, MSZM,
-            CDSMF, ESMF; start it from a positive value, a 0 margin stays 0).
+            CDSMF, ESMF; start it from a positive value, a 0 margin stays 0) and
+            ``minkowski_scale`` (CDSMF, ESMF: factor on the rule's Minkowski weight, 1 = the
+            rule; any value keeps the guarantee). Known names a filter lacks are skipped.
         validation: ``None``, a fraction of ``trajectories`` held out, or a Trajectory.
         loss: ``"auto"`` (containment if ``x`` is given, else consistency), ``"consistency"``
             (no ground truth), ``"containment"`` or ``"both"``; always plus log-volume.
@@ -349,15 +353,15 @@ def tune(
             side, ``L`` sequential steps per pass instead of ``T`` (about ``T / L`` times
             faster on a CPU). The gradient is truncated at window boundaries and the window
             start states lag one epoch; validation and the returned filter are exact.
-            Not supported under ``torch.distributed``. ``LossWeights.skip`` applies per window.
+            Under ``torch.distributed`` the window states are shared after every mini-batch,
+            so K processes follow the single-process run. ``LossWeights.skip`` applies per
+            window.
 
     Under ``torch.distributed`` each global mini-batch is sharded over the processes and the
     gradients are summed, so K processes follow the single-process trajectory.
     """
     if epochs < 1 or batch_size < 1 or val_every < 1 or patience < 1:
         raise ValueError("epochs, batch_size, val_every, patience: must be positive")
-    if window is not None and ddp.is_distributed():
-        raise ValueError("window: windowed tuning is not supported under torch.distributed")
     t0 = time.perf_counter()
     weights = weights or LossWeights()
     data, val = _split(as_data(trajectories), validation, seed)
@@ -428,6 +432,8 @@ def tune(
                 (lval * frac).backward()
                 stats = torch.stack([lval.detach()] + [terms[k] for k in keys[1:]]).cpu() * frac
             ddp.all_reduce_grads(tuned)
+            if cache is not None:
+                cache.sync(glob)  # every process keeps every trajectory's window states
             _tie_grads(groups)
             stats = ddp.all_reduce_sum(stats)
             w = len(glob) / n

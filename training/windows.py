@@ -30,6 +30,7 @@ from torch import Tensor
 
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet
+from training import ddp
 from training.losses import LossWeights, filter_with_predictions, total_loss
 
 __all__ = ["WindowCache", "windowed_loss"]
@@ -136,6 +137,41 @@ class WindowCache:
         st = self.starts[w]
         assert st is not None
         return take_state(st, idx)
+
+    def sync(self, glob: Tensor) -> None:
+        """Under ``torch.distributed``: give every process the start states that each one
+        stored for its round-robin shard (:func:`training.ddp.shard`) of the global
+        mini-batch ``glob``, so all processes keep the same cache (a no-op otherwise).
+
+        Each row comes from exactly one process and the others add zeros, so the all-reduced
+        sum is exact. Zonotopes are first padded to the largest generator count of any process.
+        """
+        if not ddp.is_distributed():
+            return
+        import torch.distributed as dist
+
+        pos = torch.arange(ddp.rank(), len(glob), ddp.world_size(), device=glob.device)
+        mine = glob[pos]
+
+        def share(t: Tensor) -> Tensor:
+            buf = torch.zeros((len(glob), *t.shape[1:]), dtype=t.dtype, device=t.device)
+            buf[pos] = t[mine]
+            return t.index_copy(0, glob, ddp.all_reduce_sum(buf))
+
+        for w in range(1, len(self.starts)):
+            st = self.starts[w]
+            assert st is not None
+            S = st.set
+            if hasattr(S, "pad_generators"):
+                m = torch.tensor(float(S.generators.shape[-1]), dtype=torch.float64)
+                dist.all_reduce(m, op=dist.ReduceOp.MAX)
+                S = S.pad_generators(int(m))
+            cons = share(st.consistent.to(torch.float64)) > 0.5
+            self.starts[w] = FilterState(
+                set=S._rebuild([share(t) for t in _fields(S)]),
+                consistent=cons,
+                extras={k: share(v) for k, v in st.extras.items()},
+            )
 
     def store(self, w: int, idx: Tensor, state: FilterState) -> None:
         """Record the state reached at the end of window ``w - 1`` as the start of ``w``."""
