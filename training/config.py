@@ -22,8 +22,9 @@ class TuneConfig:
     ``init_scale`` multiplies the system's noise bounds before tuning (5 = start from 5 b*);
     ``loss``: ``auto`` (containment when the true states are used, i.e. ``ground_truth``),
     ``consistency``, ``containment`` or ``both``; ``params``: hyperparameter names to tune
-    (``process_noise``, ``measurement_noise``, ``stirling_step``, ``remainder_margin``; the
-    margin starts from ``filter_kwargs.remainder_margin``, which must be > 0 to move);
+    (``process_noise``, ``measurement_noise``, ``stirling_step``, ``remainder_margin``,
+    ``minkowski_scale``; the margin starts from ``filter_kwargs.remainder_margin``, which must
+    be > 0 to move; ``minkowski_scale``, CDSMF and ESMF only, from 1 = the Minkowski rule);
     ``tie``: ``noise`` (one shared scale for all noise bounds), ``none``, or ``auto`` (``noise``
     without ground truth, where the split between process and measurement noise is not
     identifiable, else ``none``); ``window``: steps per window of truncated

@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--params",
         default=",".join(d.params),
         help="comma-separated hyperparameter names (process_noise, measurement_noise, "
-        "stirling_step, remainder_margin)",
+        "stirling_step, remainder_margin, minkowski_scale)",
     )
     a("--tie", default=d.tie, choices=["auto", "noise", "none"], help="shared noise scale")
     a("--optimizer", default=d.optimizer, choices=["adam", "adamw", "sgd"])

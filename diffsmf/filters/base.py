@@ -18,7 +18,14 @@ from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive, register_positive
 
-__all__ = ["FilterResult", "FilterState", "SetFilter"]
+__all__ = [
+    "FilterResult",
+    "FilterState",
+    "SetFilter",
+    "StrictlyPositive",
+    "register_minkowski_scale",
+    "scaled_minkowski_sum",
+]
 
 
 @dataclass(frozen=True)
@@ -209,3 +216,52 @@ class SetFilter(nn.Module):
         if torch.isnan(y).any() and not self.skip_nan:
             raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
         return y
+
+
+# ---------------------------------------------------------------------------- Minkowski weights
+class StrictlyPositive(Positive):
+    """:class:`~diffsmf.utils.Positive` whose setter also rejects 0 and infinity (a
+    multiplicative factor such as ``minkowski_scale`` must be finite and > 0)."""
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        _check_strictly_positive(self.name, value)
+        super().__set__(obj, value)
+
+
+def _check_strictly_positive(name: str, value: Any) -> Tensor:
+    try:
+        v = torch.as_tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ValueError(f"{name}: expected a positive number, got {value!r}") from e
+    if v.numel() != 1 or v.dim() > 1:
+        raise ValueError(f"{name}: must be a scalar, got shape {tuple(v.shape)}")
+    if not bool(torch.isfinite(v).all()) or bool((v <= 0).any()):
+        raise ValueError(f"{name}: must be finite and > 0, got {v.reshape(-1).tolist()[0]}")
+    return v.reshape(())
+
+
+def register_minkowski_scale(module: nn.Module, value: Any) -> None:
+    """Validate and register the learnable scalar ``minkowski_scale`` (> 0, finite).
+
+    ``minkowski_scale = scale * softplus(raw)`` (:func:`~diffsmf.utils.register_positive`):
+    positive whatever the raw value, and exactly the given value at construction (softplus of
+    the initial raw is exactly 1 in float32 and float64). Used by the ellipsoidal filters
+    (CDSMF, ESMF) through :func:`scaled_minkowski_sum`. Raises ``ValueError`` naming
+    ``minkowski_scale`` for 0, negative, NaN, infinite or non-scalar values.
+    """
+    v = _check_strictly_positive("minkowski_scale", value)
+    register_positive(module, "minkowski_scale", v.clone())
+
+
+def scaled_minkowski_sum(E1: Any, E2: Any, method: str, scale: Tensor) -> Any:
+    """``E1 (+) E2`` with the weight ``p = rule_p * scale`` of ``S(p) = (1 + 1/p) S1 + (1 + p) S2``.
+
+    ``rule_p = minkowski_weight(S1, S2, method)`` is the per-step rule (``"trace"`` or
+    ``"volume"``); every ``p > 0`` gives an outer bound, so the factor ``scale > 0`` never
+    costs the guarantee. ``scale == 1`` reproduces ``E1.minkowski_sum(E2, method)`` bit for bit
+    (``x * 1.0 == x`` in IEEE arithmetic). Both operands are ellipsoids (positive definite).
+    """
+    from diffsmf.sets.ellipsoid import minkowski_weight
+
+    rule_p = minkowski_weight(E1.shape, E2.shape, method)
+    return E1.minkowski_sum(E2, p=rule_p * scale)

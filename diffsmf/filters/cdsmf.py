@@ -6,7 +6,8 @@ pieces as :class:`~diffsmf.filters.HSNSMF` so that the comparison isolates the s
 * predict: Stirling linearisation about the centre (seed 000 eq. 12), DC remainder box over the
   interval hull of the ellipsoid (eq. 14-18), remainder box + process-noise box covered by the
   ellipsoid ``diag(n r^2)`` (``Ellipsoid.from_box``; the 2-D ``2 r^2`` of seed 001 eq. 23/29
-  generalised, see the erratum), then the trace-minimal outer Minkowski sum (seed 001 eq. 14-17);
+  generalised, see the erratum), then the outer Minkowski sum (seed 001 eq. 14-17) with the
+  rule's weight (trace-minimal by default) times the learnable ``minkowski_scale``;
 * update: the strips of seed 000 Theorem 3 intersected one by one with
   ``Ellipsoid.intersect_strip`` (seed 001 eq. 10-13).
 """
@@ -16,7 +17,12 @@ from __future__ import annotations
 from torch import Tensor
 
 from diffsmf.filters import _common as C
-from diffsmf.filters.base import FilterState
+from diffsmf.filters.base import (
+    FilterState,
+    StrictlyPositive,
+    register_minkowski_scale,
+    scaled_minkowski_sum,
+)
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
@@ -44,12 +50,23 @@ class CDSMF(C.EllipsoidalSetFilter):
             separate because the noise bound is a property of the data and the margin one of
             the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
             stays 0, so to tune it start from a positive value.
+        minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of the prediction's
+            Minkowski sum (seed 001 eq. 14-17; seed 003 eq. 34-36): ``p = s * p_rule`` in
+            ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_rule`` the ``sum_method`` rule of the
+            step (``minkowski_weight``), ``S1`` the linearised set and ``S2`` the covering
+            ellipsoid of remainder + noise. Every ``p > 0`` gives an outer bound of the sum,
+            so tuning ``s`` never breaks the guarantee; 1 (default) reproduces the rule bit
+            for bit. The rule minimises the trace (or volume) of one step's sum, not the
+            volume after the update and later steps, which is what tuning ``s`` targets.
+            Softplus-scaled (``scale * softplus(raw)``, relative steps). Raises
+            ``ValueError`` for 0, negative, NaN or infinite values.
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
 
     stirling_step = Positive()
     remainder_margin = Positive()
+    minkowski_scale = StrictlyPositive()
 
     def __init__(
         self,
@@ -57,6 +74,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         *,
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
         remainder_margin: float | Tensor = 0.0,
+        minkowski_scale: float | Tensor = 1.0,
         sum_method: str = "trace",
         initial_set: ConvexSet | None = None,
         **kw,
@@ -64,6 +82,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         super().__init__(system, initial_set=initial_set, **kw)
         C.register_stirling_step(self, stirling_step, system.n)
         C.register_remainder_margin(self, remainder_margin, system.n)
+        register_minkowski_scale(self, minkowski_scale)
         self.sum_method = sum_method
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
@@ -86,7 +105,8 @@ class CDSMF(C.EllipsoidalSetFilter):
         shift = fc - (F @ c.unsqueeze(-1)).squeeze(-1) + R.center + W.center
         lin = E.linear_map(F, shift)
         box = Interval(-rad, rad)
-        new = lin.minkowski_sum(box.to_ellipsoid(), method=self.sum_method)
+        # p = minkowski_scale * rule p (any p > 0 is an outer bound; 1 = the rule exactly)
+        new = scaled_minkowski_sum(lin, box.to_ellipsoid(), self.sum_method, self.minkowski_scale)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
         return state.replace(set=new, extras={})
 

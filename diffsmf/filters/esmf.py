@@ -4,8 +4,9 @@ Prediction (sec. 4.2, eq. 18-35): autograd Jacobian A at the centre with the nom
 (eq. 25); Lagrange remainder by an interval Hessian over the interval hull of the ellipsoid
 (eq. 26-28); parameter-deviation box (eq. 18-21); each box covered by the diagonal ellipsoid
 ``diag(n b_i^2)`` (eq. 23 and 29 with the n-D erratum: ``2 b^2`` covers a box only in 2-D);
-virtual process noise ``(Qbar (+) Q) (+) Delta`` and prior ``A P A' (+) Qhat``, each a
-trace-minimal outer Minkowski sum (eq. 30-35 = eq. 15-17).
+virtual process noise ``(Qbar (+) Q) (+) Delta`` and prior ``A P A' (+) Qhat``, each an outer
+Minkowski sum (eq. 30-35 = eq. 15-17) with the trace-minimal weight times the learnable
+``minkowski_scale`` (1 = the paper's rule).
 
 Update (sec. 4.3, eq. 36-40): intersection of the prior with the linearised observation set
 ``{x : (y - h(c) - H (x - c))' Rhat^-1 (...) <= 1}``, ``Rhat`` the covering ellipsoid of the
@@ -24,7 +25,12 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters import _common as C
-from diffsmf.filters.base import FilterState
+from diffsmf.filters.base import (
+    FilterState,
+    StrictlyPositive,
+    register_minkowski_scale,
+    scaled_minkowski_sum,
+)
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -67,11 +73,23 @@ class ESMF(C.EllipsoidalSetFilter):
             separate because the noise bound is a property of the data and the margin one of
             the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
             stays 0, so to tune it start from a positive value.
+        minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of every Minkowski
+            sum of the prediction (eq. 14-17 used in eq. 29-31, eq. 32 and eq. 34-35):
+            ``p = s * p_trace`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_trace =
+            sqrt(tr S1 / tr S2)`` the paper's rule. Every ``p > 0`` gives an outer bound, so
+            tuning ``s`` never breaks the guarantee; 1 (default) reproduces the rule bit for
+            bit. One factor is shared by the (up to) three sums of a step: it keeps the
+            parameter a single scalar like CDSMF's, and the sums play the same role
+            (how much of the bound goes to which operand); the sum that dominates the prior
+            is the last one (eq. 34-35, prior ``A P A'`` + virtual noise). Softplus-scaled
+            (``scale * softplus(raw)``). Raises ``ValueError`` for 0, negative, NaN or
+            infinite values.
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
 
     remainder_margin = Positive()
+    minkowski_scale = StrictlyPositive()
 
     def __init__(
         self,
@@ -79,11 +97,13 @@ class ESMF(C.EllipsoidalSetFilter):
         *,
         rho_rule: str = "volume",
         remainder_margin: float | Tensor = 0.0,
+        minkowski_scale: float | Tensor = 1.0,
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
         super().__init__(system, initial_set=initial_set, **kw)
         C.register_remainder_margin(self, remainder_margin, system.n)
+        register_minkowski_scale(self, minkowski_scale)
         if rho_rule not in ("eq40", "eq13", "volume"):
             raise ValueError(f"rho_rule: expected 'eq13', 'eq40' or 'volume', got {rho_rule!r}")
         self.rho_rule = rho_rule
@@ -102,17 +122,18 @@ class ESMF(C.EllipsoidalSetFilter):
         fc = fn(c)
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
         R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
-        Qhat = R.to_ellipsoid().minkowski_sum(  # eq. 29-31
-            self.process_noise_box().to_ellipsoid(), method="trace"
+        s = self.minkowski_scale  # p = s * trace rule in every sum (s = 1: the paper)
+        Qhat = scaled_minkowski_sum(  # eq. 29-31
+            R.to_ellipsoid(), self.process_noise_box().to_ellipsoid(), "trace", s
         )
         if self.system.parameters is not None:  # eq. 18-23, 30, 32
             D = parameter_deviation(
                 self.system.f, box, self.system.parameters, self.system.theta_nominal, u
             )
             D = C.finite_remainder(D, "parameter deviation")
-            Qhat = Qhat.minkowski_sum(D.to_ellipsoid(), method="trace")
+            Qhat = scaled_minkowski_sum(Qhat, D.to_ellipsoid(), "trace", s)
         lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
-        new = lin.minkowski_sum(Qhat, method="trace")  # eq. 34-35
+        new = scaled_minkowski_sum(lin, Qhat, "trace", s)  # eq. 34-35
         new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
         return state.replace(set=new, extras={})
 
