@@ -9,7 +9,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["Positive", "inv_softplus", "register_positive"]
+__all__ = [
+    "Positive",
+    "StrictlyPositive",
+    "check_strictly_positive",
+    "inv_softplus",
+    "register_positive",
+]
 
 _SOFTPLUS_ONE = math.log(math.expm1(1.0))  # inv_softplus(1)
 
@@ -63,3 +69,25 @@ class Positive:
         with torch.no_grad():
             scale.copy_(v.expand_as(scale))
             getattr(obj, f"raw_{self.name}").fill_(_SOFTPLUS_ONE)
+
+
+class StrictlyPositive(Positive):
+    """:class:`~diffsmf.utils.Positive` whose setter also rejects 0 and infinity (a
+    multiplicative factor such as ``minkowski_scale`` must be finite and > 0)."""
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        check_strictly_positive(self.name, value)
+        super().__set__(obj, value)
+
+
+def check_strictly_positive(name: str, value: Any) -> Tensor:
+    """``value`` as a finite scalar float64 tensor > 0, else ``ValueError`` naming ``name``."""
+    try:
+        v = torch.as_tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ValueError(f"{name}: expected a positive number, got {value!r}") from e
+    if v.numel() != 1 or v.dim() > 1:
+        raise ValueError(f"{name}: must be a scalar, got shape {tuple(v.shape)}")
+    if not bool(torch.isfinite(v).all()) or bool((v <= 0).any()):
+        raise ValueError(f"{name}: must be finite and > 0, got {v.reshape(-1).tolist()[0]}")
+    return v.reshape(())

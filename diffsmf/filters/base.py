@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from diffsmf.sets.base import ConvexSet, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, register_positive
+from diffsmf.utils import Positive, StrictlyPositive, check_strictly_positive, register_positive
 
 __all__ = [
     "FilterResult",
@@ -219,27 +219,6 @@ class SetFilter(nn.Module):
 
 
 # ---------------------------------------------------------------------------- Minkowski weights
-class StrictlyPositive(Positive):
-    """:class:`~diffsmf.utils.Positive` whose setter also rejects 0 and infinity (a
-    multiplicative factor such as ``minkowski_scale`` must be finite and > 0)."""
-
-    def __set__(self, obj: Any, value: Any) -> None:
-        _check_strictly_positive(self.name, value)
-        super().__set__(obj, value)
-
-
-def _check_strictly_positive(name: str, value: Any) -> Tensor:
-    try:
-        v = torch.as_tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError) as e:
-        raise ValueError(f"{name}: expected a positive number, got {value!r}") from e
-    if v.numel() != 1 or v.dim() > 1:
-        raise ValueError(f"{name}: must be a scalar, got shape {tuple(v.shape)}")
-    if not bool(torch.isfinite(v).all()) or bool((v <= 0).any()):
-        raise ValueError(f"{name}: must be finite and > 0, got {v.reshape(-1).tolist()[0]}")
-    return v.reshape(())
-
-
 def register_minkowski_scale(module: nn.Module, value: Any) -> None:
     """Validate and register the learnable scalar ``minkowski_scale`` (> 0, finite).
 
@@ -249,7 +228,7 @@ def register_minkowski_scale(module: nn.Module, value: Any) -> None:
     (CDSMF, ESMF) through :func:`scaled_minkowski_sum`. Raises ``ValueError`` naming
     ``minkowski_scale`` for 0, negative, NaN, infinite or non-scalar values.
     """
-    v = _check_strictly_positive("minkowski_scale", value)
+    v = check_strictly_positive("minkowski_scale", value)
     register_positive(module, "minkowski_scale", v.clone())
 
 
