@@ -435,3 +435,26 @@ def test_intersect_strip_volume_lambda_near_lp_optimum_3d():
     s = np.array(list(itertools.product((-1.0, 1.0), repeat=6)))
     best = min(ConvexHull(s @ Gl.T).volume, ConvexHull(all_vertices(Z)).volume)
     assert R.volume().item() <= best * 1.005
+
+
+def test_align_and_cat_pad_generators_and_keep_the_sets():
+    from diffsmf.sets import align, cat, stack
+
+    g = torch.Generator().manual_seed(3)
+    a = Zonotope(torch.randn(2, 3, generator=g), torch.randn(2, 3, 2, generator=g))
+    b = Zonotope(torch.randn(4, 3, generator=g), torch.randn(4, 3, 5, generator=g))
+    pa, pb = align([a, b])
+    assert pa.generators.shape[-1] == pb.generators.shape[-1] == 5
+    d = torch.randn(7, 1, 3, generator=g)
+    assert torch.allclose(pa.support(d), a.support(d))  # zero generators: the same set
+    assert align([a], count=4)[0].generators.shape[-1] == 4
+    c = cat([a, b])
+    assert c.batch_shape == (6,)
+    assert torch.equal(c[:2].center, a.center) and torch.equal(c[2:].generators, pb.generators)
+    assert torch.allclose(c[2:].support(d), b.support(d))
+    p = ds.Parallelotope(torch.zeros(2, 3), torch.eye(3).expand(2, 3, 3))
+    assert torch.equal(cat([p, p]).T, stack([p, p]).T.reshape(4, 3, 3))
+    with pytest.raises(ValueError, match="same type"):
+        cat([a, p])
+    with pytest.raises(ValueError, match="at least one"):
+        cat([])

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.base import FilterState, SetFilter
-from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.base import ConvexSet, align, cat
 from training import ddp
 from training.losses import LossWeights, filter_with_predictions, total_loss
 
@@ -38,14 +38,6 @@ __all__ = ["WindowCache", "windowed_loss"]
 
 def _fields(S: ConvexSet) -> tuple[Tensor, ...]:
     return S._tensors()
-
-
-def _pad_like(sets: Sequence[ConvexSet]) -> list[ConvexSet]:
-    """Zonotopes with differing generator counts are zero-padded to the largest."""
-    if hasattr(sets[0], "pad_generators"):
-        m = max(s.generators.shape[-1] for s in sets)
-        return [s.pad_generators(m) for s in sets]
-    return list(sets)
 
 
 def _shape_key(st: FilterState) -> tuple:
@@ -57,14 +49,11 @@ def _shape_key(st: FilterState) -> tuple:
 
 def cat_states(states: Sequence[FilterState]) -> FilterState:
     """Concatenate states with batch shape ``[B_i]`` into one of ``[sum B_i]``."""
-    sets = _pad_like([s.set for s in states])
-    n_fields = len(_fields(sets[0]))
-    cat = [torch.cat([_fields(s)[i] for s in sets], 0) for i in range(n_fields)]
     keys = set(states[0].extras)
     if any(set(s.extras) != keys for s in states):
         raise ValueError("states: extras differ, cannot concatenate")
     return FilterState(
-        set=sets[0]._rebuild(cat),
+        set=cat([s.set for s in states]),
         consistent=torch.cat([s.consistent for s in states], 0),
         extras={k: torch.cat([s.extras[k] for s in states], 0) for k in keys},
     )
@@ -89,7 +78,7 @@ def _detach(st: FilterState) -> FilterState:
 
 def put_state(st: FilterState, idx: Tensor, new: FilterState) -> FilterState:
     """``st`` with batch elements ``idx`` replaced by ``new`` (detached; out of place)."""
-    a, b = _pad_like([st.set, new.set])
+    a, b = align([st.set, new.set])
     fields = [t.index_copy(0, idx, v.detach()) for t, v in zip(_fields(a), _fields(b))]
     return FilterState(
         set=a._rebuild(fields),
@@ -162,10 +151,10 @@ class WindowCache:
             st = self.starts[w]
             assert st is not None
             S = st.set
-            if hasattr(S, "pad_generators"):
+            if hasattr(S, "pad_generators"):  # equal generator counts on every process
                 m = torch.tensor(float(S.generators.shape[-1]), dtype=torch.float64)
                 dist.all_reduce(m, op=dist.ReduceOp.MAX)
-                S = S.pad_generators(int(m))
+                (S,) = align([S], count=int(m))
             cons = share(st.consistent.to(torch.float64)) > 0.5
             self.starts[w] = FilterState(
                 set=S._rebuild([share(t) for t in _fields(S)]),

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.base import FilterState, SetFilter
-from diffsmf.sets.base import ConvexSet, where
+from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
 
@@ -179,9 +179,7 @@ def stirling_strip_update(
 
 def _like(S: ConvexSet, ref: ConvexSet) -> ConvexSet:
     """``S`` padded (zonotope generators) to the field shapes of ``ref``."""
-    if hasattr(S, "pad_generators") and S.generators.shape[-1] < ref.generators.shape[-1]:
-        return S.pad_generators(ref.generators.shape[-1])
-    return S
+    return align([S, ref])[0]
 
 
 def as_parallelotope(S: ConvexSet) -> ConvexSet:
@@ -257,6 +255,13 @@ def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: in
 
 def register_remainder_margin(module: torch.nn.Module, value: float | Tensor, n: int) -> None:
     """Validate and register the learnable remainder margin ``m [n]`` (>= 0).
+
+    The prediction remainder box becomes ``[lo - m, hi + m]`` (:func:`add_remainder_margin`):
+    an inflation for unmodelled dynamics and model error. The guarantee needs the computed
+    remainder, so the margin can only add to it, never shrink it; 0 gives exactly the filter
+    without it. It enters the predicted set the same way the process-noise box does; it is
+    kept separate because the noise bound is a property of the data and the margin one of the
+    model.
 
     ``margin = scale * softplus(raw)`` (:func:`~diffsmf.utils.register_positive`), so it stays
     >= 0 and a component that starts at 0 stays exactly 0 (tune it from a positive start). A

@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from diffsmf.sets.base import ConvexSet, stack, where
+from diffsmf.sets.base import ConvexSet, align, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive, StrictlyPositive, check_strictly_positive, register_positive
@@ -71,10 +71,7 @@ class FilterResult:
 
 def _pad_and_stack(sets: list[ConvexSet]) -> ConvexSet:
     """Stack along a new dim 1; zonotopes with differing generator counts are zero-padded."""
-    if hasattr(sets[0], "pad_generators"):
-        m = max(s.generators.shape[-1] for s in sets)
-        sets = [s.pad_generators(m) for s in sets]
-    return stack(sets, dim=1)
+    return stack(align(sets), dim=1)
 
 
 class SetFilter(nn.Module):

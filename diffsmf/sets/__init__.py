@@ -1,7 +1,7 @@
 """Batched, differentiable convex sets: Interval (box), Zonotope, Parallelotope, Ellipsoid,
 Strip."""
 
-from diffsmf.sets.base import ConvexSet, stack, where
+from diffsmf.sets.base import ConvexSet, align, cat, stack, where
 from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval, interval_eval
 from diffsmf.sets.parallelotope import Parallelotope
@@ -15,6 +15,8 @@ __all__ = [
     "Parallelotope",
     "Strip",
     "Zonotope",
+    "align",
+    "cat",
     "interval_eval",
     "stack",
     "where",

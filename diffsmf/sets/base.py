@@ -235,6 +235,30 @@ def stack(sets: Sequence[ConvexSet], dim: int = 0) -> ConvexSet:
     return sets[0]._rebuild(fields)
 
 
+def align(sets: Sequence[ConvexSet], count: int | None = None) -> list[ConvexSet]:
+    """The same sets with equal field shapes where a set type allows it: zonotopes are padded
+    with zero generators to the largest generator count (or to ``count``); other types are
+    returned unchanged. Use before :func:`stack` / :func:`cat` of sets of one type."""
+    sets = list(sets)
+    if sets and hasattr(sets[0], "pad_generators"):
+        m = max(s.generators.shape[-1] for s in sets)
+        return [s.pad_generators(max(m, count or 0)) for s in sets]
+    return sets
+
+
+def cat(sets: Sequence[ConvexSet]) -> ConvexSet:
+    """Concatenate sets of one type along their leading batch dim (``[B_i, ...]`` ->
+    ``[sum B_i, ...]``); zonotopes are first :func:`align`-ed."""
+    if len(sets) == 0:
+        raise ValueError("sets: need at least one set to concatenate")
+    cls = type(sets[0])
+    if any(type(s) is not cls for s in sets):
+        raise ValueError("sets: all sets must have the same type to concatenate")
+    sets = align(sets)
+    fields = [torch.cat([s._tensors()[i] for s in sets], 0) for i in range(len(cls._fields))]
+    return sets[0]._rebuild(fields)
+
+
 def where(cond: Tensor, a: ConvexSet, b: ConvexSet) -> ConvexSet:
     """Batched select: ``a`` where ``cond [...]`` is True, else ``b`` (same type and shapes)."""
     if type(a) is not type(b):
