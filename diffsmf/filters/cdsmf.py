@@ -42,14 +42,10 @@ class CDSMF(C.EllipsoidalSetFilter):
         stirling_step: Stirling step h (learnable).
         sum_method: ``Ellipsoid.minkowski_sum`` method (``"trace"`` | ``"volume"``).
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
-        remainder_margin: additive, learnable inflation ``m >= 0`` (scalar or ``[n]``) of the
-            guaranteed prediction remainder box, ``[lo - m, hi + m]``, for unmodelled dynamics
-            and model error. 0 (default) gives exactly the filter without it. The guarantee
-            needs the computed remainder, so the margin can only add to it, never shrink it.
-            It enters the predicted set the same way the process-noise box does; it is kept
-            separate because the noise bound is a property of the data and the margin one of
-            the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
-            stays 0, so to tune it start from a positive value.
+        remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
+            prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
+            (default) is the filter without it (see
+            :func:`~diffsmf.filters._common.register_remainder_margin`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of the prediction's
             Minkowski sum (seed 001 eq. 14-17; seed 003 eq. 34-36): ``p = s * p_rule`` in
             ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_rule`` the ``sum_method`` rule of the

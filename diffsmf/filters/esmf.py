@@ -65,14 +65,10 @@ class ESMF(C.EllipsoidalSetFilter):
             of the fermenter's mu, eq. 13 on spring_damper (m < n: rho -> 1 inflates the
             unobserved direction by 1 / (1 - rho)).
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
-        remainder_margin: additive, learnable inflation ``m >= 0`` (scalar or ``[n]``) of the
-            guaranteed prediction remainder box, ``[lo - m, hi + m]``, for unmodelled dynamics
-            and model error. 0 (default) gives exactly the filter without it. The guarantee
-            needs the computed remainder, so the margin can only add to it, never shrink it.
-            It enters the predicted set the same way the process-noise box does; it is kept
-            separate because the noise bound is a property of the data and the margin one of
-            the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
-            stays 0, so to tune it start from a positive value.
+        remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
+            prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
+            (default) is the filter without it (see
+            :func:`~diffsmf.filters._common.register_remainder_margin`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of every Minkowski
             sum of the prediction (eq. 14-17 used in eq. 29-31, eq. 32 and eq. 34-35):
             ``p = s * p_trace`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_trace =

@@ -38,14 +38,10 @@ class MSZM(SetFilter):
         strip_method: ``Zonotope.intersect_strip`` method (``"fradius"`` | ``"volume"``).
         stirling_step: Stirling step h (learnable).
         initial_set: override of ``system.x0_set`` (converted to a zonotope).
-        remainder_margin: additive, learnable inflation ``m >= 0`` (scalar or ``[n]``) of the
-            guaranteed prediction remainder box, ``[lo - m, hi + m]``, for unmodelled dynamics
-            and model error. 0 (default) gives exactly the filter without it. The guarantee
-            needs the computed remainder, so the margin can only add to it, never shrink it.
-            It enters the predicted set the same way the process-noise box does; it is kept
-            separate because the noise bound is a property of the data and the margin one of
-            the model. Softplus-scaled (``scale * softplus(raw)``): a margin that starts at 0
-            stays 0, so to tune it start from a positive value.
+        remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
+            prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
+            (default) is the filter without it (see
+            :func:`~diffsmf.filters._common.register_remainder_margin`).
 
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
     """
