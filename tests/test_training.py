@@ -233,3 +233,15 @@ def test_cli_with_toml_config_writes_outputs(tmp_path):
         bad = tmp_path / "bad.toml"
         bad.write_text("nonsense = 1\n")
         diffsmf_main(["tune", "--config", str(bad), "--out", str(out)])
+
+
+def test_training_tune_is_callable_after_importing_the_cli_module(data):
+    """``import training.tune`` rebinds the package attribute to the module; it still tunes."""
+    import training
+    import training.tune as cli
+
+    s, traj = data
+    f = ToyIntervalFilter(s, process_noise=2 * W_BOUND)
+    rep, _ = training.tune(f, Data(traj.y), params=("process_noise",), epochs=1,
+                           batch_size=24, progress=False)
+    assert training.tune is cli and rep.params == ["process_noise"]

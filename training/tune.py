@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+import types
 from pathlib import Path
 from typing import Any
 
@@ -252,6 +254,18 @@ def main(args: argparse.Namespace) -> int:
             )
         print(f"  wrote {cfg.out}/hyperparameters.json, loss_curve.csv, tuning.png")
     return 0
+
+
+class _CallableModule(types.ModuleType):
+    """Importing this submodule makes Python rebind the package attribute ``training.tune``
+    (the tuning function) to the module; calling the module runs the function, so
+    ``from training import tune; tune(...)`` works whatever was imported first."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return tune(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule
 
 
 if __name__ == "__main__":  # pragma: no cover
