@@ -70,6 +70,21 @@ def _head(tr, k: int):
     return type(tr)(tr.x[:k], tr.y[:k], None if tr.u is None else tr.u[:k], None)
 
 
+def _horizon(system, cap: int) -> int:
+    """The system's horizon (100 if it has none), at most ``cap`` steps."""
+    return min(int(getattr(system, "horizon", 100) or 100), cap)
+
+
+def _run_stats(rep) -> dict:
+    """Epochs run, best epoch, seconds and skipped (non-finite) steps of a tuning report."""
+    return {
+        "epochs_run": len(rep.history),
+        "best_epoch": rep.best_epoch,
+        "seconds": rep.seconds,
+        "nonfinite_steps": rep.nonfinite_steps,
+    }
+
+
 def part_bounds(a: argparse.Namespace) -> dict:
     sys_ = ds.systems.get("spring_damper")
     ref = ds.filters.HSNSMF(sys_)
@@ -106,10 +121,7 @@ def part_bounds(a: argparse.Namespace) -> dict:
             "before": before,
             "after": after,
             "area_reduction": 1 - after["mean_area"] / before["mean_area"] if start > 1 else None,
-            "epochs_run": len(rep.history),
-            "best_epoch": rep.best_epoch,
-            "seconds": rep.seconds,
-            "nonfinite_steps": rep.nonfinite_steps,
+            **_run_stats(rep),
             "val_consistent_after": rep.validation_after["consistent_frac"],
         }
         out[f"start_{start}"] = row
@@ -139,7 +151,7 @@ def part_stirling(a: argparse.Namespace) -> dict:
     out = {}
     for name, fname in (("bilinear", "hsnsmf"), ("fermenter", "hsnsmf")):
         sys_ = ds.systems.get(name)
-        steps = min(int(getattr(sys_, "horizon", 100) or 100), a.stirling_steps)
+        steps = _horizon(sys_, a.stirling_steps)
         train = simulate_finite(sys_, steps, a.train, a.seed, "vertex")
         test = simulate_finite(sys_, steps, a.test_stirling, a.seed + 2, "vertex")
         cls = ds.filters.by_name(fname)
@@ -179,10 +191,7 @@ def part_stirling(a: argparse.Namespace) -> dict:
             "plain_filter": ref,
             "before": before,
             "after": after,
-            "epochs_run": len(rep.history),
-            "best_epoch": rep.best_epoch,
-            "seconds": rep.seconds,
-            "nonfinite_steps": rep.nonfinite_steps,
+            **_run_stats(rep),
         }
         print(
             f"\n{name} ({fname}, {steps} steps, tuned {', '.join(params)}; "
@@ -204,7 +213,7 @@ def part_minkowski(a: argparse.Namespace) -> dict:
     out = {}
     for name in ("spring_damper", "bilinear"):
         sys_ = ds.systems.get(name)
-        steps = min(int(getattr(sys_, "horizon", 100) or 100), a.minkowski_steps)
+        steps = _horizon(sys_, a.minkowski_steps)
         train = simulate_finite(sys_, steps, a.minkowski_train, a.seed, "vertex")
         test = simulate_finite(sys_, steps, a.test_stirling, a.seed + 2, "vertex")
         f = ds.filters.CDSMF(sys_)
@@ -232,10 +241,7 @@ def part_minkowski(a: argparse.Namespace) -> dict:
             "before": before,
             "after": after,
             "area_reduction": 1 - after["mean_area"] / before["mean_area"],
-            "epochs_run": len(rep.history),
-            "best_epoch": rep.best_epoch,
-            "seconds": rep.seconds,
-            "nonfinite_steps": rep.nonfinite_steps,
+            **_run_stats(rep),
         }
         print(
             f"\n{name} (CDSMF, {a.minkowski_train} train traj x {steps} steps, window "
