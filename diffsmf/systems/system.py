@@ -8,6 +8,11 @@ Model (the convention of every filter in diffsmf, DESIGN.md)::
 
 ``W``, ``V``, ``X0`` are any :mod:`diffsmf.sets` set; ``theta`` is an unknown parameter known
 only to lie in the :class:`~diffsmf.sets.Interval` ``parameters`` (nominal value: its midpoint).
+
+Inputs: a system with ``n_inputs = p > 0`` needs ``u [..., p]`` at every step. They come either
+from an ``inputs`` schedule (built-ins such as ``"bilinear"``, ``"vdp"``) or from the caller
+(logged data: ``System(..., n_inputs=p)``, then ``filt(y, u=U)`` / ``sys.simulate(..., u=U)``).
+:meth:`System.check_input` is the one validator every filter and ``simulate`` use.
 """
 
 from __future__ import annotations
@@ -60,7 +65,10 @@ class System(nn.Module):
         measurement_noise: bounded measurement noise set V (dim m) or ``None`` (zero).
         parameters: ``Interval`` of mismatched parameters (dim q) or ``None``.
         inputs: ``u(k) -> [p]`` or ``[B, p]`` (k = 0, 1, ...), or a tensor ``[T, p]``; ``None``
-            for an autonomous system.
+            for an autonomous system or when the inputs come with the data (``n_inputs``).
+        n_inputs: input dimension p. Inferred from ``inputs`` when given (and then checked
+            against it); default 0 (autonomous) when there is no schedule. Give it for a system
+            whose inputs come from logged data: filters and ``simulate`` then require ``u``.
         theta_schedule: the true parameter used by ``simulate`` at step k (``k -> [q]``,
             or a tensor ``[T, q]``); default: the midpoint of ``parameters``.
         process_cov, measurement_cov: optional Gaussian covariances Q ``[n, n]``, R ``[m, m]``.
@@ -77,6 +85,7 @@ class System(nn.Module):
         parameters: ConvexSet | None = None,
         *,
         inputs: Tensor | Callable[[int], Tensor] | None = None,
+        n_inputs: int | None = None,
         theta_schedule: Tensor | Callable[[int], Tensor] | None = None,
         process_cov: Tensor | None = None,
         measurement_cov: Tensor | None = None,
@@ -104,6 +113,7 @@ class System(nn.Module):
         self.measurement_noise = measurement_noise
         self.parameters = parameters
         self.inputs = _as_schedule("inputs", inputs)
+        self.n_inputs = _infer_n_inputs(self.inputs, n_inputs)
         self.theta_schedule = _as_schedule("theta_schedule", theta_schedule)
         self.process_cov = _check_cov("process_cov", process_cov, self.n)
         self.measurement_cov = _check_cov("measurement_cov", measurement_cov, self.m)
@@ -116,12 +126,61 @@ class System(nn.Module):
         return None if self.parameters is None else self.parameters.center
 
     def input_at(self, k: int, batch: int) -> Tensor | None:
-        """Input ``u_k`` as ``[batch, p]`` (or ``None``)."""
+        """Input ``u_k`` of the ``inputs`` schedule as ``[batch, p]`` (or ``None``)."""
         if self.inputs is None:
             return None
         u = torch.as_tensor(self.inputs(k), dtype=self.x0_set.dtype, device=self.x0_set.device)
         u = u.reshape(-1) if u.dim() == 0 else u
         return u.expand(batch, u.shape[-1])
+
+    def check_input(self, u: Tensor | None, batch_shape: tuple[int, ...] | torch.Size) -> (
+        Tensor | None
+    ):
+        """Validate inputs against ``n_inputs`` -> ``u`` as a tensor of the system dtype (or None).
+
+        Args:
+            u: ``[*batch_shape, p]`` with ``p = n_inputs`` (``[B, p]`` for one step of
+                ``predict``, ``[B, T, p]`` for ``forward`` / ``simulate``), or ``None``.
+            batch_shape: the leading dims ``u`` must have exactly (no broadcasting).
+
+        Raises:
+            ValueError: message starting with ``u:`` when ``u`` is missing for ``p > 0``, given
+                for ``p = 0``, has the wrong last dimension (``u[..., :1]`` for ``p = 2`` is
+                refused, not broadcast), the wrong batch shape, or holds NaN / inf.
+        """
+        p = self.n_inputs
+        batch_shape = tuple(int(b) for b in batch_shape)
+        want = "[" + ", ".join(str(b) for b in (*batch_shape, p)) + "]"
+        if u is None:
+            if p > 0:
+                raise ValueError(
+                    f"u: system {self.name!r} has {p} input(s) (n_inputs={p}) but no u was "
+                    f"given; pass u of shape {want}"
+                )
+            return None
+        if p == 0:
+            raise ValueError(
+                f"u: system {self.name!r} has no inputs (n_inputs=0) but u was given; leave u "
+                "out, or build the System with n_inputs=p"
+            )
+        if isinstance(u, Tensor):
+            t = u.to(dtype=self.x0_set.dtype, device=self.x0_set.device)
+        else:
+            try:
+                t = torch.as_tensor(u, dtype=self.x0_set.dtype, device=self.x0_set.device)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise ValueError(f"u: cannot be read as a tensor of numbers ({exc})") from exc
+        if t.dim() == 0 or t.shape[-1] != p:
+            raise ValueError(
+                f"u: expected last dimension {p} (n_inputs of {self.name!r}), got shape "
+                f"{tuple(t.shape)}; expected {want}"
+            )
+        if tuple(t.shape[:-1]) != batch_shape:
+            raise ValueError(f"u: expected shape {want}, got {tuple(t.shape)}")
+        if not torch.isfinite(t).all():
+            bad = (~torch.isfinite(t)).nonzero()[0].tolist()
+            raise ValueError(f"u: contains NaN or inf (first at index {tuple(bad)})")
+        return t
 
     def theta_at(self, k: int, batch: int) -> Tensor | None:
         """True parameter at step k for ``simulate``, ``[batch, q]`` (or ``None``)."""
@@ -146,6 +205,7 @@ class System(nn.Module):
         noise: str = "uniform",
         theta: Tensor | Callable[[int], Tensor] | None = None,
         x0: Tensor | None = None,
+        u: Tensor | None = None,
     ) -> Trajectory:
         """Simulate ``batch`` trajectories of ``steps`` steps.
 
@@ -155,6 +215,9 @@ class System(nn.Module):
             theta: parameter schedule overriding ``theta_schedule`` (``k -> [q]`` or
                 ``[B, q]``, or a tensor ``[T, q]`` / ``[B, T, q]``).
             x0: initial states ``[B, n]``; default drawn from ``x0_set`` like the noise.
+            u: inputs ``[B, T, p]`` (``u[:, k]`` drives ``x_k -> x_{k+1}``), checked by
+                :meth:`check_input`; overrides the ``inputs`` schedule. Required when
+                ``n_inputs > 0`` and the system has no schedule.
 
         Returns:
             :class:`Trajectory` with ``x [B, T+1, n]``, ``y [B, T, m]``, ``u``, ``theta``.
@@ -163,6 +226,10 @@ class System(nn.Module):
             raise ValueError(f"noise: expected 'uniform' or 'vertex', got {noise!r}")
         if steps < 1 or batch < 1:
             raise ValueError("steps, batch: must be positive")
+        if u is not None or (self.n_inputs > 0 and self.inputs is None):
+            u_given = self.check_input(u, (batch, steps))
+        else:
+            u_given = None
         gen = torch.Generator(device=self.x0_set.device)
         gen.manual_seed(0 if seed is None else seed)
 
@@ -184,7 +251,7 @@ class System(nn.Module):
         x = draw(self.x0_set, self.n) if x0 is None else torch.as_tensor(x0).expand(batch, self.n)
         xs, ys, us, ths = [x], [], [], []
         for k in range(steps):
-            u = self.input_at(k, batch)
+            u = self.input_at(k, batch) if u_given is None else u_given[:, k]
             th = None
             if self.parameters is not None:
                 th = self.theta_nominal if schedule is None else schedule(k)
@@ -201,9 +268,26 @@ class System(nn.Module):
         return Trajectory(
             x=torch.stack(xs, 1),
             y=torch.stack(ys, 1),
-            u=None if self.inputs is None else torch.stack(us, 1),
+            u=None if self.n_inputs == 0 else torch.stack(us, 1),
             theta=None if self.parameters is None else torch.stack(ths, 1),
         )
+
+
+def _infer_n_inputs(schedule: Callable[[int], Tensor] | None, n_inputs: int | None) -> int:
+    """Input dimension from the ``inputs`` schedule (its value at k = 0) and/or ``n_inputs``."""
+    if n_inputs is not None:
+        if isinstance(n_inputs, bool) or not isinstance(n_inputs, int) or n_inputs < 0:
+            raise ValueError(f"n_inputs: must be an integer >= 0, got {n_inputs!r}")
+    if schedule is None:
+        return 0 if n_inputs is None else n_inputs
+    try:
+        u0 = torch.as_tensor(schedule(0))
+    except Exception as exc:  # a user callable: report which argument failed
+        raise ValueError(f"inputs: calling inputs(0) failed ({type(exc).__name__}: {exc})") from exc
+    p = 1 if u0.dim() == 0 else int(u0.shape[-1])
+    if n_inputs is not None and n_inputs != p:
+        raise ValueError(f"n_inputs: {n_inputs} does not match the inputs schedule (p = {p})")
+    return p
 
 
 def _check_cov(name: str, cov: Tensor | None, dim: int) -> Tensor | None:
