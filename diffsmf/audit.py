@@ -122,6 +122,7 @@ def containment(
     noise: str = "vertex",
     seed: int = 0,
     tol: float = TOL,
+    progress: bool = False,
 ) -> AuditReport:
     """Containment audit of ``filt`` (a :class:`~diffsmf.filters.SetFilter`) on ``system``.
 
@@ -130,52 +131,93 @@ def containment(
         trials: number of simulated trajectories (one batch).
         steps: horizon (default :func:`paper_steps`).
         noise: ``"vertex"`` (worst case) or ``"uniform"``.
+        seed: seed of the simulation.
         tol: relative tolerance on the gauge.
+        progress: show a progress bar over trajectories (the batch is then filtered in
+            chunks of at most 100 trajectories; the counts are the same).
 
     Returns:
         :class:`AuditReport`. ``mean_volume`` averages over trajectories and steps 1..T.
     """
+    if trials < 1:
+        raise ValueError(f"trials: must be >= 1, got {trials}")
     system = filt.system if system is None else system
     steps = paper_steps(system) if steps is None else steps
     traj = system.simulate(steps=steps, batch=trials, seed=seed, noise=noise)
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        res = filt(traj.y, u=traj.u)
-    seconds = time.perf_counter() - t0
-    g = gauge(res.sets, traj.x, tol)  # [B, T+1]
-    viol = g > 1 + tol
-    worst = float((g - 1).clamp_min(0).max())
-    vol = res.volume[:, 1:]
+    chunk = 100 if progress else trials
+    viol_n, worst, vol_sum, incons, seconds = 0, 0.0, 0.0, 0, 0.0
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=trials, desc=f"audit ({noise} noise)", unit="traj", leave=False)
+    for i in range(0, trials, chunk):
+        x = traj.x[i : i + chunk]
+        u = None if traj.u is None else traj.u[i : i + chunk]
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            res = filt(traj.y[i : i + chunk], u=u)
+        seconds += time.perf_counter() - t0
+        g = gauge(res.sets, x, tol)  # [b, T+1]
+        viol_n += int((g > 1 + tol).sum())
+        worst = max(worst, float((g - 1).clamp_min(0).max()))
+        vol_sum += float(res.volume[:, 1:].sum())
+        incons += int((~res.consistent).sum())
+        if bar is not None:
+            bar.update(x.shape[0])
+    if bar is not None:
+        bar.close()
+    pairs = trials * (steps + 1)
     return AuditReport(
         filter=type(filt).__name__,
         system=system.name,
         noise=noise,
         trials=trials,
         steps=steps,
-        pairs=int(viol.numel()),
-        violations=int(viol.sum()),
-        fraction=float(viol.double().mean()),
+        pairs=pairs,
+        violations=viol_n,
+        fraction=viol_n / pairs,
         worst_distance=worst,
-        mean_volume=float(vol.mean()),
-        inconsistent=int((~res.consistent).sum()),
+        mean_volume=vol_sum / (trials * steps),
+        inconsistent=incons,
         seconds=seconds,
     )
 
 
 # ---------------------------------------------------------------------- CLI
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (so ``--trials 0`` is a one-line usage error)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``diffsmf audit``."""
-    parser.add_argument("--system", required=True, help="built-in system (diffsmf.systems.names())")
+    parser.add_argument(
+        "--system", required=True, help="built-in system name (see diffsmf.systems.names())"
+    )
     parser.add_argument(
         "--filter", required=True, help="hsnsmf | mszm | cdsmf | esmf | ekf | combined"
     )
-    parser.add_argument("--trials", type=int, default=1000, help="trajectories (default 1000)")
-    parser.add_argument("--steps", type=int, default=None, help="horizon (default: the paper's)")
     parser.add_argument(
-        "--noise", choices=["vertex", "uniform", "both"], default="both", help="noise draw"
+        "--trials", type=_positive_int, default=1000, help="simulated trajectories (one batch)"
     )
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--steps", type=_positive_int, default=None,
+        help="horizon in steps (default: the system's paper horizon, else 100)",
+    )
+    parser.add_argument(
+        "--noise", choices=["vertex", "uniform", "both"], default="both",
+        help="noise draw: vertex (worst case), uniform, or both one after the other",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated trajectories")
     parser.add_argument("--json", action="store_true", help="print JSON lines instead of text")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -184,12 +226,28 @@ def main(args: argparse.Namespace) -> int:
 
     from diffsmf import filters, systems
 
+    if args.system not in systems.names():
+        raise ValueError(
+            f"--system: unknown system {args.system!r}; choose from {systems.names()}"
+        )
+    try:
+        cls = filters.by_name(args.filter)
+    except ValueError:
+        raise ValueError(
+            f"--filter: unknown filter {args.filter!r}; choose from {filters.names()}"
+        ) from None
     system = systems.get(args.system)
-    filt = filters.by_name(args.filter)(system)
+    filt = cls(system)
     noises = ["vertex", "uniform"] if args.noise == "both" else [args.noise]
     bad = False
+    reports = []
     for noise in noises:
-        rep = containment(filt, system, args.trials, args.steps, noise, args.seed)
+        reports.append(
+            containment(
+                filt, system, args.trials, args.steps, noise, args.seed, progress=not args.quiet
+            )
+        )
+    for rep in reports:
         print(json.dumps(asdict(rep)) if args.json else rep)
         bad |= rep.violations > 0 and args.filter.lower() != "ekf"
     if not args.json:

@@ -69,9 +69,22 @@ def load_config(path: str | Path) -> dict[str, Any]:
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"config: no such file {str(p)!r}")
-    with p.open("rb") as fh:
-        data = tomllib.load(fh)
+    try:
+        with p.open("rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"config: {str(p)!r} is not valid TOML ({exc})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"config: {str(p)!r} is not a UTF-8 text (TOML) file") from None
     unknown = sorted(set(data) - set(TuneConfig.keys()))
     if unknown:
         raise ValueError(f"config: unknown keys {unknown}; allowed: {TuneConfig.keys()}")
+    defaults = TuneConfig()
+    for key, value in data.items():
+        want = type(getattr(defaults, key))
+        ok = isinstance(value, want) or (want is float and isinstance(value, int))
+        if not ok or (want is not bool and isinstance(value, bool)):
+            kind = {int: "an integer", float: "a number", bool: "true or false", str: "a string",
+                    list: "a list", dict: "a table"}.get(want, want.__name__)
+            raise ValueError(f"config: {key} = {value!r} in {str(p)!r} must be {kind}")
     return data

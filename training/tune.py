@@ -67,8 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="truncated back-propagation: steps per window, all windows side by side "
         "(about steps/window times faster; 0 = back-propagate through the whole horizon)",
     )
-    a("--out", default=d.out, help="output folder")
-    a("--no-progress", dest="progress", action="store_false")
+    a("--out", default=d.out, help="output folder (created when missing)")
+    a("--no-progress", "--quiet", dest="progress", action="store_false", help="no progress bar")
 
 
 def _merge_config(args: argparse.Namespace) -> TuneConfig:
@@ -82,6 +82,43 @@ def _merge_config(args: argparse.Namespace) -> TuneConfig:
             if k not in vals or vals[k] == getattr(d, k):
                 vals[k] = v
     return TuneConfig(**vals)
+
+
+def _check_config(cfg: TuneConfig) -> None:
+    """One ``ValueError`` naming the option for each user error in a run configuration."""
+    import diffsmf as ds
+
+    if cfg.system not in ds.systems.names():
+        raise ValueError(
+            f"--system: unknown system {cfg.system!r}; choose from {ds.systems.names()}"
+        )
+    try:
+        ds.filters.by_name(cfg.filter)
+    except ValueError:
+        raise ValueError(
+            f"--filter: unknown filter {cfg.filter!r}; choose from {ds.filters.names()}"
+        ) from None
+    for key in ("epochs", "batch_size", "trajectories", "steps", "val_every"):
+        if getattr(cfg, key) < 1:
+            raise ValueError(f"--{key.replace('_', '-')}: must be >= 1, got {getattr(cfg, key)}")
+    for key in ("val_trajectories", "test_trajectories", "patience", "window"):
+        if getattr(cfg, key) < 0:
+            raise ValueError(f"--{key.replace('_', '-')}: must be >= 0, got {getattr(cfg, key)}")
+    if cfg.checkpoint_every < 1:
+        raise ValueError(f"--checkpoint-every: must be >= 1, got {cfg.checkpoint_every}")
+    if not cfg.lr > 0:
+        raise ValueError(f"--lr: must be > 0, got {cfg.lr}")
+    if not cfg.init_scale > 0:
+        raise ValueError(f"--init-scale: must be > 0, got {cfg.init_scale}")
+    if not cfg.params:
+        raise ValueError("--params: name at least one hyperparameter to tune")
+    out = Path(cfg.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out: {str(out)!r} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--out: cannot create folder {str(out)!r} ({exc.strerror})") from None
 
 
 def simulate_finite(system: Any, steps: int, batch: int, seed: int, noise: str) -> Any:
@@ -195,6 +232,7 @@ def _tie(cfg: TuneConfig) -> str | None:
 def main(args: argparse.Namespace) -> int:
     """Run the tuning command; writes hyperparameters.json, loss_curve.csv, tuning.png."""
     cfg = _merge_config(args)
+    _check_config(cfg)
     torch.manual_seed(cfg.seed)
     ddp.init_from_env()
     system, filt, sim = build(cfg)
