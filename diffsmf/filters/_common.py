@@ -167,12 +167,12 @@ def stirling_strip_update(
     the centre (eq. 13), DC remainder of ``h`` over ``region`` folded into the strips
     (eq. 23-29), strips intersected one by one with ``intersect`` -> (set, consistent ``[B]``).
     """
-    from diffsmf.linearize import dc_remainder, stirling_jacobian
+    from diffsmf.linearize import stirling_jacobian
 
     c = S.center
     H = stirling_jacobian(filt.system.h, c, filt.stirling_step)  # eq. 13
     a, d, w = measurement_strips(
-        filt.system.h, dc_remainder, region, c, H, y, filt.measurement_noise_box()
+        filt.system.h, filt.remainder_fn, region, c, H, y, filt.measurement_noise_box()
     )
     return sequential_strip_update(S, a, d, w, intersect)
 
@@ -253,6 +253,21 @@ def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: in
     register_positive(module, "stirling_step", h.expand(n).clone())
 
 
+def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
+    """Validate ``remainder`` (a name of :data:`diffsmf.linearize.REMAINDERS` or ``"auto"``)
+    and set ``module.remainder`` (the resolved name) and ``module.remainder_fn``.
+
+    ``"auto"``: the seed 000 vertex method (``"dc-vertices"``) up to
+    :data:`~diffsmf.linearize.AUTO_VERTEX_MAX_N` states, the vertex-free ``"lagrange"`` bound
+    above (2^n vertices are out of reach at n = 16, 32). Every choice is guaranteed.
+    """
+    from diffsmf.linearize import resolve_remainder
+
+    if not isinstance(name, str):
+        raise ValueError(f"remainder: expected a method name, got {name!r}")
+    module.remainder, module.remainder_fn = resolve_remainder(name, n)
+
+
 def register_remainder_margin(module: torch.nn.Module, value: float | Tensor, n: int) -> None:
     """Validate and register the learnable remainder margin ``m [n]`` (>= 0).
 
@@ -307,6 +322,7 @@ __all__ = [
     "ROUND_REL",
     "EllipsoidalSetFilter",
     "add_remainder_margin",
+    "register_remainder",
     "register_remainder_margin",
     "register_stirling_step",
     "as_ellipsoid",

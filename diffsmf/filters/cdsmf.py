@@ -46,6 +46,10 @@ class CDSMF(C.EllipsoidalSetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             :func:`~diffsmf.filters._common.register_remainder_margin`).
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (seed 000 eq. 14-18,
+            2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
+            (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
+            n = 8, ``"lagrange"`` above; :func:`~diffsmf.linearize.resolve_remainder`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of the prediction's
             Minkowski sum (seed 001 eq. 14-17; seed 003 eq. 34-36): ``p = s * p_rule`` in
             ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_rule`` the ``sum_method`` rule of the
@@ -70,6 +74,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         *,
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
         remainder_margin: float | Tensor = 0.0,
+        remainder: str = "auto",
         minkowski_scale: float | Tensor = 1.0,
         sum_method: str = "trace",
         initial_set: ConvexSet | None = None,
@@ -78,12 +83,13 @@ class CDSMF(C.EllipsoidalSetFilter):
         super().__init__(system, initial_set=initial_set, **kw)
         C.register_stirling_step(self, stirling_step, system.n)
         C.register_remainder_margin(self, remainder_margin, system.n)
+        C.register_remainder(self, remainder, system.n)
         register_minkowski_scale(self, minkowski_scale)
         self.sum_method = sum_method
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (E - c) (+) cover(remainder box + W)``."""
-        from diffsmf.linearize import dc_remainder, stirling_jacobian
+        from diffsmf.linearize import stirling_jacobian
         from diffsmf.sets.ellipsoid import Ellipsoid
 
         E = state.set
@@ -92,7 +98,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         F = stirling_jacobian(fn, c, self.stirling_step)  # seed 000 eq. 12
         box = C.remainder_box(E, state.extras)
         R = C.prediction_remainder(
-            self.system, dc_remainder, fn, box, c, F, u, self.remainder_margin
+            self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin
         )
         W = self.process_noise_box()
         fc = fn(c)

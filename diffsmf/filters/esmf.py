@@ -80,6 +80,9 @@ class ESMF(C.EllipsoidalSetFilter):
             is the last one (eq. 34-35, prior ``A P A'`` + virtual noise). Softplus-scaled
             (``scale * softplus(raw)``). Raises ``ValueError`` for 0, negative, NaN or
             infinite values.
+        remainder: guaranteed remainder bound by name (default ``"lagrange"``, seed 001 eq.
+            26-28; also ``"dc-vertices"``, ``"mean-value"``, ``"auto"``; see
+            :func:`~diffsmf.linearize.resolve_remainder`).
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
@@ -94,11 +97,13 @@ class ESMF(C.EllipsoidalSetFilter):
         rho_rule: str = "volume",
         remainder_margin: float | Tensor = 0.0,
         minkowski_scale: float | Tensor = 1.0,
+        remainder: str = "lagrange",
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
         super().__init__(system, initial_set=initial_set, **kw)
         C.register_remainder_margin(self, remainder_margin, system.n)
+        C.register_remainder(self, remainder, system.n)
         register_minkowski_scale(self, minkowski_scale)
         if rho_rule not in ("eq40", "eq13", "volume"):
             raise ValueError(f"rho_rule: expected 'eq13', 'eq40' or 'volume', got {rho_rule!r}")
@@ -106,7 +111,7 @@ class ESMF(C.EllipsoidalSetFilter):
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Eq. 24-35: ``E(f(c) + a, A P A') (+) [(Qbar (+) Q) (+) Delta]``."""
-        from diffsmf.linearize import jacobian, lagrange_remainder, parameter_deviation
+        from diffsmf.linearize import jacobian, parameter_deviation
         from diffsmf.sets.ellipsoid import Ellipsoid
 
         E = state.set
@@ -114,7 +119,7 @@ class ESMF(C.EllipsoidalSetFilter):
         box = C.remainder_box(E, state.extras)  # eq. 27 (∩ the initial box at k = 0)
         fn = C.step_function(self.system, u)
         A = jacobian(fn, c)  # eq. 25
-        R = C.finite_remainder(lagrange_remainder(fn, box, c, A), "f")  # eq. 26-28
+        R = C.finite_remainder(self.remainder_fn(fn, box, c, A), "f")  # eq. 26-28
         fc = fn(c)
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
         R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
@@ -135,7 +140,7 @@ class ESMF(C.EllipsoidalSetFilter):
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Eq. 36-40: prior ∩ linearised observation set (``Ellipsoid.intersect_measurement``)."""
-        from diffsmf.linearize import jacobian, lagrange_remainder
+        from diffsmf.linearize import jacobian
 
         E = state.set
         c, P = E.center, E.shape
@@ -143,7 +148,7 @@ class ESMF(C.EllipsoidalSetFilter):
         H = jacobian(h, c)
         hc = h(c)
         V = self.measurement_noise_box()
-        Rh = C.finite_remainder(lagrange_remainder(h, E.interval_hull(), c, H), "h")
+        Rh = C.finite_remainder(self.remainder_fn(h, E.interval_hull(), c, H), "h")
         noise = Interval(V.lower + Rh.lower, V.upper + Rh.upper)
         noise = C.widen(noise, C.rounding_margin(y, hc, noise.center, noise.radius))
         Rhat = noise.to_ellipsoid().shape  # diag(m r^2): covering ellipsoid of the box

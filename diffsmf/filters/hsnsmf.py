@@ -37,6 +37,10 @@ class HSNSMF(SetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             :func:`~diffsmf.filters._common.register_remainder_margin`).
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (seed 000 eq. 14-18,
+            2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
+            (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
+            n = 8, ``"lagrange"`` above; :func:`~diffsmf.linearize.resolve_remainder`).
         **kw: ``process_noise``, ``measurement_noise``, ``skip_nan``, ``learn_noise``
             (see :class:`~diffsmf.filters.base.SetFilter`).
 
@@ -52,6 +56,7 @@ class HSNSMF(SetFilter):
         *,
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
         remainder_margin: float | Tensor = 0.0,
+        remainder: str = "auto",
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
@@ -59,6 +64,7 @@ class HSNSMF(SetFilter):
         C.check_initial_set("initial_set", initial_set, system.n)
         C.register_stirling_step(self, stirling_step, system.n)
         C.register_remainder_margin(self, remainder_margin, system.n)
+        C.register_remainder(self, remainder, system.n)
         self._x0 = C.as_parallelotope(initial_set if initial_set is not None else system.x0_set)
 
     def initial_state(self, batch: int | None = None) -> FilterState:
@@ -67,7 +73,7 @@ class HSNSMF(SetFilter):
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Theorem 1-2 (eq. 20-22): zonotope ``[F T, T_e + T_w]`` -> outer parallelotope."""
-        from diffsmf.linearize import dc_remainder, stirling_jacobian
+        from diffsmf.linearize import stirling_jacobian
         from diffsmf.sets.zonotope import Zonotope
 
         P = state.set
@@ -75,7 +81,7 @@ class HSNSMF(SetFilter):
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, c, self.stirling_step)  # eq. 12
         E = C.prediction_remainder(
-            self.system, dc_remainder, fn, P, c, F, u, self.remainder_margin
+            self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin
         )  # eq. 14-18 (+ margin)
         W = self.process_noise_box()
         fc, FT = fn(c), F @ T

@@ -42,6 +42,10 @@ class MSZM(SetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             :func:`~diffsmf.filters._common.register_remainder_margin`).
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (seed 000 eq. 14-18,
+            2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
+            (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
+            n = 8, ``"lagrange"`` above; :func:`~diffsmf.linearize.resolve_remainder`).
 
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
     """
@@ -58,6 +62,7 @@ class MSZM(SetFilter):
         strip_method: str = "fradius",
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
         remainder_margin: float | Tensor = 0.0,
+        remainder: str = "auto",
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
@@ -67,6 +72,7 @@ class MSZM(SetFilter):
             raise ValueError(f"order: must be an integer >= 1, got {order!r}")
         C.register_stirling_step(self, stirling_step, system.n)
         C.register_remainder_margin(self, remainder_margin, system.n)
+        C.register_remainder(self, remainder, system.n)
         self.order = order
         self.reduce_method = reduce_method
         self.strip_method = strip_method
@@ -104,7 +110,7 @@ class MSZM(SetFilter):
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (Z - c) (+) E (+) W`` then reduction (Alamo 2005 sec. 4)."""
-        from diffsmf.linearize import dc_remainder, stirling_jacobian
+        from diffsmf.linearize import stirling_jacobian
         from diffsmf.sets.zonotope import Zonotope
 
         Z = state.set
@@ -114,7 +120,7 @@ class MSZM(SetFilter):
         # remainder over the interval hull (Alamo 2005; seed 000 sec. 4.1: the baselines bound
         # the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
         E = C.prediction_remainder(
-            self.system, dc_remainder, fn, Z.interval_hull(), c, F, u, self.remainder_margin
+            self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin
         )
         W = self.process_noise_box()
         fc, FG = fn(c), F @ G

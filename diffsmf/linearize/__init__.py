@@ -3,15 +3,21 @@
 from diffsmf.linearize.jacobians import hessian, jacobian, stirling_jacobian
 from diffsmf.linearize.jets import Jet, interval_hessian, interval_jacobian, jet_eval
 from diffsmf.linearize.remainders import (
+    AUTO_VERTEX_MAX_N,
+    REMAINDERS,
     dc_remainder,
     diagonal_shift,
     hessian_eig_lower_bound,
     lagrange_remainder,
+    mean_value_remainder,
     parameter_deviation,
+    resolve_remainder,
 )
 from diffsmf.linearize.statistical import axis_points, statistical_linearization
 
 __all__ = [
+    "AUTO_VERTEX_MAX_N",
+    "REMAINDERS",
     "Jet",
     "dc_remainder",
     "diagonal_shift",
@@ -22,7 +28,9 @@ __all__ = [
     "jacobian",
     "jet_eval",
     "lagrange_remainder",
+    "mean_value_remainder",
     "parameter_deviation",
+    "resolve_remainder",
     "stirling_jacobian",
 ]
 __all__ += ["axis_points", "statistical_linearization"]

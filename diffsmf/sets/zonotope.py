@@ -506,6 +506,40 @@ def _basis_T(G: Tensor, basis: Tensor) -> Tensor:
     return B * s.unsqueeze(-2)
 
 
+def _max_bases(n: int) -> int:
+    """Bases tried per set: :data:`MAX_BASES` up to n = 8, then a budget falling as n^-3 (each
+    basis costs an n x n solve against all generators), at least n + 1 (so the candidates
+    always include the pivoted basis and one alternative)."""
+    return MAX_BASES if n <= 8 else max(n + 1, MAX_BASES * 512 // n**3)
+
+
+def _candidate_columns(G: Tensor, L: int) -> Tensor:
+    """Indices ``[..., L]`` of the generators tried as bases when all C(m, n) are too many.
+
+    The first n come from greedy column pivoting (the generator with the largest component
+    orthogonal to those already picked, i.e. pivoted Gram-Schmidt), so the candidates contain a
+    regular basis whenever G has rank n, however the lengths compare; the other L - n are the
+    longest remaining generators. Selection only (no gradient), batched, n small steps.
+    """
+    n, m = G.shape[-2], G.shape[-1]
+    with torch.no_grad():
+        R = G.detach().clone()  # residuals of the columns
+        picked = torch.zeros(G.shape[:-2] + (m,), dtype=torch.bool, device=G.device)
+        order = []
+        for _ in range(n):
+            score = (R * R).sum(-2).masked_fill(picked, -1.0)  # [..., m]
+            j = score.argmax(-1)  # [...]
+            order.append(j)
+            picked = picked | torch.nn.functional.one_hot(j, m).bool()
+            q = torch.gather(R, -1, j[..., None, None].expand(*R.shape[:-1], 1))  # [..., n, 1]
+            qn = q / (q * q).sum(-2, keepdim=True).sqrt().clamp_min(1e-300)
+            R = R - qn * (qn * R).sum(-2, keepdim=True)
+        first = torch.stack(order, -1)  # [..., n]
+        rest = G.detach().norm(dim=-2).masked_fill(picked, -1.0)
+        more = rest.argsort(-1, descending=True)[..., : L - n]
+    return torch.cat([first, more], -1)
+
+
 def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
     """Index ``[..., n]`` of the basis with least |det T| and a validity flag ``[...]``."""
     n, m = G.shape[-2], G.shape[-1]
@@ -514,11 +548,12 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
         return torch.zeros(*batch, n, dtype=torch.long, device=G.device), torch.zeros(
             batch, dtype=torch.bool, device=G.device
         )
-    if math.comb(m, n) > MAX_BASES:
+    budget = _max_bases(n)
+    if math.comb(m, n) > budget:
         L = n
-        while math.comb(L + 1, n) <= MAX_BASES:
+        while math.comb(L + 1, n) <= budget:
             L += 1
-        cols = G.norm(dim=-2).argsort(-1, descending=True)[..., :L]
+        cols = _candidate_columns(G, L)
         Gc = torch.gather(G, -1, cols.unsqueeze(-2).expand(*batch, n, L))
     else:
         Gc, L = G, m
