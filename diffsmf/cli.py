@@ -114,7 +114,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     if argv[0] not in COMMANDS:
-        parser.parse_args(argv[:1])  # --version, or prints the error and exits 2
+        try:
+            parser.parse_args(argv[:1])  # --version, or prints the one-line error
+        except SystemExit as exc:
+            return int(exc.code or 0)
     name = argv[0]
     prog = f"diffsmf {name}"
     try:
@@ -133,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                 msg = msg.removeprefix(prefix)
             print(f"{prog}: error: {msg}", file=sys.stderr)
             return EXIT_USAGE
-        raise
+        return int(exc.code or 0)  # argparse: --help (0) or a usage error already printed (2)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

@@ -18,16 +18,57 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["add_arguments", "main", "sets_demo"]
+__all__ = ["add_arguments", "filters_demo", "main", "sets_demo"]
+
+
+PARTS = ("filters", "sets", "pwl")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="diffsmf-demo", help="folder for the figures")
+    """Options of ``diffsmf demo``."""
+    p.add_argument("--out", default="diffsmf-demo", help="folder for the figures (created)")
     p.add_argument(
         "--parts",
         default="filters,sets,pwl",
         help="comma-separated parts to run: filters, sets, pwl",
     )
+    p.add_argument("--trials", type=int, default=10, help="trajectories of the filters part")
+    p.add_argument("--steps", type=int, default=60, help="horizon of the filters part")
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed of the simulated trajectories (filters part)"
+    )
+
+
+def filters_demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
+    """Seed 000 comparison on ``spring_damper``: table text + figure ``filters_demo.png``.
+
+    HSNSMF, MSZM, CDSMF (guaranteed) and the EKF (not guaranteed: its 3-sigma ellipsoid) on
+    ``trials`` worst-case (vertex-noise) trajectories; the figure
+    (:func:`diffsmf.plot.comparison_figure`) shows the mean set area over time and, for
+    trajectory 0, each state's bounds relative to the true state.
+    """
+    from diffsmf import systems
+    from diffsmf.filters.compare import GUARANTEED, _rows, format_table, run_filters
+    from diffsmf.plot import comparison_figure
+
+    system = systems.get("spring_damper")
+    names = ["HSNSMF", "MSZM", "CDSMF", "EKF"]
+    traj, results, seconds = run_filters(system, names, trials, steps, "vertex", seed)
+    rows = _rows(traj, results, seconds)
+    fig_path = Path(outdir) / "filters_demo.png"
+    comparison_figure(traj.x, results, fig_path, {n: n in GUARANTEED for n in names})
+    text = [
+        f"Seed 000 comparison on spring_damper: {trials} trajectories x {steps} steps, "
+        "worst-case (vertex) noise.",
+        "Each filter bounds the state by a set; smaller area = tighter bound. 'outside' counts",
+        "(trajectory, step) pairs whose true state left the set (0 is required of a guaranteed",
+        "filter); the EKF's set is its 3-sigma ellipsoid, shown for reference only.",
+        "",
+        format_table(rows),
+        "",
+        f"Figure (set area over time; x1, x2 bounds minus the truth, trajectory 0): {fig_path}",
+    ]
+    return "\n".join(text)
 
 
 def sets_demo(outdir: Path) -> str:
@@ -49,18 +90,25 @@ def sets_demo(outdir: Path) -> str:
     S = Strip(torch.tensor([1.0, -1.0], dtype=f64), torch.tensor(0.30, dtype=f64), 0.08)
     PS = P.intersect_strip(S)
     ZS = Z.intersect_strip(S)
-    fig, ax = plt.subplots(figsize=(5, 4.5))
-    plot_set(ax, P, facecolor="none", edgecolor="C1", label="outer parallelotope")
+    fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    plot_set(ax, P, facecolor="none", edgecolor="C1", linewidth=1.6,
+             label="P: minimal outer parallelotope of Z")
     plot_set(ax, Z, facecolor="C0", alpha=0.35, edgecolor="C0", label="zonotope Z")
-    plot_set(ax, PS, facecolor="none", edgecolor="C3", linestyle="--", label="P ∩ strip")
-    plot_set(ax, ZS, facecolor="none", edgecolor="C2", linestyle=":", label="Z ∩ strip (Alamo)")
-    for edge in (0.30 - 0.08, 0.30 + 0.08):  # the strip |x1 - x2 - 0.30| <= 0.08
-        ax.axline((edge, 0.0), slope=1.0, color="grey", linewidth=0.8)
+    plot_set(ax, PS, facecolor="none", edgecolor="C3", linestyle="--", linewidth=1.6,
+             label="outer parallelotope of P ∩ strip\n(a bound: may extend beyond P)")
+    plot_set(ax, ZS, facecolor="none", edgecolor="C2", linestyle=":", linewidth=1.8,
+             label="outer zonotope of Z ∩ strip (Alamo)")
+    for j, edge in enumerate((0.30 - 0.08, 0.30 + 0.08)):  # the strip |x1 - x2 - 0.30| <= 0.08
+        ax.axline((edge, 0.0), slope=1.0, color="grey", linewidth=0.8,
+                  label="strip |x1 - x2 - 0.30| <= 0.08" if j == 0 else None)
     ax.set_aspect("equal")
-    ax.legend(fontsize=8)
-    ax.set_title("seed 000 worked example and a strip intersection")
+    ax.set_xlabel("x1")
+    ax.set_ylabel("x2")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0)
+    ax.set_title("seed 000 worked example (eq. 22) and a strip intersection", fontsize=10)
     fig.tight_layout()
-    fig.savefig(outdir / "sets.png", dpi=110)
+    fig.savefig(outdir / "sets.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     rows = ("[" + ", ".join(f"{v:.4f}" for v in row) + "]" for row in P.T.tolist())
     T = "[" + ", ".join(rows) + "]"
@@ -74,18 +122,23 @@ def sets_demo(outdir: Path) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    outdir = Path(args.out)
-    outdir.mkdir(parents=True, exist_ok=True)
+    """Run the demo parts; print their text and where the figures are."""
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
-    unknown = set(parts) - {"filters", "sets", "pwl"}
-    if unknown:
-        raise SystemExit(f"--parts: unknown part(s) {sorted(unknown)}")
+    unknown = set(parts) - set(PARTS)
+    if unknown or not parts:
+        raise ValueError(f"--parts: unknown part(s) {sorted(unknown)}; choose from {list(PARTS)}")
+    for name in ("trials", "steps"):
+        if getattr(args, name, 1) < 1:
+            raise ValueError(f"--{name}: must be >= 1, got {getattr(args, name)}")
+    outdir = Path(args.out)
+    if outdir.exists() and not outdir.is_dir():
+        raise ValueError(f"--out: {str(outdir)!r} exists and is not a folder")
+    outdir.mkdir(parents=True, exist_ok=True)
     for part in parts:
         t0 = time.perf_counter()
         if part == "filters":
-            from diffsmf.filters.compare import demo as filters_demo
-
-            text = filters_demo(outdir)
+            text = filters_demo(outdir, getattr(args, "trials", 10), getattr(args, "steps", 60),
+                                getattr(args, "seed", 0))
         elif part == "sets":
             text = sets_demo(outdir)
         else:

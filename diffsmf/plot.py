@@ -11,6 +11,7 @@ Nothing here calls ``plt.show``; pass an ``Axes`` (use the Agg backend for files
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -23,7 +24,14 @@ if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.filters.base import FilterResult
     from diffsmf.sets.base import ConvexSet
 
-__all__ = ["plot_set", "polygon_2d", "plot_bounds", "plot_volumes"]
+__all__ = [
+    "bounds_figure",
+    "comparison_figure",
+    "plot_bounds",
+    "plot_set",
+    "plot_volumes",
+    "polygon_2d",
+]
 
 
 def _project(S: ConvexSet, dims: tuple[int, int] | None) -> ConvexSet:
@@ -150,3 +158,169 @@ def plot_volumes(
     ax.set_xlabel("k")
     ax.set_ylabel("volume")
     ax.legend()
+
+
+# ---------------------------------------------------------------------- whole figures
+def _pyplot():
+    import matplotlib
+
+    if matplotlib.get_backend().lower() not in ("agg", "pdf", "svg", "cairo"):
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def bounds_figure(
+    lower: np.ndarray | Tensor,
+    upper: np.ndarray | Tensor,
+    path: str | Path,
+    consistent: np.ndarray | Tensor | None = None,
+    truth: np.ndarray | Tensor | None = None,
+    title: str | None = None,
+    guaranteed: bool = True,
+    state_names: list[str] | None = None,
+) -> Path:
+    """Bounds of every state over time for one trajectory -> the PNG at ``path``.
+
+    Args:
+        lower, upper: ``[T+1, n]`` (row 0 = the initial set).
+        consistent: ``[T+1]`` bool; inconsistent steps are marked in red.
+        truth: ``[T+1, n]`` true states, drawn when known (simulations).
+        guaranteed: False for a filter whose bounds carry no guarantee (EKF); the legend
+            says so.
+        state_names: labels of the states (default ``x1 .. xn``).
+
+    One row per state: left, the bounds (shaded) and the truth; right, the bound width
+    ``upper - lower`` on a log scale (bounds that are tight relative to the state's size are
+    invisible on the left and readable on the right).
+    """
+    plt = _pyplot()
+    lo, up = np.asarray(_as_np(lower), float), np.asarray(_as_np(upper), float)
+    if lo.ndim != 2 or lo.shape != up.shape:
+        raise ValueError(f"lower, upper: expected the same shape [T+1, n], got {lo.shape} "
+                         f"and {up.shape}")
+    T1, n = lo.shape
+    names = state_names or [f"x{i + 1}" for i in range(n)]
+    k = np.arange(T1)
+    label = "guaranteed bounds" if guaranteed else "bounds (NOT guaranteed)"
+    bad = None if consistent is None else np.flatnonzero(~np.asarray(_as_np(consistent), bool))
+    fig, axes = plt.subplots(n, 2, figsize=(11, 2.6 * n + 0.9), squeeze=False, sharex=True)
+    for i in range(n):
+        ax, axw = axes[i]
+        ax.fill_between(k, lo[:, i], up[:, i], color="C0", alpha=0.3, linewidth=0, label=label)
+        ax.plot(k, lo[:, i], color="C0", lw=0.9)
+        ax.plot(k, up[:, i], color="C0", lw=0.9)
+        if truth is not None:
+            t = np.asarray(_as_np(truth), float)
+            ax.plot(np.arange(t.shape[0]), t[:, i], color="k", lw=1.0, label="true state")
+        width = up[:, i] - lo[:, i]
+        axw.semilogy(k, np.where(width > 0, width, np.nan), color="C0", lw=1.0,
+                     label=f"width of the {'guaranteed ' if guaranteed else ''}bounds")
+        if bad is not None and bad.size:
+            for a in (ax, axw):
+                for j, kk in enumerate(bad):
+                    a.axvline(kk, color="C3", lw=0.6, alpha=0.7,
+                              label="inconsistent step" if j == 0 else None)
+        ax.set_ylabel(names[i])
+        axw.set_ylabel(f"upper - lower of {names[i]}")
+        ax.grid(alpha=0.3)
+        axw.grid(alpha=0.3, which="both")
+    for a in axes[-1]:
+        a.set_xlabel("step k")
+    axes[0, 0].set_title("bounds over time")
+    axes[0, 1].set_title("bound width (log scale)")
+    handles, labels = [], []
+    for a in axes[0]:
+        for h, lab in zip(*a.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=9,
+               frameon=False)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0.06 if n > 1 else 0.1, 1, 1))
+    out = Path(path)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def _as_np(t: Any) -> np.ndarray:
+    return _np(t) if isinstance(t, Tensor) else np.asarray(t)
+
+
+def comparison_figure(
+    truth: Tensor,
+    results: dict[str, FilterResult],
+    path: str | Path,
+    guaranteed: dict[str, bool] | None = None,
+    index: int = 0,
+) -> Path:
+    """Filters side by side on one batch of trajectories -> the PNG at ``path``.
+
+    Panel 1: mean set area / volume over time (log scale, over the batch). Panels 2..n+1: for
+    trajectory ``index`` and each state, ``upper - x`` (above 0) and ``lower - x`` (below 0):
+    the true state is the zero line, so a guaranteed filter's curves never cross it, and the
+    bounds stay visible when they are tight compared with the state itself. The y-range
+    follows the gaps from step 3 on (the wide initial set is clipped).
+
+    Args:
+        truth: true states ``[B, T+1, n]``.
+        results: ``{name: FilterResult}`` on those trajectories.
+        guaranteed: ``{name: bool}``; a filter marked False (e.g. the EKF) is dashed and
+            labelled "not guaranteed" (default: every name but ``"EKF"`` is guaranteed).
+    """
+    plt = _pyplot()
+    if not results:
+        raise ValueError("results: need at least one FilterResult")
+    x = _np(truth).astype(float)
+    n = x.shape[-1]
+    k = np.arange(x.shape[1])
+    g = {name: name.upper() != "EKF" for name in results}
+    g.update(guaranteed or {})
+    fig, axes = plt.subplots(1, 1 + n, figsize=(4.6 * (1 + n), 4.4))
+    for j, (name, res) in enumerate(results.items()):
+        style = {"color": f"C{j}", "linestyle": "-" if g[name] else "--"}
+        label = name if g[name] else f"{name} (not guaranteed)"
+        axes[0].semilogy(k[1:], _np(res.volume[:, 1:].mean(0)), label=label, **style)
+        for i in range(n):
+            ax = axes[1 + i]
+            ax.plot(k, _np(res.upper[index, :, i]) - x[index, :, i], lw=1.0, **style)
+            ax.plot(k, _np(res.lower[index, :, i]) - x[index, :, i], lw=1.0, **style)
+    axes[0].set_ylabel("mean set area / volume")
+    axes[0].set_title("set size over time (mean over trajectories)")
+    for i in range(n):
+        ax = axes[1 + i]
+        ax.axhline(0.0, color="k", lw=1.2, label="true state" if i == 0 else None)
+        lim = _gap_limit(results, x, index, i)
+        if lim is not None:
+            ax.set_ylim(-lim, lim)
+        ax.set_ylabel(f"bound - true x{i + 1}  (upper above 0, lower below)")
+        ax.set_title(f"bounds of x{i + 1} relative to the truth (trajectory {index})")
+    for ax in axes:
+        ax.set_xlabel("step k")
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    h2, l2 = axes[1].get_legend_handles_labels()
+    fig.legend(handles + h2, labels + l2, loc="lower center", ncol=len(labels) + len(l2),
+               fontsize=10, frameon=False)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    out = Path(path)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def _gap_limit(results: dict[str, FilterResult], x: np.ndarray, index: int, i: int) -> float | None:
+    """y-range of a bounds-minus-truth panel: 1.15 x the largest gap after the first 3 steps
+    (the initial set, much wider, is clipped rather than flattening every later step)."""
+    gaps = []
+    for res in results.values():
+        d = np.abs(np.concatenate([_np(res.upper[index, 3:, i]) - x[index, 3:, i],
+                                   _np(res.lower[index, 3:, i]) - x[index, 3:, i]]))
+        d = d[np.isfinite(d)]
+        if d.size:
+            gaps.append(float(d.max()))
+    return 1.15 * max(gaps) if gaps and max(gaps) > 0 else None

@@ -1,0 +1,432 @@
+r"""``diffsmf filter``: run a set-membership filter on your own model and logged data.
+
+    diffsmf filter --model my_model.py:make_system --data log.csv \
+        --outputs y1 [--inputs u1,u2] --filter hsnsmf --out run/
+
+make_system() (any name; no arguments) returns a diffsmf.System. The data file has one row per
+step: row i holds the input u_i that drives x_i -> x_{i+1} and the measurement y_{i+1} of the
+state it produced (the convention of System.simulate: traj.u[:, i], traj.y[:, i]); the state
+x_0 lies in the system's x0_set. Columns not named by --outputs / --inputs are ignored.
+
+Data formats: CSV with a header row; .npz (each named array of shape [N] or [N, k] is a column
+or a group of k columns, selected by its name); .npy (one [N, C] array, columns named 0..C-1).
+
+Writes to --out: bounds.csv (or bounds.npz with --format npz) with columns step, lower_0..,
+upper_0.., consistent (1/0), one row per step and a row for the initial set at step 0;
+bounds.png, the bounds of every state over time; summary.json (filter, settings, inconsistent
+steps, time). Bounds are written with 17 significant digits, so rounding never cuts into a
+guaranteed set.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib.util
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = [
+    "FilterRun",
+    "add_arguments",
+    "load_model",
+    "main",
+    "read_table",
+    "run_filter",
+    "select_columns",
+    "write_bounds",
+]
+
+GUARANTEED = ("hsnsmf", "mszm", "cdsmf", "esmf", "combined")
+
+
+# ------------------------------------------------------------------ model
+def load_model(spec: str, what: str = "--model"):
+    """``"path/to/file.py:FUNCTION"`` -> the :class:`~diffsmf.System` that ``FUNCTION()`` returns.
+
+    Raises ``ValueError`` / ``FileNotFoundError`` naming ``what`` for a malformed spec, a missing
+    file, an import failure, a missing function or a return value that is not a System.
+    """
+    from diffsmf.systems import System
+
+    path_s, sep, func = spec.rpartition(":")
+    if not sep or not path_s or not func or not func.isidentifier():
+        raise ValueError(f"{what}: expected FILE.py:FUNCTION (e.g. my_model.py:make_system), "
+                         f"got {spec!r}")
+    path = Path(path_s)
+    if not path.is_file():
+        raise FileNotFoundError(2, f"{what}: no such model file", str(path))
+    if path.suffix != ".py":
+        raise ValueError(f"{what}: {str(path)!r} is not a Python file (.py)")
+    mod_name = f"_diffsmf_user_model_{abs(hash(str(path.resolve())))}"
+    loader_spec = importlib.util.spec_from_file_location(mod_name, path)
+    if loader_spec is None or loader_spec.loader is None:  # pragma: no cover
+        raise ValueError(f"{what}: cannot import {str(path)!r}")
+    module = importlib.util.module_from_spec(loader_spec)
+    sys.modules[mod_name] = module
+    try:
+        loader_spec.loader.exec_module(module)
+    except Exception as exc:  # the user's file: report where, keep it one line
+        raise ValueError(f"{what}: importing {str(path)!r} failed: {type(exc).__name__}: {exc}"
+                         ) from exc
+    factory = getattr(module, func, None)
+    if factory is None or not callable(factory):
+        found = sorted(k for k, v in vars(module).items()
+                       if callable(v) and not k.startswith("_") and
+                       getattr(v, "__module__", None) == mod_name)
+        raise ValueError(f"{what}: {str(path)!r} has no function {func!r} (functions there: "
+                         f"{found})")
+    try:
+        system = factory()
+    except Exception as exc:
+        raise ValueError(f"{what}: {func}() failed: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(system, System):
+        raise ValueError(f"{what}: {func}() must return a diffsmf.System, got "
+                         f"{type(system).__name__}")
+    return system
+
+
+# ------------------------------------------------------------------ data
+def _csv_table(path: Path) -> tuple[list[str], list[list[str]]]:
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise ValueError(f"--data: {str(path)!r} is not a text (CSV) file") from None
+    rows = [r for r in csv.reader(text.splitlines()) if any(c.strip() for c in r)]
+    if not rows:
+        raise ValueError(f"--data: {str(path)!r} is empty (expected a header row and data rows)")
+    header = [h.strip() for h in rows[0]]
+    if any(not h for h in header):
+        raise ValueError(f"--data: {str(path)!r}: the header row has an empty column name "
+                         f"({rows[0]})")
+    dup = sorted({h for h in header if header.count(h) > 1})
+    if dup:
+        raise ValueError(f"--data: {str(path)!r}: duplicate column names {dup}")
+    if len(rows) == 1:
+        raise ValueError(f"--data: {str(path)!r} has a header but no data rows")
+    return header, rows[1:]
+
+
+def read_table(path: str | Path) -> dict[str, np.ndarray | list[str]]:
+    """Columns of a data file: ``{name: values}``.
+
+    CSV (header row): every column as a list of strings (converted by :func:`select_columns`,
+    so unused columns may hold text such as time stamps). ``.npz``: each array ``[N]`` or
+    ``[N, k]`` under its name. ``.npy``: one array ``[N, C]`` (or ``[N]``), columns ``"0"``,
+    ``"1"``, ...
+    """
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(2, "--data: no such file", str(p))
+    if p.is_dir():
+        raise ValueError(f"--data: {str(p)!r} is a folder, not a data file")
+    suffix = p.suffix.lower()
+    if suffix in (".npz", ".npy"):
+        try:
+            loaded = np.load(p, allow_pickle=False)
+        except Exception as exc:
+            raise ValueError(f"--data: cannot read {str(p)!r} as {suffix} "
+                             f"({type(exc).__name__}: {exc})") from None
+        if suffix == ".npz":
+            cols = {k: np.asarray(loaded[k]) for k in loaded.files}
+            if not cols:
+                raise ValueError(f"--data: {str(p)!r} holds no arrays")
+            return cols
+        arr = np.asarray(loaded)
+        if arr.ndim == 1:
+            arr = arr[:, None]
+        if arr.ndim != 2:
+            raise ValueError(f"--data: {str(p)!r} must hold a 2-D array [steps, columns], got "
+                             f"shape {arr.shape}")
+        return {str(j): arr[:, j] for j in range(arr.shape[1])}
+    header, rows = _csv_table(p)
+    for i, r in enumerate(rows):
+        if len(r) != len(header):
+            raise ValueError(f"--data: {str(p)!r} line {i + 2} has {len(r)} cells, the header "
+                             f"has {len(header)}")
+    return {h: [r[j].strip() for r in rows] for j, h in enumerate(header)}
+
+
+def _numeric(name: str, values, source: str, allow_blank: bool) -> np.ndarray:
+    """One column as float64 ``[N, k]``; blank / non-numeric cells raise naming row and column."""
+    if isinstance(values, list):
+        out = np.empty(len(values))
+        for i, cell in enumerate(values):
+            if cell == "":
+                if allow_blank:
+                    out[i] = np.nan
+                    continue
+                raise ValueError(f"--data: {source} line {i + 2}, column {name!r} is blank (a "
+                                 "missing measurement? --skip-missing skips those updates)")
+            try:
+                out[i] = float(cell)
+            except ValueError:
+                raise ValueError(f"--data: {source} line {i + 2}, column {name!r}: {cell!r} is "
+                                 "not a number") from None
+        arr = out[:, None]
+    else:
+        arr = np.asarray(values)
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"--data: {source} array {name!r} is not numeric (dtype {arr.dtype})")
+        arr = arr.astype(np.float64)
+        if arr.ndim == 1:
+            arr = arr[:, None]
+        if arr.ndim != 2:
+            raise ValueError(f"--data: {source} array {name!r} must have shape [steps] or "
+                             f"[steps, k], got {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if allow_blank:
+        bad &= ~np.isnan(arr)
+    if bad.any():
+        i = int(np.argwhere(bad)[0, 0])
+        where = f"line {i + 2}" if isinstance(values, list) else f"row {i}"
+        raise ValueError(f"--data: {source} {where}, column {name!r} is {arr[i].tolist()}: "
+                         "values must be finite")
+    return arr
+
+
+def select_columns(
+    table: dict, names: list[str], what: str, source: str, allow_blank: bool = False
+) -> np.ndarray:
+    """Named columns of :func:`read_table`'s result as float64 ``[N, sum of widths]``."""
+    missing = [c for c in names if c not in table]
+    if missing:
+        raise ValueError(f"{what}: no column {missing[0]!r} in {source}; columns there: "
+                         f"{list(table)}")
+    cols = [_numeric(c, table[c], source, allow_blank) for c in names]
+    lengths = {c.shape[0] for c in cols}
+    if len(lengths) > 1:
+        raise ValueError(f"{what}: the columns {names} of {source} have different lengths "
+                         f"{sorted(lengths)}")
+    if cols[0].shape[0] == 0:
+        raise ValueError(f"--data: {source} has no data rows")
+    return np.concatenate(cols, axis=1)
+
+
+def _names(text: str | None) -> list[str]:
+    return [] if not text else [c.strip() for c in text.split(",") if c.strip()]
+
+
+def _floats(text: str | None, what: str, dim: int) -> torch.Tensor | None:
+    if text is None:
+        return None
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{what}: expected comma-separated numbers, got {text!r}") from None
+    if len(vals) not in (1, dim):
+        raise ValueError(f"{what}: expected 1 or {dim} numbers, got {len(vals)}")
+    if not all(np.isfinite(v) and v > 0 for v in vals):
+        raise ValueError(f"{what}: half-widths must be finite and > 0, got {vals}")
+    return torch.tensor(vals, dtype=torch.float64).expand(dim).clone()
+
+
+# ------------------------------------------------------------------ filtering
+@dataclass
+class FilterRun:
+    """Result of :func:`run_filter` for one logged trajectory.
+
+    lower, upper: ``[T+1, n]`` interval hull of the set at each step (row 0 = initial set);
+    consistent: ``[T+1]`` bool (False where the measurement did not meet the predicted set);
+    seconds: wall time of the filter loop.
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    consistent: np.ndarray
+    seconds: float
+
+
+def run_filter(filt, y: torch.Tensor, u: torch.Tensor | None, progress: bool = True) -> FilterRun:
+    """Drive ``filt`` online over one trajectory: ``y [T, m]``, ``u [T, p]`` or None.
+
+    ``state = filt.initial_state(batch=1)``; then, for each step, ``predict(state, u_k)`` and
+    ``update(state, y_{k+1})`` (the loop ``forward`` runs), with a progress bar over steps.
+    """
+    from tqdm.auto import tqdm
+
+    T = y.shape[0]
+    state = filt.initial_state(batch=1)
+    hull = state.set.interval_hull()
+    lows, ups, cons = [hull.lower[0]], [hull.upper[0]], [state.consistent[0]]
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        for k in tqdm(range(T), desc="filter", unit="step", disable=not progress, leave=False):
+            state = filt.predict(state, None if u is None else u[k : k + 1])
+            state = filt.update(state, y[k : k + 1])
+            hull = state.set.interval_hull()
+            lows.append(hull.lower[0])
+            ups.append(hull.upper[0])
+            cons.append(state.consistent[0])
+    seconds = time.perf_counter() - t0
+    return FilterRun(
+        lower=torch.stack(lows).cpu().numpy(),
+        upper=torch.stack(ups).cpu().numpy(),
+        consistent=torch.stack(cons).cpu().numpy().astype(bool),
+        seconds=seconds,
+    )
+
+
+def write_bounds(out: Path, run: FilterRun, fmt: str = "csv") -> Path:
+    """``out/bounds.csv`` (``step, lower_0.., upper_0.., consistent``) or ``out/bounds.npz``."""
+    n = run.lower.shape[1]
+    steps = np.arange(run.lower.shape[0])
+    if fmt == "npz":
+        path = out / "bounds.npz"
+        np.savez(path, step=steps, lower=run.lower, upper=run.upper, consistent=run.consistent)
+        return path
+    path = out / "bounds.csv"
+    head = ["step", *(f"lower_{i}" for i in range(n)), *(f"upper_{i}" for i in range(n)),
+            "consistent"]
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(head)
+        for k in steps:
+            w.writerow([int(k), *(repr(float(v)) for v in run.lower[k]),
+                        *(repr(float(v)) for v in run.upper[k]), int(run.consistent[k])])
+    return path
+
+
+# ------------------------------------------------------------------ command line
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``diffsmf filter``."""
+    from diffsmf.filters import names as filter_names
+
+    a = parser.add_argument
+    a("--model", required=True, metavar="FILE.py:FUNC",
+      help="Python file and the function in it that returns your diffsmf.System")
+    a("--data", required=True, type=Path, metavar="FILE",
+      help="measurements (and inputs): .csv with a header row, .npz or .npy")
+    a("--outputs", required=True, metavar="COLS",
+      help="comma-separated measurement columns, in the order of h(x)")
+    a("--inputs", default=None, metavar="COLS",
+      help="comma-separated input columns, in the order of u (default: none, or the model's "
+           "own inputs schedule)")
+    a("--filter", default="hsnsmf", help=f"filter: {' | '.join(filter_names())}")
+    a("--out", default="diffsmf-run", type=Path, help="output folder (created when missing)")
+    a("--format", default="csv", choices=["csv", "npz"], help="file format of the bounds")
+    a("--process-noise", default=None, metavar="W",
+      help="process-noise half-widths, one number or one per state (default: the model's W)")
+    a("--measurement-noise", default=None, metavar="V",
+      help="measurement-noise half-widths, one number or one per output (default: the "
+           "model's V); e.g. the tuned values of diffsmf tune")
+    a("--skip-missing", action="store_true",
+      help="blank / NaN measurement cells skip that update (default: they are an error)")
+    a("--no-figure", dest="figure", action="store_false", help="do not write bounds.png")
+    a("--quiet", action="store_true", help="no progress bar and no summary on stdout")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run ``diffsmf filter``; exit status 0 (also when steps were inconsistent: see summary)."""
+    import diffsmf as ds
+
+    try:
+        cls = ds.filters.by_name(args.filter)
+    except ValueError:
+        raise ValueError(f"--filter: unknown filter {args.filter!r}; choose from "
+                         f"{ds.filters.names()}") from None
+    system = load_model(args.model)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out: {str(out)!r} exists and is not a folder")
+    source = repr(str(args.data))
+    table = read_table(args.data)
+    outs, ins = _names(args.outputs), _names(args.inputs)
+    if not outs:
+        raise ValueError("--outputs: name at least one measurement column")
+    Y = select_columns(table, outs, "--outputs", source, allow_blank=args.skip_missing)
+    if Y.shape[1] != system.m:
+        raise ValueError(f"--outputs: {outs} give {Y.shape[1]} measurement(s) per step, the "
+                         f"model's h(x) has {system.m}")
+    T = Y.shape[0]
+    dt = system.x0_set.dtype
+    y = torch.as_tensor(Y, dtype=dt)
+    if ins:
+        if system.n_inputs == 0:
+            raise ValueError(f"--inputs: the model {system.name!r} has no inputs "
+                             "(build it with System(..., n_inputs=p))")
+        U = select_columns(table, ins, "--inputs", source)
+        if U.shape[1] != system.n_inputs:
+            raise ValueError(f"--inputs: {ins} give {U.shape[1]} input(s) per step, the model "
+                             f"has n_inputs={system.n_inputs}")
+        if U.shape[0] != T:  # pragma: no cover  (same table: same length)
+            raise ValueError("--inputs: not as many rows as --outputs")
+        u = system.check_input(torch.as_tensor(U), (T,))
+    elif system.n_inputs > 0 and system.inputs is not None:
+        u = torch.cat([system.input_at(k, 1) for k in range(T)], 0)  # the model's schedule
+    elif system.n_inputs > 0:
+        raise ValueError(f"--inputs: the model {system.name!r} has n_inputs="
+                         f"{system.n_inputs} and no inputs schedule; name the input columns")
+    else:
+        u = None
+    kw = {}
+    wn = _floats(args.process_noise, "--process-noise", system.n)
+    vn = _floats(args.measurement_noise, "--measurement-noise", system.m)
+    if wn is not None:
+        kw["process_noise"] = wn
+    if vn is not None:
+        kw["measurement_noise"] = vn
+    if args.skip_missing:
+        kw["skip_nan"] = True
+    filt = cls(system, **kw)
+    run = run_filter(filt, y, u, progress=not args.quiet)
+    out.mkdir(parents=True, exist_ok=True)
+    bounds_path = write_bounds(out, run, args.format)
+    files = {"bounds": bounds_path.name}
+    name = type(filt).__name__
+    guaranteed = args.filter.lower().replace("-", "").replace("_", "") in GUARANTEED
+    if args.figure:
+        from diffsmf.plot import bounds_figure
+
+        title = f"{name} on {system.name}: {T} steps of {Path(args.data).name}"
+        bounds_figure(run.lower, run.upper, out / "bounds.png", consistent=run.consistent,
+                      title=title, guaranteed=guaranteed)
+        files["figure"] = "bounds.png"
+    inconsistent = [int(k) for k in np.flatnonzero(~run.consistent)]
+    skipped = [int(k) + 1 for k in np.flatnonzero(np.isnan(Y).any(1))]
+    summary = {
+        "filter": name,
+        "guaranteed": guaranteed,
+        "model": args.model,
+        "system": system.name,
+        "data": str(args.data),
+        "outputs": outs,
+        "inputs": ins if ins else ("schedule" if u is not None else []),
+        "steps": T,
+        "state_dim": system.n,
+        "settings": {
+            "process_noise": filt.process_noise.detach().tolist()
+            if hasattr(filt, "process_noise") else None,
+            "measurement_noise": filt.measurement_noise.detach().tolist()
+            if hasattr(filt, "measurement_noise") else None,
+            "skip_missing": bool(args.skip_missing),
+            "format": args.format,
+        },
+        "inconsistent_steps": inconsistent,
+        "skipped_updates": skipped,
+        "seconds": run.seconds,
+        "files": {**files, "summary": "summary.json"},
+        "diffsmf_version": ds.__version__,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    if not args.quiet:
+        width = run.upper[-1] - run.lower[-1]
+        print(f"{name} on {system.name}: {T} steps in {run.seconds:.2f} s; final bound widths "
+              f"{np.array2string(width, precision=3)}")
+        if inconsistent:
+            print(f"  {len(inconsistent)} inconsistent step(s) (measurement outside the "
+                  f"predicted set: model, bounds or data violated), first at step "
+                  f"{inconsistent[0]}")
+        else:
+            print("  every measurement was consistent with the model and the noise bounds")
+        if not guaranteed:
+            print(f"  note: {name} is not a guaranteed filter; its bounds are not guaranteed")
+        print(f"  wrote {out / files['bounds']}, " +
+              (f"{out / 'bounds.png'}, " if args.figure else "") + f"{out / 'summary.json'}")
+    return 0
