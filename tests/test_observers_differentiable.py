@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from diffsmf.observers import DifferentiableObserverDesign, design_lipschitz_observer
-from diffsmf.observers.lmi import _problem, _Search
+from diffsmf.observers.lmi import _problem, _Search, _structure_keys
 
 # seed 004 example: structured nonlinearity B_f phi(H x), gamma = 1; max_gain makes it well-posed
 A0 = np.array([[0.0, 1.0], [-1.0, 1.0]])
@@ -31,13 +31,12 @@ def layer(design):
 
 def _ref_bound(A, gamma, alpha):
     """Independent re-solve with cvxpy + Clarabel (the design's own SDP) at a fixed alpha."""
-    prob, par, var = _problem(2, 1, 1, "continuous", False, True)
+    prob, par, var, con = _problem(2, 1, "continuous", False, True, *_structure_keys(BF, H))
     par["margin"].value, par["kappa2"].value = 1e-6, KAPPA**2
-    par["A"].value, par["C"].value, par["Bf"].value = A, C0, BF
-    par["G"].value = gamma**2 * H.T @ H
-    _, vals, status = _Search(prob, par, var, "CLARABEL")(alpha)
-    assert vals is not None, status
-    return float(np.sqrt(vals["mu"] / (alpha * np.linalg.eigvalsh(vals["P"])[0])))
+    par["A"].value, par["C"].value, par["g2"].value = A, C0, gamma**2
+    pt = _Search(prob, par, var, con, "CLARABEL", 2)(alpha)
+    assert pt.ok, pt.status
+    return float(np.sqrt(pt.mu / (alpha * np.linalg.eigvalsh(pt.vals["P"])[0])))
 
 
 def test_bound_and_gain_match_cvxpy_design(design, layer):

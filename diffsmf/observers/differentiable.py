@@ -3,10 +3,10 @@ r"""Differentiable observer design: the seed-004 LMI as a ``cvxpylayers`` layer 
 :class:`DifferentiableObserverDesign` solves, at a FIXED decay rate alpha, the same SDP as
 :func:`~diffsmf.observers.lmi.design_lipschitz_observer` with ``objective="bound"`` (the cvxpy
 problem is built by the same :func:`diffsmf.observers.lmi._problem`, so there is one home for
-the LMI)::
+the LMI: the reduced 2-block LMI, equivalent to the 3-block one, see lmi.py)::
 
-    min mu  s.t.  LMI(P, Y, lambda, mu; A, C, gamma^2 H'H, B_f, alpha) < -margin I,  P >= I
-                  [|Y|_2 <= max_gain, if given]
+    min mu  s.t.  R(P, Y, lambda, nu; A, C, gamma^2, alpha) < -margin I,  P >= I,
+                  (lambda - nu)(mu - nu) >= nu^2,  [|Y|_2 <= max_gain, if given]
 
 and returns L = P^-1 Y (seed 004 eq. 22) and the guaranteed bound (module docstring of lmi.py)
 ``bound = eps sqrt(mu / (alpha lambda_min(P)))`` computed in torch from the layer's outputs, so
@@ -14,8 +14,8 @@ and returns L = P^-1 Y (seed 004 eq. 22) and the guaranteed bound (module docstr
 differentiation of the conic program (diffcp), and d bound / d eps = bound / eps exactly (eps only
 scales the bound).
 
-Why a fixed alpha: the design searches alpha outside the SDP (golden section). At the searched
-optimum alpha* the bound is stationary in alpha, so by the envelope theorem the gradient of the
+Why a fixed alpha: the design searches alpha outside the SDP (a few secant steps on the
+dual sensitivity, lmi.py). At the searched optimum alpha* the bound is stationary in alpha, so by the envelope theorem the gradient of the
 optimal-alpha bound w.r.t. (A, C, gamma) equals the fixed-alpha gradient at alpha* — pass
 ``alpha=design_lipschitz_observer(...).decay``. alpha is also a layer input, so its own gradient
 (~0 at alpha*) is available.
@@ -33,11 +33,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from diffsmf.observers.lmi import _problem
+from diffsmf.observers.lmi import _problem, _structure_keys
 
 __all__ = ["DifferentiableObserverDesign"]
 
-_PARAMS = ("A", "C", "G", "Bf", "alpha", "margin")
+_PARAMS = ("A", "C", "g2", "alpha", "margin")
 _VARS = ("P", "Y", "lam", "mu")
 
 
@@ -93,7 +93,8 @@ class DifferentiableObserverDesign(torch.nn.Module):
         self.register_buffer("Bf", torch.as_tensor(Bf, dtype=torch.float64))
         self.register_buffer("HtH", torch.as_tensor(H.T @ H, dtype=torch.float64))
         # same SDP as design_lipschitz_observer (uncached copy: the layer owns its problem)
-        prob, par, var = _problem.__wrapped__(n, l, Bf.shape[1], time, False, max_gain is not None)
+        prob, par, var, _ = _problem.__wrapped__(n, l, time, False, max_gain is not None,
+                                                 *_structure_keys(Bf, H))
         names = _PARAMS + (("kappa2",) if max_gain is not None else ())
         args = dict(eps=1e-10, max_iters=100_000)
         args.update(solver_args or {})
@@ -109,15 +110,15 @@ class DifferentiableObserverDesign(torch.nn.Module):
         """
         A, C, gamma, eps, alpha = self._check(A, C, lipschitz, approx_error, alpha)
         batch = torch.broadcast_shapes(A.shape[:-2], C.shape[:-2], gamma.shape, eps.shape)
-        G = gamma[..., None, None] ** 2 * self.HtH  # eq. 2: gamma^2 H'H
         n, l = self.n, self.l
-        ins = [
-            A.expand(*batch, n, n), C.expand(*batch, l, n), G.expand(*batch, n, n)
-        ]
+        g2 = (gamma**2).expand(batch)  # eq. 2: gamma^2 (H'H is a constant of the problem)
+        ins = [A.expand(*batch, n, n), C.expand(*batch, l, n)]
         if batch:  # cvxpylayers takes one batch dim: flatten, solve, restore
-            ins = [x.reshape(-1, *x.shape[-2:]) for x in ins]
+            ins = [x.reshape(-1, *x.shape[-2:]) for x in ins] + [g2.reshape(-1)]
+        else:
+            ins.append(g2)
         B = ins[0].shape[0] if batch else None
-        consts = [self.Bf, alpha, torch.tensor(self.margin, dtype=torch.float64)]
+        consts = [alpha, torch.tensor(self.margin, dtype=torch.float64)]
         if self.max_gain is not None:
             consts.append(torch.tensor(self.max_gain**2, dtype=torch.float64))
         if B is not None:
