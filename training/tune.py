@@ -207,6 +207,8 @@ def _write_outputs(
     if vv:
         ax[0].plot(*zip(*vv), "o-", label="validation loss")
     ax[0].set_xlabel("epoch")
+    ax[0].set_ylabel(f"loss ({cfg.loss}: log-volume + penalty)")
+    ax[0].xaxis.get_major_locator().set_params(integer=True)
     ax[0].legend()
     ax[0].set_title("loss")
     if before is not None and after is not None:
@@ -214,6 +216,7 @@ def _write_outputs(
         ax[1].semilogy(k, before, label="before tuning")
         ax[1].semilogy(k, after, label="after tuning")
         ax[1].set_xlabel("step k")
+        ax[1].set_ylabel("mean set area / volume")
         ax[1].set_title(f"mean set area, {test} held-out trajectories")
         ax[1].legend()
     fig.tight_layout()
