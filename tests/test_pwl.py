@@ -295,9 +295,10 @@ def test_maxmin_basis_equivalent_to_nodal_basis():
     Xt = torch.rand(300, 2, generator=_gen(13), dtype=F64) * 4 - 2
     with torch.no_grad():
         assert torch.allclose(nodal.maxmin_basis(Xt) @ w, nodal(Xt), atol=1e-9)
-    adaptive = _small_model()
+    X2 = torch.rand(800, 2, generator=_gen(5), dtype=F64) * 4 - 2
+    interior, _ = fit_scplnn(X2, _f_seed(X2), 0.2, rule="interior")  # seed 004 stellar splits
     with pytest.raises(ValueError, match="star"):
-        adaptive.maxmin_basis(Xt)
+        interior.maxmin_basis(Xt)
 
 
 def test_lattice_form_matches_forward():
@@ -338,5 +339,7 @@ def test_few_samples_are_regularised():
     with torch.no_grad():
         grid = torch.rand(200, 2, generator=_gen(17), dtype=F64)
         assert torch.isfinite(model(grid)).all()
-    m1, r1 = fit_scplnn(X[:1], Y[:1], 0.1)  # one sample: the constant through it
+    with pytest.raises(ValueError, match="X"):  # one sample: no domain to infer (issue 12)
+        fit_scplnn(X[:1], Y[:1], 0.1)
+    m1, r1 = fit_scplnn(X[:1], Y[:1], 0.1, domain=([-1, -1], [1, 1]))  # given domain: constant
     assert r1.converged and float(r1.max_error[0]) < 1e-12

@@ -92,8 +92,10 @@ def test_cli_fit_pwl(tmp_path, capsys):
         pred = model(torch.from_numpy(X))[:, 0].numpy()
     assert np.abs(pred - y).max() < 0.1
     assert model.input_names == ["x1", "x2"] and model.output_names == ["y"]
-    with pytest.raises(SystemExit):
-        main(["fit-pwl", str(csv), "--inputs", "x1,zz", "--outputs", "y", "--eps", "0.1"])
+    capsys.readouterr()
+    rc = main(["fit-pwl", str(csv), "--inputs", "x1,zz", "--outputs", "y", "--eps", "0.1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--inputs" in err and "zz" in err and len(err.strip().splitlines()) == 1
 
 
 def test_demo(tmp_path):

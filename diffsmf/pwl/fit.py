@@ -11,7 +11,9 @@ vertices (:class:`Refiner`); repeat until no region exceeds eps.
 
 from __future__ import annotations
 
+import math
 import time
+import warnings as _warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,14 +23,18 @@ from torch import Tensor
 
 from diffsmf.pwl._threads import single_thread
 from diffsmf.pwl.partition import (
+    BisectionRefiner,
+    PointLocator,
     Refiner,
+    barycentric_matrices,
     cone_partition,
     grid_partition,
     simplex_domain,
 )
 from diffsmf.pwl.scplnn import SCPLNN
 
-__all__ = ["FitReport", "as_xy", "domain_box", "fit_partition", "fit_scplnn", "fit_weights"]
+__all__ = ["FitReport", "as_xy", "default_max_regions", "domain_box", "fit_partition", "fit_scplnn",
+           "fit_weights"]
 
 _F64 = torch.float64
 BOX_MAX_DIM = 5  # beyond this a box domain needs > 2n (n-1)! = 1440 initial simplices
@@ -42,6 +48,11 @@ class FitReport:
     (vertices * outputs); max_error / rms_error ``[p]``: training errors per output; eps ``[p]``;
     converged: max error < eps for every output; rounds: refit rounds; seconds: wall time;
     history: (regions, max scaled error) after each refit; stop_reason: why the loop ended.
+    heldout_max_error ``[p]``: max error on ``heldout_samples`` samples that were left out of
+    the least squares, of the model fitted without them (an estimate of the error *between*
+    samples; None when no samples were held out); the returned model is then refitted on all
+    samples and ``max_error`` / ``converged`` refer to all of them. warnings: degenerate or
+    conflicting data (duplicate X with different Y, samples in a lower-dimensional subspace).
     """
 
     regions: int
@@ -56,16 +67,27 @@ class FitReport:
     stop_reason: str
     history: list[tuple[int, float]] = field(default_factory=list)
     bound_max: Tensor | None = None  # [p] max of ``region_bound`` over the regions, if given
+    heldout_max_error: Tensor | None = None  # [p] max error on the held-out samples (see below)
+    heldout_samples: int = 0
+    warnings: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         me = ", ".join(f"{v:.4g}" for v in self.max_error.tolist())
         ep = ", ".join(f"{v:.4g}" for v in self.eps.tolist())
-        return (f"SCPLNN fit: {self.regions} regions, {self.vertices} vertices, "
+        text = (f"SCPLNN fit: {self.regions} regions, {self.vertices} vertices, "
                 f"{self.parameters} weights; max training error [{me}] (eps [{ep}]), "
                 f"converged={self.converged} ({self.stop_reason}), {self.rounds} rounds, "
-                f"{self.seconds:.3f} s" + ("" if self.bound_max is None else
-                "; certified bound [" + ", ".join(f"{v:.4g}" for v in self.bound_max.tolist())
-                + "]"))
+                f"{self.seconds:.3f} s")
+        if self.heldout_max_error is not None:
+            text += ("; held-out max error [" + ", ".join(
+                f"{v:.4g}" for v in self.heldout_max_error.tolist())
+                + f"] on {self.heldout_samples} samples")
+        if self.bound_max is not None:
+            text += ("; certified bound [" + ", ".join(f"{v:.4g}" for v in self.bound_max.tolist())
+                     + "]")
+        for w in self.warnings:
+            text += f"\nwarning: {w}"
+        return text
 
 
 def as_xy(X: Any, Y: Any) -> tuple[Tensor, Tensor]:
@@ -114,7 +136,9 @@ def fit_weights(vertices: Tensor, idx: Tensor, lam: Tensor, Y: Tensor, ridge: fl
     Sample i has basis values ``lam [N, n+1]`` at vertices ``idx [N, n+1]`` of ``vertices
     [nv, n]``. Solves the normal equations ``(Phi'Phi + a I) W = Phi'Y + a prior`` (Phi sparse,
     n+1 nonzeros per row, ``a = ridge * mean diag(Phi'Phi)``) by Cholesky with one step of
-    iterative refinement; dense up to 3000 vertices, scipy sparse beyond. In the adaptive loop
+    iterative refinement; dense up to 1000 vertices, scipy sparse beyond (a sparse LU for
+    n <= 3, Jacobi-preconditioned conjugate gradients warm-started at ``prior`` for n >= 4,
+    where LU factors fill in). In the adaptive loop
     ``prior`` is the previous model's value at each vertex, so a vertex with too few samples in
     its star keeps the value the coarser model gave it instead of extrapolating noise (a
     documented regularisation; ``ridge = 0`` is plain least squares, minimum-norm if rank
@@ -136,7 +160,7 @@ def fit_weights(vertices: Tensor, idx: Tensor, lam: Tensor, Y: Tensor, ridge: fl
         vals = torch.cat([vals, torch.full((nv,), a, dtype=_F64)])
         if prior is not None:
             rhs = rhs + a * prior
-    if nv <= 3000:
+    if nv <= 1000:
         G = torch.zeros(nv, nv, dtype=_F64)
         G.index_put_((rows, cols), vals, accumulate=True)
         L, info = torch.linalg.cholesky_ex(G)
@@ -152,6 +176,16 @@ def fit_weights(vertices: Tensor, idx: Tensor, lam: Tensor, Y: Tensor, ridge: fl
 
     Gs = sp.csc_matrix((vals.numpy(), (rows.numpy(), cols.numpy())), shape=(nv, nv))
     b = rhs.numpy()
+    if n1 > 4 and ridge > 0:  # n >= 4: direct factors fill in; Jacobi-preconditioned CG
+        d = Gs.diagonal()
+        Minv = sp.diags(1.0 / np.where(d > 0, d, 1.0))
+        x0 = None if prior is None else prior.numpy()
+        cols_out = []
+        for j in range(p):
+            xj, info = spla.cg(Gs, b[:, j], x0=None if x0 is None else x0[:, j], rtol=1e-12,
+                               atol=0.0, maxiter=20 * nv, M=Minv)
+            cols_out.append(xj)
+        return torch.from_numpy(np.stack(cols_out, 1))
     try:
         solve = spla.factorized(Gs)
         W = np.stack([solve(b[:, j]) for j in range(p)], 1)
@@ -194,40 +228,57 @@ def _eps_tensor(eps: Any, p: int) -> Tensor:
     return e
 
 
+def default_max_regions(n: int) -> int:
+    """Default region cap for n inputs: ``10,000 * max(1, n! / 2)``. A shape-regular
+    triangulation has about n! / 2 simplices per vertex (Kuhn: n! per grid cell), so this caps
+    the *vertices* (the fitted parameters) at a few thousand in every dimension."""
+    return 10_000 * max(1, math.factorial(n) // 2)
+
+
 def fit_scplnn(
     X: Any,
     Y: Any,
     eps: Any,
-    max_regions: int = 10_000,
+    max_regions: int | None = None,
     domain: Any = None,
     *,
     max_rounds: int = 200,
-    ridge: float = 0.1,
+    ridge: float | None = None,
     snap: float | None = None,
     mark: float = 0.0,
-    rule: str = "interior",
+    rule: str = "rivara",
     edge_clip: float = 0.5,
     outside: str = "error",
     progress: bool | None = None,
     vertex_fn: Callable[[Tensor], Tensor] | None = None,
     region_bound: Callable[[Tensor, Tensor], Tensor] | None = None,
+    holdout: float = 0.1,
+    seed: int = 0,
+    degenerate: str = "error",
 ) -> tuple[SCPLNN, FitReport]:
-    """Fit an SCPLNN to samples X ``[N, n]``, Y ``[N, p]`` (or [N]) by adaptive splitting.
+    """Fit an SCPLNN to samples X ``[N, n]`` (or [N]), Y ``[N, p]`` (or [N]) by adaptive
+    splitting (seed 004 sec. 3.1.2: least squares, split the regions whose error exceeds eps).
 
     Args:
         eps: target max absolute training error, a number or one per output ``[p]``.
         max_regions: stop splitting once the partition has this many simplices (the last split
-            may overshoot by the children of one split).
+            may overshoot by the children of one split); default :func:`default_max_regions`
+            (10,000 in 1-D/2-D, growing like n! / 2).
         domain: ``None`` (bounding box of X; for n > 5 a simplex containing it), a box
             ``(lower, upper)`` / Interval containing X, ``"box"`` or ``"simplex"``.
         max_rounds: cap on refit rounds.
         ridge: relative weight pulling each vertex towards the previous round's model (see
-            :func:`fit_weights`); matters only for vertices with few samples.
+            :func:`fit_weights`); matters only for vertices with few samples. Default 0.01 for
+            ``rule="rivara"``, 0.1 for the other rules.
         snap: barycentric threshold of the split rule (see :class:`Refiner`); default
             0.5 / (n + 1).
-        rule: ``"interior"`` (seed 004: connect the sample to the region's vertices when it is
-            well inside, else cut the longest edge), ``"edge"`` (always the longest edge) or
-            ``"paper"`` (always connect the sample to the vertices; stalls on slivers).
+        rule: ``"rivara"`` (default: conforming longest-edge bisection of every region above
+            eps, :class:`~diffsmf.pwl.partition.BisectionRefiner`, starting from the Kuhn
+            triangulation of the box; no slivers), ``"interior"`` (seed 004: connect the sample
+            to the region's vertices when it is well inside, else cut the longest edge; the
+            default before issue 15), ``"edge"`` (always the longest edge of the sample's
+            region) or ``"paper"`` (always connect the sample to the vertices; stalls on
+            slivers).
         edge_clip: where the longest edge is cut: the sample's projection clipped to
             ``[edge_clip, 1 - edge_clip]`` (0.5: the midpoint).
         mark: split only regions whose error exceeds ``max(eps, mark * current max error)``
@@ -243,13 +294,87 @@ def fit_scplnn(
             curvature term); when given, every region whose bound is not below eps is also
             split (bisection of its longest edge) and ``converged`` requires it everywhere.
 
-    Returns ``(model, report)``; ``report.converged`` says whether max error < eps everywhere.
+        holdout: fraction of the samples (``rule="rivara"`` only; at least 10 samples, else
+            none) left out of the least squares while splitting. A region is also split when a
+            held-out sample in it misses eps and the region holds at least n + 1 training
+            samples (so the mesh is refined where the error *between* samples is large, not
+            where the data are too sparse to pin the pieces down). Once every sample is within
+            eps the held-out error of that model is recorded (``report.heldout_max_error``),
+            then the model is refitted on all samples and split further if any sample still
+            misses eps. 0 disables.
+        seed: seed of the held-out draw (the fit is deterministic).
+        degenerate: samples in a lower-dimensional affine subspace (collinear 2-D data, a
+            constant input): ``"error"`` (ValueError naming X) or ``"warn"`` (fit anyway, the
+            model is unconstrained off the subspace; recorded in ``report.warnings``). One
+            distinct sample without a ``domain`` is always an error.
+
+    Duplicate X with conflicting Y: eps is unreachable where half the spread of Y at one
+    point exceeds eps; those samples are not split on, the fit stops and
+    ``report.warnings`` / ``stop_reason`` say so (``converged`` is False).
+
+    Returns ``(model, report)``; ``report.converged`` says whether max error < eps at every
+    sample (and the certified bound, when ``region_bound`` is given).
     The loop is made of many small tensor operations, so it runs with one intra-op thread
-    (restored afterwards): on a loaded 2-core machine thread hand-offs cost more than the work.
+    (restored afterwards): on a loaded 2-core machine thread hand-offs cost more than the work;
+    it also makes the result independent of the caller's thread count.
     """
+    if rule not in ("rivara", "interior", "edge", "paper"):
+        raise ValueError(f"rule: expected 'rivara', 'interior', 'edge' or 'paper', got {rule!r}")
+    if not 0 <= holdout < 1:
+        raise ValueError(f"holdout: expected a fraction in [0, 1), got {holdout}")
+    if degenerate not in ("error", "warn"):
+        raise ValueError(f"degenerate: expected 'error' or 'warn', got {degenerate!r}")
+    if ridge is None:
+        ridge = 0.01 if rule == "rivara" else 0.1
+    opts = _Opts(holdout=holdout if rule == "rivara" else 0.0, seed=seed, degenerate=degenerate)
     with single_thread():
         return _fit(X, Y, eps, max_regions, domain, max_rounds, ridge, snap, mark, rule,
-                    edge_clip, outside, progress, _Known(vertex_fn, region_bound))
+                    edge_clip, outside, progress, _Known(vertex_fn, region_bound), opts)
+
+
+@dataclass
+class _Opts:
+    holdout: float = 0.0
+    seed: int = 0
+    degenerate: str = "error"
+
+
+def _check_samples(X: Tensor, Y: Tensor, e: Tensor, domain: Any, degenerate: str
+                   ) -> tuple[list[str], Tensor]:
+    """Degenerate and conflicting data. Returns (warnings, unreachable [N] bool): samples whose
+    duplicates (same X) have a Y spread with half-range >= eps, where no model meets eps."""
+    N, n = X.shape
+    warns: list[str] = []
+    uniq, inv = torch.unique(X, dim=0, return_inverse=True)
+    G = uniq.shape[0]
+    if G == 1 and domain is None:
+        raise ValueError(f"X: all {N} samples are the same point {uniq[0].tolist()}; a domain "
+                         "cannot be inferred from one point (pass domain=(lower, upper))")
+    if G >= 2 and n >= 2:
+        sv = torch.linalg.svdvals(uniq - uniq.mean(0))
+        rank = int((sv > 1e-9 * sv[0]).sum())
+        if rank < n:
+            msg = (f"X: the samples lie in a {rank}-dimensional affine subspace of R^{n} "
+                   "(e.g. collinear points in 2-D, or a constant input); the model is not "
+                   "determined off that subspace")
+            if degenerate == "error":
+                raise ValueError(msg + " (pass degenerate='warn' to fit anyway)")
+            warns.append(msg)
+    unreachable = torch.zeros(N, dtype=torch.bool)
+    if G < N:
+        p = Y.shape[1]
+        big = torch.full((G, p), -math.inf, dtype=_F64)
+        ymax = big.scatter_reduce(0, inv[:, None].expand(-1, p), Y, "amax")
+        ymin = (-big).scatter_reduce(0, inv[:, None].expand(-1, p), Y, "amin")
+        half = 0.5 * (ymax - ymin)
+        bad_g = (half >= e).any(-1)
+        if bool(bad_g.any()):
+            unreachable = bad_g[inv]
+            warns.append(f"eps unreachable at {int(unreachable.sum())} samples: "
+                         f"{int(bad_g.sum())} distinct X values carry conflicting Y "
+                         f"(half-range of Y up to {float((half / e).amax()):.3g} eps); "
+                         "no model can meet eps there")
+    return warns, unreachable
 
 
 @dataclass
@@ -276,23 +401,29 @@ class _Known:
                 S.shape[0], W.shape[1])
 
 
-def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: int, ridge: float,
-         snap: float, mark: float, rule: str, edge_clip: float, outside: str,
-         progress: bool | None, known: _Known
+def _fit(X: Any, Y: Any, eps: Any, max_regions: int | None, domain: Any, max_rounds: int,
+         ridge: float, snap: float, mark: float, rule: str, edge_clip: float, outside: str,
+         progress: bool | None, known: _Known, opts: _Opts
          ) -> tuple[SCPLNN, FitReport]:
     t0 = time.perf_counter()
     X, Y = as_xy(X, Y)
     N, n = X.shape
     p = Y.shape[1]
     e = _eps_tensor(eps, p)
+    if max_regions is None:
+        max_regions = default_max_regions(n)
     if max_regions < 1:
         raise ValueError(f"max_regions: must be >= 1, got {max_regions}")
+    if domain is not None and isinstance(domain, str) and domain not in ("box", "simplex"):
+        raise ValueError(f"domain: expected None, 'box', 'simplex' or (lower, upper), got {domain}")
+    warns, unreachable = _check_samples(X, Y, e, None if isinstance(domain, str) else domain,
+                                        opts.degenerate)
+    for w in warns:
+        _warnings.warn(f"fit_scplnn: {w}", stacklevel=3)
     lo, hi = domain_box(X, domain)
     snap = 0.5 / (n + 1) if snap is None else float(snap)
     use_box = domain == "box" or (not isinstance(domain, str) and (domain is not None or
                                                                     n <= BOX_MAX_DIM))
-    if domain is not None and isinstance(domain, str) and domain not in ("box", "simplex"):
-        raise ValueError(f"domain: expected None, 'box', 'simplex' or (lower, upper), got {domain}")
 
     # Step 1: one affine function by least squares
     Xa = torch.cat([X, torch.ones(N, 1, dtype=_F64)], 1)
@@ -300,6 +431,15 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: in
     score = ((Y - Xa @ coef).abs() / e).amax(-1)
     history = [(1, float(score.max()))]
     affine_ok = float(score.max()) < 1 and known.vertex_fn is None and known.region_bound is None
+    ctx = _Ctx(warnings=warns, unreachable=unreachable)
+    if affine_ok:
+        V, S = grid_partition(lo, hi, 1) if use_box else (simplex_domain(lo, hi),
+                                                          torch.arange(n + 1)[None])
+        return _finish(V, S, coef, None, X, Y, e, t0, 0, "affine fit below eps", history,
+                       outside, use_box, ctx=ctx)
+    if rule == "rivara":
+        return _bisection_loop(X, Y, e, lo, hi, use_box, coef, t0, max_regions, max_rounds,
+                               ridge, mark, outside, progress, history, known, opts, ctx)
     if use_box:
         if affine_ok:
             V, S = grid_partition(lo, hi, 1)
@@ -322,13 +462,23 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int, domain: Any, max_rounds: in
     assign = ref.relocate(X, ref.alive.nonzero().flatten())
     prior = torch.cat([ref.V, torch.ones(ref.V.shape[0], 1, dtype=_F64)], 1) @ coef
     return _adaptive_loop(ref, assign, prior, X, Y, e, t0, max_regions, max_rounds, ridge, mark,
-                          outside, use_box, progress, history, known)
+                          outside, use_box, progress, history, known, ctx)
+
+
+@dataclass
+class _Ctx:
+    """Data checks carried to the report: warnings and the unreachable (conflicting) samples."""
+
+    warnings: list[str] = field(default_factory=list)
+    unreachable: Tensor | None = None
+    heldout: Tensor | None = None  # [p] held-out max error
+    n_heldout: int = 0
 
 
 def _adaptive_loop(ref: Refiner, assign: Tensor, prior: Tensor, X: Tensor, Y: Tensor,
                    e: Tensor, t0: float, max_regions: int, max_rounds: int, ridge: float,
                    mark: float, outside: str, use_box: bool, progress: bool | None,
-                   history: list, known: _Known) -> tuple[SCPLNN, FitReport]:
+                   history: list, known: _Known, ctx: _Ctx) -> tuple[SCPLNN, FitReport]:
     """Step 3 of sec. 3.1.2: refit, split every region above eps at its max-error sample."""
     from tqdm.auto import tqdm
 
@@ -348,6 +498,8 @@ def _adaptive_loop(ref: Refiner, assign: Tensor, prior: Tensor, X: Tensor, Y: Te
         prior = W
         resid = (lam[..., None] * W[idx]).sum(1) - Y
         score = (resid.abs() / e).amax(-1)  # [N] error in units of eps
+        if ctx.unreachable is not None and bool(ctx.unreachable.any()):
+            score = torch.where(ctx.unreachable, 0.0, score)  # conflicting duplicates: no split
         live = ref.alive.nonzero().flatten()
         rb = known.bound(V, S_all[live], W)
         rscore = None if rb is None else (rb / e).amax(-1)  # [M] region bound in units of eps
@@ -395,7 +547,160 @@ def _adaptive_loop(ref: Refiner, assign: Tensor, prior: Tensor, X: Tensor, Y: Te
         W = (fit_weights(ref.V, ref.S[assign], ref.lam(X, assign), Y, ridge, prior)
              if known.vertex_fn is None else known.weights(ref.V, Y.shape[1]))
     V, S, _ = ref.compact()
-    return _finish(V, S, None, W, X, Y, e, t0, rounds, reason, history, outside, use_box, known)
+    return _finish(V, S, None, W, X, Y, e, t0, rounds, reason, history, outside, use_box, known,
+                   ctx)
+
+
+def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use_box: bool,
+                    coef: Tensor, t0: float, max_regions: int, max_rounds: int, ridge: float,
+                    mark: float, outside: str, progress: bool | None, history: list,
+                    known: _Known, opts: _Opts, ctx: _Ctx) -> tuple[SCPLNN, FitReport]:
+    """Seed 004 sec. 3.1.2 Step 3 with conforming longest-edge bisection (``rule="rivara"``).
+
+    Start: the Kuhn triangulation of the box (n! simplices) or the enclosing simplex. Each
+    round: locate all samples, least-squares vertex weights on the training samples (or
+    ``vertex_fn``), then bisect every region holding a sample whose error is >= eps (all
+    regions sharing the face the sample lies on, when it lies on one), every region whose
+    held-out sample misses eps while it holds >= n + 1 training samples, and every region whose
+    ``region_bound`` is >= eps. Phase 1 uses a held-out part of the samples; phase 2 refits on
+    all of them (see :func:`fit_scplnn`)."""
+    from tqdm.auto import tqdm
+
+    N, n = X.shape
+    if use_box:
+        V0, S0 = grid_partition(lo, hi, 1)
+    else:
+        V0, S0 = simplex_domain(lo, hi), torch.arange(n + 1)[None]
+    ref = BisectionRefiner(V0, S0, scale=hi - lo, min_edge=1e-7)
+    prior = torch.cat([V0, torch.ones(V0.shape[0], 1, dtype=_F64)], 1) @ coef
+    k_hold = int(opts.holdout * N)
+    if k_hold < 10 or N - k_hold < n + 2:
+        k_hold = 0
+    train = torch.ones(N, dtype=torch.bool)
+    if k_hold:
+        perm = torch.randperm(N, generator=torch.Generator().manual_seed(opts.seed))
+        train[perm[:k_hold]] = False
+    unreach = ctx.unreachable if ctx.unreachable is not None else torch.zeros(N, dtype=torch.bool)
+    bar = tqdm(total=None, disable=(not progress) if progress is not None else None,
+               delay=0 if progress else 2.0, desc="fit_scplnn", unit="round", leave=False)
+    reason, rounds, phase = "max_rounds reached", 0, 1 if k_hold else 2
+    W = prior
+    Xn = X.numpy()
+    gs = PointLocator(V0, S0, barycentric_matrices(V0, S0)).locate(X)[0].numpy()
+    while rounds < max_rounds:
+        rounds += 1
+        V, S = ref.V, ref.S
+        # new vertices: the current model there (midpoint of the bisected edge)
+        prior = _extend_prior(prior, ref.parents)
+        sid, lam = _locate_tracked(ref, Xn, gs)
+        idx = S[sid]
+        if known.vertex_fn is None:
+            W = fit_weights(V, idx[train], lam[train], Y[train], ridge, prior)
+        else:
+            W = known.weights(V, Y.shape[1])
+        prior = W
+        resid = (lam[..., None] * W[idx]).sum(1) - Y
+        score = (resid.abs() / e).amax(-1)  # [N] in units of eps
+        score = torch.where(unreach, 0.0, score)
+        rb = known.bound(V, S, W)
+        rscore = None if rb is None else (rb / e).amax(-1)
+        worst = max(float(score.max()), 0.0 if rscore is None else float(rscore.max()))
+        history.append((S.shape[0], worst))
+        bar.update(1)
+        bar.set_postfix(regions=S.shape[0], max_err_over_eps=f"{worst:.3g}", phase=phase)
+        level = max(1.0, mark * worst)
+        bad = score >= level
+        if phase == 1:  # held-out samples count only where the region is resolvable
+            cnt = torch.bincount(sid[train], minlength=S.shape[0])
+            bad = bad & (train | (cnt[sid] >= n + 1))
+        marked_local = set(sid[bad].tolist())
+        onface = bad & (lam.amin(-1) < 1e-9)
+        if bool(onface.any()):  # a sample on a face: every region sharing the face
+            for row, lm in zip(idx[onface].tolist(), lam[onface].tolist()):
+                marked_local.update(-1 - g for g in ref.containing(
+                    [v for v, w in zip(row, lm) if w > 1e-9]))
+        if rscore is not None:
+            marked_local.update((rscore >= level).nonzero().flatten().tolist())
+        if not marked_local:
+            if phase == 1:  # phase 1 done: record the held-out error, refit on all samples
+                ctx.heldout = resid[~train].abs().amax(0)
+                ctx.n_heldout = k_hold
+                train = torch.ones(N, dtype=torch.bool)
+                phase = 2
+                continue
+            reason = "max error below eps" if worst < 1 else "no splittable region left"
+            break
+        if ref.n_simplices >= max_regions:
+            reason = "max_regions reached"
+            break
+        live = ref.live
+        glob = [(-1 - m) if m < 0 else int(live[m]) for m in marked_local]
+        pr = torch.zeros(ref.M, dtype=_F64)
+        reg_score = torch.zeros(S.shape[0], dtype=_F64).scatter_reduce(0, sid, score, "amax")
+        pr[live] = reg_score
+        if rscore is not None:
+            pr[live] = torch.maximum(pr[live], rscore)
+        glob.sort(key=lambda g: -float(pr[g]) if g < pr.shape[0] else 0.0)
+        added = 0
+        for g in glob:
+            added += ref.refine(g)
+            if ref.n_simplices >= max_regions:
+                break
+        if added == 0:
+            reason = "no splittable region left (regions at the minimum edge length)"
+            if phase == 1:
+                ctx.heldout = resid[~train].abs().amax(0)
+                ctx.n_heldout = k_hold
+                train = torch.ones(N, dtype=torch.bool)
+                phase = 2
+                continue
+            break
+    bar.close()
+    if phase == 1:  # stopped by a cap in phase 1: held-out error now, then refit on all
+        ctx.heldout = resid[~train].abs().amax(0)
+        ctx.n_heldout = k_hold
+    V, S = ref.V, ref.S
+    if prior.shape[0] < V.shape[0] or phase == 1:
+        prior = _extend_prior(prior, ref.parents)
+        if known.vertex_fn is None:
+            sid, lam = _locate_tracked(ref, Xn, gs)
+            W = fit_weights(V, S[sid], lam, Y, ridge, prior)
+        else:
+            W = known.weights(V, Y.shape[1])
+    return _finish(V, S, None, W, X, Y, e, t0, rounds, reason, history, outside, use_box, known,
+                   ctx)
+
+
+def _locate_tracked(ref: BisectionRefiner, Xn: Any, gs: Any) -> tuple[Tensor, Tensor]:
+    """Samples' live simplices (local ids ``[N]``) and barycentric coordinates ``[N, n+1]``,
+    updating ``gs`` (global ids, numpy, in place) by descending the bisections."""
+    import numpy as np
+
+    gs[:] = ref.descend(Xn, gs)
+    live = ref.live.numpy()
+    remap = np.full(ref.M, -1, dtype=np.int64)
+    remap[live] = np.arange(len(live))
+    B = ref.bary(gs)
+    lam = np.einsum("kij,kj->ki", B[:, :, :-1], Xn) + B[:, :, -1]
+    lam = np.clip(lam, 0.0, None)
+    lam /= lam.sum(-1, keepdims=True)
+    return torch.from_numpy(remap[gs]), torch.from_numpy(lam)
+
+
+def _extend_prior(prior: Tensor, parents: list[tuple[int, int]]) -> Tensor:
+    """Values ``[nv, p]`` at all vertices: new vertex k is the midpoint of edge ``parents[k]``,
+    so the current (continuous, edge-linear) model there is the mean of its endpoints'."""
+    k0, nv = prior.shape[0], len(parents)
+    if k0 >= nv:
+        return prior
+    import numpy as np
+
+    P = np.empty((nv, prior.shape[1]))
+    P[:k0] = prior.numpy()
+    for k in range(k0, nv):  # parents precede children
+        a, b = parents[k]
+        P[k] = 0.5 * (P[a] + P[b])
+    return torch.from_numpy(P)
 
 
 def _longest_edge_midpoint(ref: Refiner, s: int) -> Tensor:
@@ -429,7 +734,8 @@ def _first_per_group(g: Tensor) -> tuple[Tensor, Tensor]:
 
 def _finish(V: Tensor, S: Tensor, coef: Tensor | None, W: Tensor | None, X: Tensor, Y: Tensor,
             e: Tensor, t0: float, rounds: int, reason: str, history: list, outside: str,
-            box: bool, known: _Known | None = None) -> tuple[SCPLNN, FitReport]:
+            box: bool, known: _Known | None = None, ctx: _Ctx | None = None
+            ) -> tuple[SCPLNN, FitReport]:
     """Build the model (weights W, or the affine ``coef`` at the vertices) and the report."""
     if W is None:
         W = torch.cat([V, torch.ones(V.shape[0], 1, dtype=_F64)], 1) @ coef
@@ -449,4 +755,10 @@ def _finish(V: Tensor, S: Tensor, coef: Tensor | None, W: Tensor | None, X: Tens
         eps=e, converged=bool((err.amax(0) < e).all()) and (bmax is None or bool((bmax < e).all())),
         rounds=rounds, seconds=time.perf_counter() - t0, stop_reason=reason, history=history,
         bound_max=bmax)
+    if ctx is not None:
+        report.warnings = list(ctx.warnings)
+        report.heldout_max_error = ctx.heldout
+        report.heldout_samples = ctx.n_heldout
+        if ctx.unreachable is not None and bool(ctx.unreachable.any()):
+            report.stop_reason += "; eps unreachable at conflicting duplicate samples"
     return model, report

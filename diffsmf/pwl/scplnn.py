@@ -30,6 +30,13 @@ _OUTSIDE = ("error", "clamp", "extrapolate")
 _F64 = torch.float64
 
 
+def _tracing() -> bool:
+    """Inside torch.compile or a torch.func transform (vmap, grad, jacrev, ...)."""
+    from torch._C._functorch import peek_interpreter_stack
+
+    return bool(torch.compiler.is_compiling()) or peek_interpreter_stack() is not None
+
+
 class Regions(NamedTuple):
     """Regions of an SCPLNN: simplex ``vertices [M, n+1, n]`` and affine maps ``A [M, p, n]``,
     ``b [M, p]`` with ``f(x) = A_k x + b_k`` on simplex k."""
@@ -88,11 +95,14 @@ class SCPLNN(nn.Module):
         if weight.shape[0] != vertices.shape[0]:
             raise ValueError(
                 f"weight: expected [{vertices.shape[0]}, p], got {tuple(weight.shape)}")
+        if not bool(torch.isfinite(weight.detach()).all()):
+            raise ValueError("weight: contains NaN or inf")
         if outside not in _OUTSIDE:
             raise ValueError(f"outside: must be one of {_OUTSIDE}, got {outside!r}")
         self.register_buffer("vertices", vertices.clone())
         self.register_buffer("simplices", simplices.clone())
         self.register_buffer("box_domain", torch.tensor(bool(box_domain)))
+        self._box = bool(box_domain)  # Python copy: no tensor-to-bool inside forward
         self.weight = nn.Parameter(weight.clone())
         self.outside = outside
         self.atol = atol
@@ -131,6 +141,11 @@ class SCPLNN(nn.Module):
                 self.simplices._version, tuple(self.simplices.shape))
 
     def _get(self, name: str) -> Any:
+        if torch.compiler.is_compiling():  # no data_ptr / cache checks inside a graph
+            if name not in self._cache:
+                raise RuntimeError("SCPLNN: evaluate the model once (or call prepare()) before "
+                                   "torch.compile, so that its point locator is built")
+            return self._cache[name]
         if self._cache.get("key") != self._key():
             self._cache = {"key": self._key()}
         if name not in self._cache:
@@ -139,6 +154,12 @@ class SCPLNN(nn.Module):
             elif name == "locator":
                 self._cache[name] = PointLocator(self.vertices, self.simplices, self._get("bary"))
         return self._cache[name]
+
+    def prepare(self) -> SCPLNN:
+        """Build the barycentric matrices and the point locator now (they are otherwise built
+        on first use); needed once before ``torch.compile``. Returns self."""
+        self._get("locator")
+        return self
 
     @property
     def bary(self) -> Tensor:
@@ -151,11 +172,14 @@ class SCPLNN(nn.Module):
         s, lam = self._get("locator").locate(x)
         return s, lam.amin(-1) >= -self.atol
 
-    def _prepare(self, x: Tensor, outside: str) -> tuple[Tensor, Tensor]:
+    def _prepare(self, x: Tensor, outside: str, traced: bool = False) -> tuple[Tensor, Tensor]:
         """Apply the outside policy; return (points to evaluate [N, n], simplex ids [N])."""
-        if self.box_domain and outside == "clamp":
+        if self._box and outside == "clamp":
             x = torch.maximum(torch.minimum(x, self.upper), self.lower)
-        s, inside = self.locate(x)
+        s, lam = self._get("locator").locate(x, padded=traced)
+        if traced:  # no data-dependent check inside vmap / jacrev / torch.compile
+            return x, s
+        inside = lam.amin(-1) >= -self.atol
         if outside == "error" and not bool(inside.all()):
             bad = x[~inside][0].tolist()
             raise ValueError(
@@ -166,23 +190,34 @@ class SCPLNN(nn.Module):
 
     def forward(self, x: Tensor, outside: str | None = None) -> Tensor:
         """Evaluate the model: x ``[..., n]`` -> ``[..., p]``; differentiable in x and weight.
+        A model with one input also takes x ``[...]`` (scalar inputs, as ``fit_scplnn`` accepts
+        a 1-D X) and returns ``[..., p]``.
 
         f(x) = sum_j lam_j(x) W[v_j] on the simplex containing x (nodal form of eq. 11).
+
+        Works under ``torch.func.vmap`` / ``jacrev`` / ``grad`` and ``torch.compile(fullgraph=
+        True)`` (call the model once, or :meth:`prepare`, before compiling): point location is
+        a fixed-shape gather, and inside those transforms the data-dependent checks are
+        skipped (NaN in x is not reported and ``outside="error"`` returns the extrapolated
+        value instead of raising).
         """
         outside = outside or self.outside
         if outside not in _OUTSIDE:
             raise ValueError(f"outside: must be one of {_OUTSIDE}, got {outside!r}")
+        traced = _tracing()
         x = torch.as_tensor(x, dtype=self.weight.dtype)
+        if self.n_inputs == 1 and (x.dim() == 0 or x.shape[-1] != 1):
+            x = x[..., None]  # scalar inputs
         if x.shape[-1:] != (self.n_inputs,):
             raise ValueError(f"x: expected [..., {self.n_inputs}], got {tuple(x.shape)}")
-        if not torch.isfinite(x.detach()).all():
+        if not traced and not torch.isfinite(x.detach()).all():
             raise ValueError("x: contains NaN or inf")
         batch = x.shape[:-1]
         xf = x.reshape(-1, self.n_inputs)
-        xe, s = self._prepare(xf, outside)
+        xe, s = self._prepare(xf, outside, traced)
         Bm = self.bary[s]  # [N, n+1, n+1]
         lam = (Bm[..., :-1] @ xe[..., None]).squeeze(-1) + Bm[..., -1]
-        if outside == "clamp" and not bool(self.box_domain):
+        if outside == "clamp" and not self._box:
             lam = lam.clamp_min(0)
             lam = lam / lam.sum(-1, keepdim=True)
         W = self.weight[self.simplices[s]]  # [N, n+1, p]
@@ -345,6 +380,7 @@ class SCPLNN(nn.Module):
         self._cache = {}
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing, unexp,
                                       err)
+        self._box = bool(self.box_domain)
 
     @classmethod
     def from_state_dict(cls, state_dict: dict[str, Tensor], **kwargs: Any) -> SCPLNN:
@@ -389,22 +425,100 @@ class SCPLNN(nn.Module):
 
     @classmethod
     def from_json(cls, data: dict[str, Any] | str | Path) -> SCPLNN:
-        """Inverse of :meth:`to_json` (a dict, a JSON string or a path to a .json file)."""
+        """Inverse of :meth:`to_json` (a dict, a JSON string or a path to a .json file).
+
+        Validated on load; a ValueError names the field: truncated / invalid JSON, a wrong
+        ``format``, ``vertices`` / ``weights`` that are not finite numbers (NaN, null, strings),
+        ``simplices`` that are not vertex indices or are degenerate, ``domain`` with
+        upper < lower or not the vertices' bounding box, ``regions`` whose affine maps disagree
+        with the weights, an unknown ``outside`` policy.
+        """
         if isinstance(data, Path) or (isinstance(data, str) and not data.lstrip().startswith("{")):
-            data = json.loads(Path(data).read_text())
-        elif isinstance(data, str):
-            data = json.loads(data)
-        if data.get("format") != "diffsmf.scplnn":
-            raise ValueError("data: not a diffsmf.scplnn JSON model")
-        return cls(
-            torch.tensor(data["vertices"], dtype=_F64),
-            torch.tensor(data["simplices"], dtype=torch.long),
-            torch.tensor(data["weights"], dtype=_F64),
-            outside=data.get("outside", "error"),
-            box_domain=data.get("box_domain", True),
-            input_names=data.get("input_names"),
-            output_names=data.get("output_names"),
-        )
+            path = Path(data)
+            if not path.exists():
+                raise FileNotFoundError(2, "no such model file", str(path))
+            data = path.read_text()
+        if isinstance(data, str):
+            try:
+                data = json.loads(data)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"data: not valid JSON (truncated?): {exc}") from None
+        if not isinstance(data, dict) or data.get("format") != "diffsmf.scplnn":
+            raise ValueError("format: not a diffsmf.scplnn JSON model")
+
+        def _num(name: str, dims: int) -> Tensor:
+            if name not in data:
+                raise ValueError(f"{name}: missing from the model JSON")
+            try:
+                t = torch.tensor(data[name], dtype=_F64)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                raise ValueError(f"{name}: expected a {dims}-D array of numbers ({exc})"
+                                 ) from None
+            if t.dim() != dims:
+                raise ValueError(f"{name}: expected a {dims}-D array, got shape "
+                                 f"{tuple(t.shape)}")
+            if not bool(torch.isfinite(t).all()):
+                raise ValueError(f"{name}: contains NaN or inf")
+            return t
+
+        V = _num("vertices", 2)
+        W = _num("weights", 2)
+        Sf = _num("simplices", 2)
+        if bool((Sf != Sf.round()).any()):
+            raise ValueError("simplices: expected integer vertex indices")
+        S = Sf.long()
+        nv, n = V.shape
+        if S.shape[1] != n + 1 or (S.numel() and (int(S.min()) < 0 or int(S.max()) >= nv)):
+            raise ValueError(f"simplices: expected [M, {n + 1}] indices in [0, {nv})")
+        if W.shape[0] != nv:
+            raise ValueError(f"weights: expected [{nv}, p], got {tuple(W.shape)}")
+        vol = torch.linalg.det(V[S][:, 1:] - V[S][:, :1]).abs() if n > 0 else None
+        scale = float((V.amax(0) - V.amin(0)).prod())
+        if vol is not None and bool((vol <= 1e-14 * max(scale, 1e-300)).any()):
+            raise ValueError(f"simplices: {int((vol <= 1e-14 * scale).sum())} degenerate "
+                             "(zero-volume) simplices")
+        dom = data.get("domain")
+        if dom is not None:
+            try:
+                lo = torch.tensor(dom["lower"], dtype=_F64)
+                hi = torch.tensor(dom["upper"], dtype=_F64)
+            except (TypeError, ValueError, KeyError, RuntimeError) as exc:
+                raise ValueError(f"domain: expected lower and upper lists of numbers ({exc})"
+                                 ) from None
+            if lo.shape != (n,) or hi.shape != (n,) or not bool(torch.isfinite(lo).all()
+                                                                 and torch.isfinite(hi).all()):
+                raise ValueError(f"domain: expected finite lower and upper of length {n}")
+            if bool((hi < lo).any()):
+                raise ValueError("domain: upper < lower")
+            tol = 1e-9 * (1 + (V.amax(0) - V.amin(0)).abs().max())
+            if bool(((lo - V.amin(0)).abs() > tol).any() or ((hi - V.amax(0)).abs() > tol).any()):
+                raise ValueError("domain: lower/upper are not the bounding box of the vertices")
+        outside = data.get("outside", "error")
+        if outside not in _OUTSIDE:
+            raise ValueError(f"outside: must be one of {_OUTSIDE}, got {outside!r}")
+        box = data.get("box_domain", True)
+        if not isinstance(box, bool):
+            raise ValueError(f"box_domain: expected true or false, got {box!r}")
+        model = cls(V, S, W, outside=outside, box_domain=box,
+                    input_names=data.get("input_names"), output_names=data.get("output_names"))
+        regs = data.get("regions")
+        if regs is not None:
+            try:
+                A = torch.tensor([r["A"] for r in regs], dtype=_F64)
+                b = torch.tensor([r["b"] for r in regs], dtype=_F64)
+            except (TypeError, ValueError, KeyError, RuntimeError) as exc:
+                raise ValueError(f"regions: expected a list of {{A, b}} pieces ({exc})") from None
+            with torch.no_grad():
+                R = model.regions()
+            if A.shape != R.A.shape or b.shape != R.b.shape:
+                raise ValueError(f"regions: expected {R.A.shape[0]} pieces of shape "
+                                 f"{tuple(R.A.shape[1:])}")
+            big = 1 + float(W.abs().max()) * (1 + float(V.abs().max()))
+            finite = bool(torch.isfinite(A).all() and torch.isfinite(b).all())
+            if not finite or float((A - R.A).abs().max()) > 1e-6 * big or float(
+                    (b - R.b).abs().max()) > 1e-6 * big:
+                raise ValueError("regions: the affine pieces disagree with weights and vertices")
+        return model
 
     def extra_repr(self) -> str:
         return (f"n_inputs={self.n_inputs}, n_outputs={self.n_outputs}, "
