@@ -234,12 +234,14 @@ class FilterRun:
 
     lower, upper: ``[T+1, n]`` interval hull of the set at each step (row 0 = initial set);
     consistent: ``[T+1]`` bool (False where the measurement did not meet the predicted set);
-    seconds: wall time of the filter loop.
+    bounded: ``[T+1]`` bool (False from the step where the set stopped being finite; its bounds
+    are then +-inf); seconds: wall time of the filter loop.
     """
 
     lower: np.ndarray
     upper: np.ndarray
     consistent: np.ndarray
+    bounded: np.ndarray
     seconds: float
 
 
@@ -255,6 +257,7 @@ def run_filter(filt, y: torch.Tensor, u: torch.Tensor | None, progress: bool = T
     state = filt.initial_state(batch=1)
     hull = state.set.interval_hull()
     lows, ups, cons = [hull.lower[0]], [hull.upper[0]], [state.consistent[0]]
+    bnds = [_bounded(state)]
     t0 = time.perf_counter()
     with torch.no_grad():
         for k in tqdm(range(T), desc="filter", unit="step", disable=not progress, leave=False):
@@ -264,13 +267,24 @@ def run_filter(filt, y: torch.Tensor, u: torch.Tensor | None, progress: bool = T
             lows.append(hull.lower[0])
             ups.append(hull.upper[0])
             cons.append(state.consistent[0])
+            bnds.append(_bounded(state))
     seconds = time.perf_counter() - t0
     return FilterRun(
         lower=torch.stack(lows).cpu().numpy(),
         upper=torch.stack(ups).cpu().numpy(),
         consistent=torch.stack(cons).cpu().numpy().astype(bool),
+        bounded=np.array(bnds, dtype=bool),
         seconds=seconds,
     )
+
+
+def _bounded(state) -> bool:
+    """The state's ``bounded`` flag (older filter states have none: finite hull = bounded)."""
+    flag = getattr(state, "bounded", None)
+    if flag is not None:
+        return bool(flag.reshape(-1)[0])
+    hull = state.set.interval_hull()
+    return bool(torch.isfinite(hull.lower).all() and torch.isfinite(hull.upper).all())
 
 
 def write_bounds(out: Path, run: FilterRun, fmt: str = "csv") -> Path:
@@ -410,6 +424,7 @@ def main(args: argparse.Namespace) -> int:
         },
         "inconsistent_steps": inconsistent,
         "skipped_updates": skipped,
+        "unbounded_steps": [int(k) for k in np.flatnonzero(~run.bounded)],
         "seconds": run.seconds,
         "files": {**files, "summary": "summary.json"},
         "diffsmf_version": ds.__version__,
@@ -425,6 +440,10 @@ def main(args: argparse.Namespace) -> int:
                   f"{inconsistent[0]}")
         else:
             print("  every measurement was consistent with the model and the noise bounds")
+        if not run.bounded.all():
+            print(f"  the set stopped being finite at step {int(np.flatnonzero(~run.bounded)[0])}"
+                  " (bounds inf from there): the model left the region where its remainder "
+                  "bounds are finite")
         if not guaranteed:
             print(f"  note: {name} is not a guaranteed filter; its bounds are not guaranteed")
         print(f"  wrote {out / files['bounds']}, " +

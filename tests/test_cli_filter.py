@@ -103,6 +103,7 @@ def test_csv_run_writes_bounds_figure_and_summary(case):
     s = json.loads((out / "summary.json").read_text())
     assert s["filter"] == "HSNSMF" and s["guaranteed"] is True
     assert s["steps"] == T and s["inconsistent_steps"] == [] and s["seconds"] > 0
+    assert s["unbounded_steps"] == []
     assert s["outputs"] == ["y1"] and s["inputs"] == ["u1"]
     assert s["settings"]["measurement_noise"] == pytest.approx([1e-2])
     assert (out / "bounds.png").stat().st_size > 10_000
