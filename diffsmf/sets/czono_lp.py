@@ -1,0 +1,231 @@
+"""Batched box-constrained LPs for constrained zonotopes, solved in torch with a certificate.
+
+The support function of a constrained zonotope ``{c + G xi : A xi = b, |xi|_inf <= 1}``
+(Scott, Raimondo, Marseglia, Braatz, Automatica 69, 2016, sec. 3) in a direction ``d`` is the LP
+
+    h(d) = d'c + max { g'xi : A xi = b, -1 <= xi <= 1 },   g = G'd,
+
+whose Lagrangian dual is (weak duality, any ``lam`` in R^k):
+
+    h(d) <= d'c + phi(lam),   phi(lam) = lam'b + ||g - A'lam||_1.          (*)
+
+:func:`box_lp` solves the LP with a fixed number of Mehrotra predictor-corrector interior-point
+iterations (primal-dual, bounded variables), batched over any leading dims, with no host sync
+and no data-dependent branch. The iterate ``lam`` is only a *candidate*: the reported bound is
+always ``phi(lam)`` evaluated by (*) plus an outward float64 rounding margin, so it is a valid
+outer bound whatever the solver did (stopped early, met an empty set, hit a singular system).
+The best of: ``lam = 0`` (the plain zonotope bound ``||g||_1``), every IPM iterate, and a
+"purified" vertex dual (the basis read off the last iterate, ``A_B' lam = g_B``) is kept.
+
+An empty set (``A xi = b`` infeasible in the box) has an unbounded dual: ``phi`` goes to
+``-inf`` along a Farkas ray and the bounds cross (``upper < lower``), which is how emptiness is
+certified (:meth:`ConstrainedZonotope.is_empty`).
+
+Gradients (:func:`support_value`): the value is ``phi(lam*)`` and its gradient the saddle-point
+envelope gradient of the Lagrangian ``L = d'c + g'xi* - lam*'(A xi* - b)`` at the solver's
+primal-dual pair (detached), i.e. ``dh/dc = d``, ``dh/dG = d xi*'``, ``dh/dA = -lam* xi*'``,
+``dh/db = lam*`` -- the derivative of the LP value wherever its solution is unique.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["LP_ITERS", "box_lp", "dual_bound", "support_value"]
+
+#: Interior-point iterations per LP (fixed: no convergence test, no host sync). With the
+#: purified vertex dual, Mehrotra's method reaches ~1e-12 relative error on the small LPs of the
+#: filters in 8-12 iterations (measured against HiGHS, tests/test_constrained_zonotope.py).
+LP_ITERS = 15
+_EPS = torch.finfo(torch.float64).eps
+_TAU = 0.995  # fraction to the boundary
+
+
+def dual_bound(g: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
+    """``phi(lam) = lam'b + ||g - A'lam||_1`` (eq. (*) of the module doc) -> ``[...]``.
+
+    ``g [..., m]``, ``A [..., k, m]``, ``b [..., k]``, ``lam [..., k]`` (broadcast).
+    """
+    s = g - (A * lam.unsqueeze(-1)).sum(-2)
+    return (lam * b).sum(-1) + s.abs().sum(-1)
+
+
+def _rounding(g_abs: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
+    """Outward margin for the float64 evaluation of :func:`dual_bound` (detached)."""
+    k, m = A.shape[-2], A.shape[-1]
+    la = lam.abs()
+    mag = (la * b.abs()).sum(-1) + g_abs.sum(-1) + (A.abs() * la.unsqueeze(-1)).sum((-2, -1))
+    return (4.0 * (k + m + 4) * _EPS) * mag + (k + m + 4) * 1e-300  # + underflow
+
+
+def _primal_step(dx: Tensor, ixl: Tensor, ixu: Tensor) -> Tensor:
+    """``_TAU`` x the largest step ``<= 1`` keeping ``-1 < x + a dx < 1`` -> ``[..., 1]``."""
+    r = torch.maximum(dx * ixu, -dx * ixl).amax(-1, keepdim=True)  # 1 / (largest step)
+    return (_TAU / r).clamp(max=1.0)
+
+
+def _dual_step(z: Tensor, w: Tensor, dz: Tensor, dw: Tensor) -> Tensor:
+    """``_TAU`` x the largest step ``<= 1`` keeping ``z, w > 0`` -> ``[..., 1]``."""
+    r = torch.maximum((-dz / z).amax(-1, keepdim=True), (-dw / w).amax(-1, keepdim=True))
+    return (_TAU / r).clamp(max=1.0)
+
+
+def _chol(M: Tensor) -> Tensor:
+    """Cholesky factor of the SPD ``M [..., k, k]`` plus a 1e-13 relative ridge; a failed
+    factorisation (non-finite or indefinite ``M``) gives the identity (a useless but harmless
+    Newton step: the iterate is only a candidate, never an unchecked bound)."""
+    k = M.shape[-1]
+    eye = torch.eye(k, dtype=M.dtype, device=M.device)
+    diag = torch.diagonal(M, dim1=-2, dim2=-1)
+    ridge = 1e-13 * diag.amax(-1, keepdim=True).unsqueeze(-1) + 1e-300
+    L, info = torch.linalg.cholesky_ex(M + ridge * eye)
+    return torch.where((info == 0).reshape(*info.shape, 1, 1), L, eye)
+
+
+def _newton(ctx: tuple[Tensor, ...], rz: Tensor, rw: Tensor) -> tuple[Tensor, ...]:
+    """One Newton direction of the bounded-variable KKT system (normal equations
+    ``A D A' dy = rp + A D rh``, ``D = 1 / (z / (x + 1) + w / (1 - x))``)."""
+    rd, rp, ixl, ixu, zl, wu, D, AD, At, L = ctx
+    rh = rd - rz * ixl + rw * ixu
+    rhs = rp + (AD @ rh.unsqueeze(-1)).squeeze(-1)
+    dy = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
+    dx = D * ((At @ dy.unsqueeze(-1)).squeeze(-1) - rh)
+    return dx, dy, rz * ixl - zl * dx, rw * ixu + wu * dx
+
+
+@torch.no_grad()
+def box_lp(
+    g: Tensor, A: Tensor, b: Tensor, iters: int = LP_ITERS
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Batched ``max g'xi s.t. A xi = b, |xi|_inf <= 1`` (detached).
+
+    Args:
+        g: ``[..., m]`` objective; A: ``[..., k, m]``; b: ``[..., k]`` (broadcast together).
+        iters: fixed number of interior-point iterations.
+
+    Returns:
+        ``(bound, lam, xi, x)``: ``bound [...]`` a certified upper bound of the LP value
+        (``phi`` of the best dual candidate plus the rounding margin; negative for an empty
+        feasible set when ``g = 0``), ``lam [..., k]`` that candidate, ``xi [..., m]`` the
+        purified vertex (clamped to the box; used for gradients) and ``x [..., m]`` the last
+        interior-point iterate (strictly inside the box, ``A x ~ b``).
+    """
+    batch = torch.broadcast_shapes(g.shape[:-1], A.shape[:-2], b.shape[:-1])
+    k, m = A.shape[-2], A.shape[-1]
+    g = g.expand(*batch, m)
+    A = A.expand(*batch, k, m)
+    b = b.expand(*batch, k)
+    gabs = g.abs()
+    if k == 0 or m == 0:
+        lam = g.new_zeros(*batch, k)
+        xi = torch.sign(g)
+        return dual_bound(g, A, b, lam) + _rounding(gabs, A, b, lam), lam, xi, torch.zeros_like(g)
+    # scale each LP so that |g|, |A| are O(1) (the bound is re-evaluated on the raw data)
+    sg = gabs.amax(-1, keepdim=True).clamp_min(1e-300)
+    sa = A.abs().amax(-1).clamp_min(1e-300)  # row scales [..., k]
+    As, bs, c = A / sa.unsqueeze(-1), b / sa, -g / sg  # minimise c'x
+    At = As.transpose(-1, -2)
+    x = torch.zeros_like(g)
+    z = torch.ones_like(g)
+    w = torch.ones_like(g)
+    y = torch.zeros_like(b)
+    best_lam = torch.zeros_like(b)
+    best = dual_bound(g, A, b, best_lam)
+    scale = sg / sa
+    for _ in range(iters):
+        ixl, ixu = 1 / (x + 1), 1 / (1 - x)
+        zl, wu = z * ixl, w * ixu
+        rd = c - (At @ y.unsqueeze(-1)).squeeze(-1) - z + w
+        rp = bs - (As @ x.unsqueeze(-1)).squeeze(-1)
+        mu = (z / ixl + w / ixu).sum(-1, keepdim=True) / (2 * m)
+        D = 1 / (zl + wu)
+        AD = As * D.unsqueeze(-2)
+        L = _chol(AD @ At)
+
+        ctx = (rd, rp, ixl, ixu, zl, wu, D, AD, At, L)
+        dx, dy, dz, dw = _newton(ctx, -z / ixl, -w / ixu)  # affine-scaling predictor
+        ap = _primal_step(dx, ixl, ixu)
+        ad = _dual_step(z, w, dz, dw)
+        mu_aff = ((x + 1 + ap * dx) * (z + ad * dz) + (1 - x - ap * dx) * (w + ad * dw)).sum(
+            -1, keepdim=True
+        ) / (2 * m)
+        sig = (mu_aff / mu.clamp_min(1e-300)).clamp(0, 1)
+        sm = sig * sig * sig * mu
+        dx, dy, dz, dw = _newton(ctx, sm - z / ixl - dx * dz, sm - w / ixu + dx * dw)  # corrector
+        ap = _primal_step(dx, ixl, ixu)
+        ad = _dual_step(z, w, dz, dw)
+        x = (x + ap * dx).clamp(-1 + 1e-15, 1 - 1e-15)
+        y, z, w = y + ad * dy, z + ad * dz, w + ad * dw
+        lam = -y * scale  # dual of the unscaled problem: a candidate, kept if better
+        val = dual_bound(g, A, b, lam)
+        better = val < best  # False for NaN
+        best = torch.where(better, val, best)
+        best_lam = torch.where(better.unsqueeze(-1), lam, best_lam)
+    lam_p, xi_p = _purify(g, A, b, x, best_lam)
+    val = dual_bound(g, A, b, lam_p)
+    better = torch.isfinite(val) & (val < best)
+    best_lam = torch.where(better.unsqueeze(-1), lam_p, best_lam)
+    xi = torch.where(torch.isfinite(xi_p), xi_p, x).clamp(-1, 1)
+    bound = dual_bound(g, A, b, best_lam) + _rounding(gabs, A, b, best_lam)
+    return bound, best_lam, xi, x
+
+
+def _purify(g: Tensor, A: Tensor, b: Tensor, x: Tensor, lam: Tensor) -> tuple[Tensor, Tensor]:
+    """Vertex dual and primal from the basis read off an IPM iterate (detached).
+
+    The ``r = min(k, m)`` basic columns are those farthest inside the box relative to their
+    reduced cost ``|s_j|`` (``s = g - A'lam``), among columns of ``A`` that are not zero. Then
+    ``A_B' lam = g_B`` (dual) and ``A_B xi_B = b - A_N sign(s_N)`` (primal). Singular bases give
+    non-finite values, which the caller discards.
+    """
+    k, m = A.shape[-2], A.shape[-1]
+    r = min(k, m)
+    s = g - (A * lam.unsqueeze(-1)).sum(-2)
+    acol = A.abs().amax(-2)  # [..., m]
+    score = (1 - x.abs()) / (s.abs() + 1e-300 + 1e-15 * g.abs().amax(-1, keepdim=True))
+    score = torch.where(acol > 0, score, torch.full_like(score, -1.0))
+    B = score.topk(r, dim=-1).indices  # [..., r]
+    AB = torch.gather(A, -1, B.unsqueeze(-2).expand(*A.shape[:-1], r))  # [..., k, r]
+    gB = torch.gather(g, -1, B)
+    if r == k:
+        lam_p, info = torch.linalg.solve_ex(AB.transpose(-1, -2), gB.unsqueeze(-1))
+        lam_p = lam_p.squeeze(-1)
+        bad = info != 0
+        lam_p = torch.where(bad.unsqueeze(-1), torch.full_like(lam_p, float("nan")), lam_p)
+    else:  # more constraints than columns: least squares on the basis
+        lam_p = torch.linalg.lstsq(AB.transpose(-1, -2), gB.unsqueeze(-1)).solution.squeeze(-1)
+    s_p = g - (A * torch.nan_to_num(lam_p).unsqueeze(-1)).sum(-2)
+    xi = torch.where(s_p >= 0, 1.0, -1.0).to(g.dtype)
+    xi = xi.scatter(-1, B, torch.zeros_like(gB))
+    rhs = b - (A * xi.unsqueeze(-2)).sum(-1)
+    if r == k:
+        xB, info = torch.linalg.solve_ex(AB, rhs.unsqueeze(-1))
+        xB = torch.where((info != 0).unsqueeze(-1).unsqueeze(-1), float("nan"), xB).squeeze(-1)
+    else:
+        xB = torch.linalg.lstsq(AB, rhs.unsqueeze(-1)).solution.squeeze(-1)
+    xi = xi.scatter(-1, B, xB)
+    return lam_p, xi
+
+
+def support_value(
+    d: Tensor, c: Tensor, G: Tensor, A: Tensor, b: Tensor, iters: int = LP_ITERS
+) -> Tensor:
+    """Certified upper bound of ``h(d)`` with envelope gradients -> ``[...]``.
+
+    ``d [..., n]``, ``c [..., n]``, ``G [..., n, m]``, ``A [..., k, m]``, ``b [..., k]``
+    (broadcast). The value is ``d'c + phi(lam)`` plus rounding margins (valid for any
+    ``lam``); the gradient is that of the Lagrangian at the solver's (xi*, lam*), see the
+    module doc.
+    """
+    g = (d.unsqueeze(-1) * G).sum(-2)  # G'd [..., m]
+    dc = (d * c).sum(-1)
+    margin = (4.0 * (c.shape[-1] + 2) * _EPS) * (
+        (d.abs() * c.abs()).sum(-1) + (d.abs().unsqueeze(-1) * G.abs()).sum((-2, -1))
+    ).detach()
+    if A.shape[-2] == 0:
+        return dc + g.abs().sum(-1) + margin
+    bound, lam, xi, _ = box_lp(g.detach(), A.detach(), b.detach(), iters)
+    lag = (g * xi).sum(-1) - (lam * ((A * xi.unsqueeze(-2)).sum(-1) - b)).sum(-1)
+    lag = torch.where(torch.isfinite(lag), lag, torch.zeros_like(lag))
+    return dc + bound + margin + (lag - lag.detach())
