@@ -8,6 +8,7 @@
 
 from diffsmf import filters, sets, systems
 from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Strip, Zonotope, stack, where
+from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.systems import System, Trajectory
 
 __version__ = "0.1.0"
@@ -30,6 +31,7 @@ __all__ = [
     "plot",
     "pwl",
     "tightness",
+    "ConstrainedZonotope",
     "Ellipsoid",
     "Interval",
     "Parallelotope",

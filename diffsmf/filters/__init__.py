@@ -3,6 +3,7 @@
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.filters.cdsmf import CDSMF
 from diffsmf.filters.combined import CombinedFilter
+from diffsmf.filters.czsmf import CZSMF
 from diffsmf.filters.ekf import EKF
 from diffsmf.filters.esmf import ESMF
 from diffsmf.filters.hsnsmf import HSNSMF
@@ -11,6 +12,7 @@ from diffsmf.filters.mszm import MSZM
 __all__ = [
     "CDSMF",
     "CombinedFilter",
+    "CZSMF",
     "EKF",
     "ESMF",
     "HSNSMF",
@@ -22,7 +24,7 @@ __all__ = [
     "names",
 ]
 
-_NAMES = {"hsnsmf": HSNSMF, "mszm": MSZM, "cdsmf": CDSMF, "esmf": ESMF, "ekf": EKF}
+_NAMES = {"hsnsmf": HSNSMF, "mszm": MSZM, "cdsmf": CDSMF, "esmf": ESMF, "ekf": EKF, "czsmf": CZSMF}
 
 
 def names() -> list[str]:

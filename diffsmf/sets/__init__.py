@@ -2,6 +2,7 @@
 Strip."""
 
 from diffsmf.sets.base import ConvexSet, align, cat, stack, where
+from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval, interval_eval
 from diffsmf.sets.parallelotope import Parallelotope
@@ -9,6 +10,7 @@ from diffsmf.sets.strip import Strip
 from diffsmf.sets.zonotope import Zonotope
 
 __all__ = [
+    "ConstrainedZonotope",
     "ConvexSet",
     "Ellipsoid",
     "Interval",
