@@ -93,17 +93,46 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def build_subparser(name: str) -> tuple[argparse.ArgumentParser, object]:
-    """Parser of ``diffsmf NAME`` and the module implementing it."""
+def build_subparser(name: str, prog: str | None = None) -> tuple[argparse.ArgumentParser, object]:
+    """Parser of ``diffsmf NAME`` (or ``prog``) and the module implementing it."""
     module = importlib.import_module(COMMANDS[name][0])
     doc = (module.__doc__ or "").strip().replace("``", "")
     sub = CommandParser(
-        prog=f"diffsmf {name}",
+        prog=prog or f"diffsmf {name}",
         description=COMMANDS[name][1] + (f"\n\n{doc}" if doc else ""),
         formatter_class=HelpFormatter,
     )
     module.add_arguments(sub)
     return sub, module
+
+
+def run_command(name: str, argv: list[str], prog: str | None = None) -> int:
+    """Parse ``argv`` for sub-command ``name`` and run it; user errors -> one line, status 2.
+
+    ``prog`` names the command in messages (default ``diffsmf NAME``; ``python -m
+    training.tune`` uses its own).
+    """
+    prog = prog or f"diffsmf {name}"
+    try:
+        sub, module = build_subparser(name, prog)
+        args = sub.parse_args(argv)
+        return int(module.main(args) or 0)
+    except USER_ERRORS as exc:
+        if os.environ.get("DIFFSMF_TRACEBACK"):
+            raise
+        print(f"{prog}: error: {format_user_error(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except SystemExit as exc:  # raise SystemExit("message") in a sub-command = user error
+        if isinstance(exc.code, str):
+            msg = _one_line(exc.code)
+            for prefix in (f"{prog}: ", f"diffsmf {name}: ", f"{name}: "):
+                msg = msg.removeprefix(prefix)
+            print(f"{prog}: error: {msg}", file=sys.stderr)
+            return EXIT_USAGE
+        return int(exc.code or 0)  # argparse: --help (0) or a usage error already printed (2)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,28 +147,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.parse_args(argv[:1])  # --version, or prints the one-line error
         except SystemExit as exc:
             return int(exc.code or 0)
-    name = argv[0]
-    prog = f"diffsmf {name}"
-    try:
-        sub, module = build_subparser(name)
-        args = sub.parse_args(argv[1:])
-        return int(module.main(args) or 0)
-    except USER_ERRORS as exc:
-        if os.environ.get("DIFFSMF_TRACEBACK"):
-            raise
-        print(f"{prog}: error: {format_user_error(exc)}", file=sys.stderr)
-        return EXIT_USAGE
-    except SystemExit as exc:  # raise SystemExit("message") in a sub-command = user error
-        if isinstance(exc.code, str):
-            msg = _one_line(exc.code)
-            for prefix in (f"{prog}: ", f"{name}: "):
-                msg = msg.removeprefix(prefix)
-            print(f"{prog}: error: {msg}", file=sys.stderr)
-            return EXIT_USAGE
-        return int(exc.code or 0)  # argparse: --help (0) or a usage error already printed (2)
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return 130
+    return run_command(argv[0], argv[1:])
 
 
 if __name__ == "__main__":  # pragma: no cover

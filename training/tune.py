@@ -310,6 +310,6 @@ sys.modules[__name__].__class__ = _CallableModule
 
 
 if __name__ == "__main__":  # pragma: no cover
-    parser = argparse.ArgumentParser(prog="python -m training.tune", description=__doc__)
-    add_arguments(parser)
-    raise SystemExit(main(parser.parse_args()))
+    from diffsmf.cli import run_command  # one-line user errors, defaults in --help
+
+    raise SystemExit(run_command("tune", sys.argv[1:], prog="python -m training.tune"))
