@@ -4,7 +4,6 @@ import json
 import warnings
 
 import numpy as np
-import pytest
 import torch
 
 from diffsmf.pwl import HingingHyperplanes, PWLRegressor, fit_scplnn

@@ -340,9 +340,11 @@ class _Opts:
 
 
 def _check_samples(X: Tensor, Y: Tensor, e: Tensor, domain: Any, degenerate: str
-                   ) -> tuple[list[str], Tensor]:
-    """Degenerate and conflicting data. Returns (warnings, unreachable [N] bool): samples whose
-    duplicates (same X) have a Y spread with half-range >= eps, where no model meets eps."""
+                   ) -> tuple[list[str], Tensor, Tensor]:
+    """Degenerate and conflicting data. Returns (warnings, unreachable [N] bool, mid [N, p],
+    group [N]): samples whose duplicates (same X) have a Y spread with half-range >= eps, where
+    no model meets eps; the mean of Y at each sample's X (the least-squares value there); the
+    index of each sample's distinct X."""
     N, n = X.shape
     warns: list[str] = []
     uniq, inv = torch.unique(X, dim=0, return_inverse=True)
@@ -361,6 +363,7 @@ def _check_samples(X: Tensor, Y: Tensor, e: Tensor, domain: Any, degenerate: str
                 raise ValueError(msg + " (pass degenerate='warn' to fit anyway)")
             warns.append(msg)
     unreachable = torch.zeros(N, dtype=torch.bool)
+    mid = Y
     if G < N:
         p = Y.shape[1]
         big = torch.full((G, p), -math.inf, dtype=_F64)
@@ -370,11 +373,13 @@ def _check_samples(X: Tensor, Y: Tensor, e: Tensor, domain: Any, degenerate: str
         bad_g = (half >= e).any(-1)
         if bool(bad_g.any()):
             unreachable = bad_g[inv]
+            cnt = torch.bincount(inv, minlength=G).to(_F64)[:, None]
+            mid = (torch.zeros(G, p, dtype=_F64).index_add_(0, inv, Y) / cnt)[inv]
             warns.append(f"eps unreachable at {int(unreachable.sum())} samples: "
                          f"{int(bad_g.sum())} distinct X values carry conflicting Y "
                          f"(half-range of Y up to {float((half / e).amax()):.3g} eps); "
                          "no model can meet eps there")
-    return warns, unreachable
+    return warns, unreachable, mid, inv
 
 
 @dataclass
@@ -416,8 +421,8 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int | None, domain: Any, max_rou
         raise ValueError(f"max_regions: must be >= 1, got {max_regions}")
     if domain is not None and isinstance(domain, str) and domain not in ("box", "simplex"):
         raise ValueError(f"domain: expected None, 'box', 'simplex' or (lower, upper), got {domain}")
-    warns, unreachable = _check_samples(X, Y, e, None if isinstance(domain, str) else domain,
-                                        opts.degenerate)
+    given = None if isinstance(domain, str) else domain
+    warns, unreachable, mid, group = _check_samples(X, Y, e, given, opts.degenerate)
     for w in warns:
         _warnings.warn(f"fit_scplnn: {w}", stacklevel=3)
     lo, hi = domain_box(X, domain)
@@ -431,7 +436,7 @@ def _fit(X: Any, Y: Any, eps: Any, max_regions: int | None, domain: Any, max_rou
     score = ((Y - Xa @ coef).abs() / e).amax(-1)
     history = [(1, float(score.max()))]
     affine_ok = float(score.max()) < 1 and known.vertex_fn is None and known.region_bound is None
-    ctx = _Ctx(warnings=warns, unreachable=unreachable)
+    ctx = _Ctx(warnings=warns, unreachable=unreachable, mid=mid, group=group)
     if affine_ok:
         V, S = grid_partition(lo, hi, 1) if use_box else (simplex_domain(lo, hi),
                                                           torch.arange(n + 1)[None])
@@ -471,6 +476,8 @@ class _Ctx:
 
     warnings: list[str] = field(default_factory=list)
     unreachable: Tensor | None = None
+    mid: Tensor | None = None  # [N, p] mean of Y at each sample's X
+    group: Tensor | None = None  # [N] index of each sample's distinct X
     heldout: Tensor | None = None  # [p] held-out max error
     n_heldout: int = 0
 
@@ -577,9 +584,19 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
     if k_hold < 10 or N - k_hold < n + 2:
         k_hold = 0
     train = torch.ones(N, dtype=torch.bool)
-    if k_hold:
-        perm = torch.randperm(N, generator=torch.Generator().manual_seed(opts.seed))
-        train[perm[:k_hold]] = False
+    if k_hold:  # hold out whole groups of duplicates (distinct X values)
+        grp = ctx.group if ctx.group is not None else torch.arange(N)
+        G = int(grp.max()) + 1
+        perm = torch.randperm(G, generator=torch.Generator().manual_seed(opts.seed))
+        size = torch.bincount(grp, minlength=G)[perm]
+        held = perm[: int((torch.cumsum(size, 0) < k_hold).sum()) + 1]
+        is_held = torch.zeros(G, dtype=torch.bool)
+        is_held[held] = True
+        train = ~is_held[grp]
+        k_hold = int((~train).sum())
+        if k_hold == N or N - k_hold < n + 2:
+            train[:] = True
+            k_hold = 0
     unreach = ctx.unreachable if ctx.unreachable is not None else torch.zeros(N, dtype=torch.bool)
     bar = tqdm(total=None, disable=(not progress) if progress is not None else None,
                delay=0 if progress else 2.0, desc="fit_scplnn", unit="round", leave=False)
@@ -601,7 +618,8 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
         prior = W
         resid = (lam[..., None] * W[idx]).sum(1) - Y
         score = (resid.abs() / e).amax(-1)  # [N] in units of eps
-        score = torch.where(unreach, 0.0, score)
+        if bool(unreach.any()):  # conflicting duplicates: aim at the mean of their Y
+            score = torch.where(unreach, ((resid + Y - ctx.mid).abs() / e).amax(-1), score)
         rb = known.bound(V, S, W)
         rscore = None if rb is None else (rb / e).amax(-1)
         worst = max(float(score.max()), 0.0 if rscore is None else float(rscore.max()))
@@ -628,7 +646,9 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
                 train = torch.ones(N, dtype=torch.bool)
                 phase = 2
                 continue
-            reason = "max error below eps" if worst < 1 else "no splittable region left"
+            reason = ("no splittable region left" if worst >= 1 else "max error below eps"
+                      if not bool(unreach.any()) else
+                      "max error below eps where reachable, eps of the mean Y at duplicates")
             break
         if ref.n_simplices >= max_regions:
             reason = "max_regions reached"
