@@ -1,61 +1,121 @@
-"""Solve times of the Lipschitz-observer LMI (diffsmf.observers.lmi) for n = 2, 5, 10, 20.
+"""Full observer design vs ONE direct cvxpy + Clarabel solve of the same LMI (issue 15.1).
 
-For each n: a random (A, C) (l = max(1, n // 3) outputs, gamma = 0.05, eps = 0.1), solvers
-CLARABEL and SCS. Columns: first solve (problem build + cvxpy canonicalisation + solve at one
-alpha), re-solve (new parameter values on the cached problem, mean of 5; SCS 2), full design
-(alpha search, iters=8; SCS only for n = 2) and the numpy-verified status.
-Run: python benchmarks/lmi_bench.py
+For each n in (2, 5, 10, 20, 30): a random (A, C) (A ~ N(0, 1/n), l = max(1, n // 3) outputs),
+gamma = 0.05, eps = 0.1, |L|_2 <= 1000 (general structure, continuous time).
+
+- "direct": build a fresh cvxpy problem of the documented 3-block LMI (docs/observers.md,
+  3n x 3n) with constant data at the decay rate the design chose, and solve it once with
+  Clarabel's default settings (build + canonicalisation + solve), as a user writing cvxpy by
+  hand would; its bound sqrt(mu / alpha) eps is printed beside the design's.
+- "design": ``design_lipschitz_observer`` from scratch (the problem cache cleared, so its
+  first solve includes canonicalisation): alpha search, numpy verification, everything.
+
+Times are medians over ``--repeats`` runs (n >= 20: over min(repeats, 2)); the ratio is
+design / direct of the medians, measured in the same process one after the other. The machine
+may be shared: the load average is printed with the table.
+Run: python benchmarks/lmi_bench.py [--sizes 2 5 10 20 30] [--repeats 3]
 """
 
 from __future__ import annotations
 
+import argparse
+import os
+import platform
+import statistics
 import time
+import warnings
 
+import cvxpy as cp
 import numpy as np
 
-from diffsmf.observers import lmi
+from diffsmf.observers import design_lipschitz_observer, lmi
+
+GAMMA, EPS, KAPPA = 0.05, 0.1, 1000.0
 
 
-def bench(n: int, solver: str) -> dict:
+def system(n: int) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(n)
     l = max(1, n // 3)
-    A = rng.standard_normal((n, n)) / np.sqrt(n)
-    C = rng.standard_normal((l, n))
-    G = 0.05**2 * np.eye(n)
-    lmi._problem.cache_clear()
+    return rng.standard_normal((n, n)) / np.sqrt(n), rng.standard_normal((l, n))
+
+
+def direct_solve(A: np.ndarray, C: np.ndarray, alpha: float) -> tuple[float, str, float]:
+    """One fresh cvxpy problem of the 3-block LMI at fixed alpha (docs/observers.md), Clarabel
+    defaults. Returns (seconds, status, bound = eps sqrt(mu / (alpha lambda_min(P))))."""
     t0 = time.perf_counter()
-    prob, par, var = lmi._problem(n, l, n, "continuous", False, True)
-    par["margin"].value = 1e-6
-    par["A"].value, par["C"].value, par["Bf"].value, par["G"].value = A, C, np.eye(n), G
-    par["kappa2"].value, par["alpha"].value = 1e6, 0.1
-    st1 = lmi._solve(prob, solver)
-    first = time.perf_counter() - t0
-    times = []
-    for k in range(5 if solver == "CLARABEL" else 2):
-        par["A"].value = A + 0.01 * rng.standard_normal((n, n))
-        par["alpha"].value = 0.05 * (k + 1)
+    n, l = A.shape[0], C.shape[0]
+    P = cp.Variable((n, n), symmetric=True)
+    Y = cp.Variable((n, l))
+    lam, mu = cp.Variable(nonneg=True), cp.Variable(nonneg=True)
+    PAL = P @ A - Y @ C
+    I, Z = np.eye(n), np.zeros((n, n))
+    M = cp.bmat([[PAL + PAL.T + alpha * P + lam * GAMMA**2 * I, P, P],
+                 [P, -lam * I, Z],
+                 [P, Z, -mu * I]])
+    M = 0.5 * (M + M.T)
+    cons = [P >> I, M << -1e-6 * np.eye(3 * n),
+            cp.bmat([[KAPPA * np.eye(l), Y.T], [Y, KAPPA * I]]) >> 0]
+    prob = cp.Problem(cp.Minimize(mu), cons)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prob.solve(solver="CLARABEL")
+    sec = time.perf_counter() - t0
+    bound = float("nan")
+    if prob.status in ("optimal", "optimal_inaccurate"):
+        bound = EPS * float(np.sqrt(mu.value / (alpha * np.linalg.eigvalsh(P.value)[0])))
+    return sec, str(prob.status), bound
+
+
+def bench(n: int, repeats: int) -> dict:
+    A, C = system(n)
+    reps = repeats if n < 20 else min(repeats, 2)
+    t_design, t_direct, d = [], [], None
+    for _ in range(reps):
+        lmi._problem.cache_clear()
         t0 = time.perf_counter()
-        lmi._solve(prob, solver)
-        times.append(time.perf_counter() - t0)
-    if solver == "SCS" and n > 2:  # SCS needs ~1e4-1e5 iterations per solve here: skipped
-        return dict(n=n, solver=solver, first=first, resolve=float(np.mean(times)),
-                    full=float("nan"), solves=0, status=f"(one solve: {st1})", bound=float("nan"))
-    t0 = time.perf_counter()
-    d = lmi.design_lipschitz_observer(A, C, 0.05, 0.1, solver=solver, max_gain=1e3, iters=8)
-    full = time.perf_counter() - t0
-    return dict(n=n, solver=solver, first=first, resolve=float(np.mean(times)), full=full,
-                solves=d.solves, status=d.status, bound=d.bound, first_status=st1)
+        d = design_lipschitz_observer(A, C, GAMMA, EPS, max_gain=KAPPA)
+        t_design.append(time.perf_counter() - t0)
+        sec, st, bound_direct = direct_solve(A, C, d.decay)
+        t_direct.append(sec)
+    med_design, med_direct = statistics.median(t_design), statistics.median(t_direct)
+    return dict(n=n, l=C.shape[0], design=med_design, direct=med_direct,
+                ratio=med_design / med_direct, solves=d.solves, status=d.status,
+                bound=d.bound, direct_status=st, bound_direct=bound_direct, decay=d.decay,
+                reps=reps)
+
+
+def threads() -> str:
+    info = [f"{os.cpu_count()} CPUs"]
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "RAYON_NUM_THREADS"):
+        if var in os.environ:
+            info.append(f"{var}={os.environ[var]}")
+    try:
+        from threadpoolctl import threadpool_info
+
+        info += [f"{p['internal_api']} {p['num_threads']} threads" for p in threadpool_info()]
+    except ImportError:
+        pass
+    return ", ".join(info)
 
 
 def main() -> None:
-    print("| n | solver | first solve [s] | re-solve [s] | full design [s] (solves) | status |"
-          " bound |\n|---|---|---|---|---|---|---|", flush=True)
-    for n in (2, 5, 10, 20):
-        for s in ("CLARABEL", "SCS"):
-            r = bench(n, s)
-            print(f"| {r['n']} | {r['solver']} | {r['first']:.3f} | {r['resolve']:.4f} | "
-                  f"{r['full']:.2f} ({r['solves']}) | {r['status']} | {r['bound']:.4g} |",
-                  flush=True)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[2, 5, 10, 20, 30])
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    print(f"# {platform.processor() or platform.machine()}, {threads()}, cvxpy {cp.__version__}, "
+          f"load average at start {os.getloadavg()[0]:.2f}")
+    print("| n | l | one direct solve [s] | full design [s] | ratio | design solves | status |"
+          " bound (design) | bound (direct, same alpha) | alpha | repeats |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|", flush=True)
+    for n in args.sizes:
+        r = bench(n, args.repeats)
+        print(f"| {r['n']} | {r['l']} | {r['direct']:.3f} | {r['design']:.3f} | "
+              f"{r['ratio']:.2f} | {r['solves']} | {r['status']} | {r['bound']:.5g} | "
+              f"{r['bound_direct']:.5g} ({r['direct_status']}) | {r['decay']:.4g} | "
+              f"{r['reps']} |", flush=True)
+    print(f"# load average at end {os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":

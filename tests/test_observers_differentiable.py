@@ -32,7 +32,7 @@ def layer(design):
 def _ref_bound(A, gamma, alpha):
     """Independent re-solve with cvxpy + Clarabel (the design's own SDP) at a fixed alpha."""
     prob, par, var, con = _problem(2, 1, "continuous", False, True, *_structure_keys(BF, H))
-    par["margin"].value, par["kappa2"].value = 1e-6, KAPPA**2
+    par["margin"].value, par["kappa"].value = 1e-6, KAPPA
     par["A"].value, par["C"].value, par["g2"].value = A, C0, gamma**2
     pt = _Search(prob, par, var, con, "CLARABEL", 2)(alpha)
     assert pt.ok, pt.status

@@ -15,10 +15,10 @@ differentiation of the conic program (diffcp), and d bound / d eps = bound / eps
 scales the bound).
 
 Why a fixed alpha: the design searches alpha outside the SDP (a few secant steps on the
-dual sensitivity, lmi.py). At the searched optimum alpha* the bound is stationary in alpha, so by the envelope theorem the gradient of the
-optimal-alpha bound w.r.t. (A, C, gamma) equals the fixed-alpha gradient at alpha* — pass
-``alpha=design_lipschitz_observer(...).decay``. alpha is also a layer input, so its own gradient
-(~0 at alpha*) is available.
+dual sensitivity, lmi.py). At the searched optimum alpha* the bound is stationary in alpha,
+so by the envelope theorem the gradient of the optimal-alpha bound w.r.t. (A, C, gamma)
+equals the fixed-alpha gradient at alpha* — pass ``alpha=design_lipschitz_observer(...).decay``.
+alpha is also a layer input, so its own gradient (~0 at alpha*) is available.
 
 Well-posedness: when the bound infimum is only approached by L -> infinity (high-gain designs,
 e.g. the seed 004 structured example), the SDP solution is not attained and its derivative is
@@ -95,7 +95,7 @@ class DifferentiableObserverDesign(torch.nn.Module):
         # same SDP as design_lipschitz_observer (uncached copy: the layer owns its problem)
         prob, par, var, _ = _problem.__wrapped__(n, l, time, False, max_gain is not None,
                                                  *_structure_keys(Bf, H))
-        names = _PARAMS + (("kappa2",) if max_gain is not None else ())
+        names = _PARAMS + (("kappa",) if max_gain is not None else ())
         args = dict(eps=1e-10, max_iters=100_000)
         args.update(solver_args or {})
         self.layer = CvxpyLayer(
@@ -120,7 +120,7 @@ class DifferentiableObserverDesign(torch.nn.Module):
         B = ins[0].shape[0] if batch else None
         consts = [alpha, torch.tensor(self.margin, dtype=torch.float64)]
         if self.max_gain is not None:
-            consts.append(torch.tensor(self.max_gain**2, dtype=torch.float64))
+            consts.append(torch.tensor(self.max_gain, dtype=torch.float64))
         if B is not None:
             consts = [c.expand(B, *c.shape) for c in consts]
         try:

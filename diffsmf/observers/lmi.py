@@ -299,9 +299,9 @@ def _problem(n: int, l: int, time: str, fixed_gain: bool, capped: bool, bf_key=N
 
         min mu  s.t.  R(P, Y, lambda, nu; A, C, gamma^2, alpha) << -margin I,   P >> I,
                       (lambda - nu)(mu - nu) >= nu^2, lambda, mu >= nu,
-                      [[kappa^2 I, Y'], [Y, I]] >> 0  (capped: |L|_2 <= |Y|_2 <= kappa)
+                      [[kappa I, Y'], [Y, kappa I]] >> 0  (capped: |L|_2 <= |Y|_2 <= kappa)
 
-    A, C, gamma^2 (``g2``), alpha, margin and kappa^2 are cvxpy Parameters (DPP: a re-solve
+    A, C, gamma^2 (``g2``), alpha, margin and kappa are cvxpy Parameters (DPP: a re-solve
     skips canonicalisation); B_f and H'H are constants of the cached problem (keys from
     :func:`_structure_keys`), so their sparsity reaches the solver.
     fixed_gain: analysis of a given L; the Parameter A then holds A - L C and there is no Y.
@@ -343,12 +343,12 @@ def _problem(n: int, l: int, time: str, fixed_gain: bool, capped: bool, bf_key=N
     lmi = Rs << -margin * np.eye(k)  # matrix margin, not a scalar >>
     # (lambda - nu)(mu - nu) >= nu^2  <=>  |(2 nu, lambda - mu)| <= lambda + mu - 2 nu
     cons = [P >> In, lmi, cp.SOC(lam + mu - 2 * nu, cp.hstack([2 * nu, lam - mu]))]
-    kappa2 = None
-    if capped and Y is not None:
-        kappa2 = cp.Parameter(nonneg=True, name="kappa2")
-        cons.append(cp.bmat([[kappa2 * np.eye(l), Y.T], [Y, In]]) >> 0)
+    kappa = None
+    if capped and Y is not None:  # |Y|_2 <= kappa; this scaling (not [[kappa^2 I, Y'], [Y, I]])
+        kappa = cp.Parameter(nonneg=True, name="kappa")  # keeps Clarabel accurate (~1 % off)
+        cons.append(cp.bmat([[kappa * np.eye(l), Y.T], [Y, kappa * In]]) >> 0)
     prob = cp.Problem(cp.Minimize(mu), cons)
-    params = dict(A=A, C=C, g2=g2, alpha=alpha, kappa2=kappa2, margin=margin)
+    params = dict(A=A, C=C, g2=g2, alpha=alpha, kappa=kappa, margin=margin)
     return prob, params, dict(P=P, Y=Y, lam=lam, nu=nu, mu=mu), lmi
 
 
@@ -540,7 +540,7 @@ def design_lipschitz_observer(
     par["margin"].value = margin
     par["A"].value, par["C"].value, par["g2"].value = A, C, gamma**2
     if max_gain is not None:
-        par["kappa2"].value = max_gain**2
+        par["kappa"].value = max_gain
     search = _Search(prob, par, var, con, solver, n)
     alpha, status = _alpha_search(search, alpha_max, objective, iters)
     base = dict(time=time, lipschitz=gamma, approx_error=eps, structured=structure is not None)
