@@ -244,7 +244,8 @@ def main(args: argparse.Namespace) -> int:
     for noise in noises:
         reports.append(
             containment(
-                filt, system, args.trials, args.steps, noise, args.seed, progress=not args.quiet
+                filt, system, args.trials, args.steps, noise, args.seed,
+                progress=not getattr(args, "quiet", True),
             )
         )
     for rep in reports:
