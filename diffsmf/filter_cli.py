@@ -388,7 +388,14 @@ def main(args: argparse.Namespace) -> int:
         kw["measurement_noise"] = vn
     if args.skip_missing:
         kw["skip_nan"] = True
-    filt = cls(system, **kw)
+    try:
+        filt = cls(system, **kw)
+    except TypeError as exc:  # a filter without that option (e.g. CombinedFilter's own bounds)
+        opts = ", ".join(f"--{k.replace('_', '-')}" for k in kw if k != "skip_nan")
+        if not opts or "unexpected keyword" not in str(exc):
+            raise
+        raise ValueError(f"{opts}: the {cls.__name__} filter does not take this option "
+                         "(it has its own noise parameters)") from None
     run = run_filter(filt, y, u, progress=not args.quiet)
     out.mkdir(parents=True, exist_ok=True)
     bounds_path = write_bounds(out, run, args.format)

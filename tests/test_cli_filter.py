@@ -240,6 +240,8 @@ def test_option_errors_are_one_line(case, capsys):
     assert "--process-noise" in _error(capsys, *base, "--process-noise", "0.1,0.2,0.3")
     assert "--measurement-noise" in _error(capsys, *base, "--measurement-noise", "-1")
     assert "--format" in _error(capsys, *base, "--format", "xlsx")
+    assert "--process-noise: the CombinedFilter filter does not take" in _error(
+        capsys, *base, "--filter", "combined", "--process-noise", "0.01")
     assert "--outputs" in _error(capsys, "--model", f"{model}:make_system", "--data", str(log))
 
 
