@@ -36,6 +36,7 @@ __all__ = [
     "FilterRun",
     "add_arguments",
     "load_model",
+    "load_object",
     "main",
     "read_table",
     "run_filter",
@@ -47,14 +48,13 @@ GUARANTEED = ("hsnsmf", "mszm", "cdsmf", "esmf", "combined")
 
 
 # ------------------------------------------------------------------ model
-def load_model(spec: str, what: str = "--model"):
-    """``"path/to/file.py:FUNCTION"`` -> the :class:`~diffsmf.System` that ``FUNCTION()`` returns.
+def load_object(spec: str, what: str = "--model") -> object:
+    """``"path/to/file.py:FUNCTION"`` -> whatever ``FUNCTION()`` returns (no arguments).
 
     Raises ``ValueError`` / ``FileNotFoundError`` naming ``what`` for a malformed spec, a missing
-    file, an import failure, a missing function or a return value that is not a System.
+    file, an import failure, a missing function, or an exception raised by the function. Shared
+    by the commands that take a user's model file (``diffsmf filter --model``).
     """
-    from diffsmf.systems import System
-
     path_s, sep, func = spec.rpartition(":")
     if not sep or not path_s or not func or not func.isidentifier():
         raise ValueError(f"{what}: expected FILE.py:FUNCTION (e.g. my_model.py:make_system), "
@@ -83,10 +83,21 @@ def load_model(spec: str, what: str = "--model"):
         raise ValueError(f"{what}: {str(path)!r} has no function {func!r} (functions there: "
                          f"{found})")
     try:
-        system = factory()
+        return factory()
     except Exception as exc:
         raise ValueError(f"{what}: {func}() failed: {type(exc).__name__}: {exc}") from exc
+
+
+def load_model(spec: str, what: str = "--model"):
+    """``"path/to/file.py:FUNCTION"`` -> the :class:`~diffsmf.System` that ``FUNCTION()`` returns.
+
+    As :func:`load_object`, and a ``ValueError`` naming ``what`` when the result is not a System.
+    """
+    from diffsmf.systems import System
+
+    system = load_object(spec, what)
     if not isinstance(system, System):
+        func = spec.rpartition(":")[2]
         raise ValueError(f"{what}: {func}() must return a diffsmf.System, got "
                          f"{type(system).__name__}")
     return system
