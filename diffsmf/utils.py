@@ -15,7 +15,14 @@ __all__ = [
     "check_strictly_positive",
     "inv_softplus",
     "register_positive",
+    "tracing",
 ]
+
+
+def tracing() -> bool:
+    """True while ``torch.compile`` traces the code (then host-syncing checks are skipped and
+    data-dependent branches take their general, branch-free form)."""
+    return bool(torch.compiler.is_compiling())
 
 _SOFTPLUS_ONE = math.log(math.expm1(1.0))  # inv_softplus(1)
 

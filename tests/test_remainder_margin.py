@@ -105,9 +105,10 @@ def test_unreduced_prediction_with_margin_contains_the_one_without(system_name):
     n = sys_.n
     for m in (1e-3, 0.1):
         f0, f1 = filters.MSZM(sys_, order=4), filters.MSZM(sys_, order=4, remainder_margin=m)
+        u = None if sys_.n_inputs == 0 else sys_.simulate(steps=1, batch=2, seed=0).u[:, 0]
         with torch.no_grad():
-            P0 = f0.predict(f0.initial_state(2)).set
-            P1 = f1.predict(f1.initial_state(2)).set
+            P0 = f0.predict(f0.initial_state(2), u).set
+            P1 = f1.predict(f1.initial_state(2), u).set
         for d in _support_dirs(n):
             dd = d.expand(2, n)
             assert (P1.support(dd) >= P0.support(dd) - 1e-12).all()

@@ -19,6 +19,7 @@ from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
+from diffsmf.utils import tracing
 
 # Relative outward margin for float64 rounding in the affine parts (centres f(c), F T products,
 # strip offsets). Rounding errors are ~1e-16 relative; 1e-12 covers accumulation with room.
@@ -39,13 +40,26 @@ def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor
     return fn
 
 
+def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:
+    """``(R', ok)``: ``ok [...]`` is False where the remainder box ``R [..., n]`` is not finite
+    (NaN / inf: the set reached a singularity of the model, e.g. the pole of the fermenter's
+    ``mu``, or grew without bound); there ``R'`` is 0 so that no NaN reaches the rest of the
+    batch. The caller must mark those elements unbounded (``FilterState.and_bounded(ok)``):
+    no bounded guaranteed set exists for them. Branch-free.
+    """
+    ok = (torch.isfinite(R.lower) & torch.isfinite(R.upper)).all(-1)
+    keep = ok.unsqueeze(-1)
+    z = torch.zeros_like(R.lower)
+    return Interval._make(torch.where(keep, R.lower, z), torch.where(keep, R.upper, z)), ok
+
+
 def finite_remainder(R: Interval, what: str) -> Interval:
     """Raise a clear ``ValueError`` when a remainder bound is unbounded (NaN/inf).
 
-    That happens when the set reaches a singularity of the model, e.g. the pole of the
-    fermenter's growth rate ``mu`` at ``S = -1.27``: no bounded guaranteed set exists then.
+    Kept for callers outside the filters; the filters flag such elements instead
+    (:func:`sanitize_remainder`, ``FilterResult.bounded``).
     """
-    if not (torch.isfinite(R.lower.detach()).all() and torch.isfinite(R.upper.detach()).all()):
+    if not tracing() and not bool(sanitize_remainder(R)[1].all()):
         raise ValueError(
             f"{what}: the remainder bound is unbounded over the current set (the set reaches a "
             "singularity of the model); use a smaller initial set or tighter bounds"
@@ -92,7 +106,7 @@ def prediction_remainder(
     if system.parameters is not None:
         D = parameter_deviation(system.f, S, system.parameters, system.theta_nominal, u)
         R = Interval(R.lower + D.lower, R.upper + D.upper)
-    return add_remainder_margin(finite_remainder(R, "f"), margin)
+    return add_remainder_margin(R, margin)
 
 
 def add_remainder_margin(R: Interval, margin: Tensor | None) -> Interval:
@@ -123,11 +137,14 @@ def measurement_strips(
     Returns normal ``[B, m, n]``, offset ``[B, m]``, halfwidth ``[B, m]``.
     """
     hc = h(c)
-    E = finite_remainder(remainder(h, S, c, H), "h")
+    E, ok = sanitize_remainder(remainder(h, S, c, H))
     Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
     offset = y - vbox.center - hc + Hc - E.center
     half = vbox.radius + E.radius
     half = half + rounding_margin(y, hc, Hc, E.center, half)
+    # unbounded remainder of h over S: the strip is all of R^n (half-width inf, skipped by
+    # sequential_strip_update) -- guaranteed, the measurement just cannot shrink the set
+    half = torch.where(ok.unsqueeze(-1), half, torch.full_like(half, torch.inf))
     return H, offset, half
 
 
@@ -142,17 +159,24 @@ def sequential_strip_update(
 
     Returns the updated set and ``consistent [B]``. Where some strip misses the current set
     (empty intersection: a fault, seed 000 eq. 31-32) the input set is returned unchanged for
-    that batch element and ``consistent`` is False.
+    that batch element and ``consistent`` is False. A strip of infinite half-width (an
+    unbounded remainder of ``h``) is all of R^n and is skipped for that element.
     """
     from diffsmf.sets.strip import Strip
 
     ok = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
     cur = S
     for i in range(normal.shape[-2]):
-        strip = Strip(normal[..., i, :], offset[..., i], half[..., i])
-        atol = rounding_margin(offset[..., i], half[..., i]).detach()
-        ok = ok & cur.intersects_strip(strip, atol=atol)
-        cur = intersect(cur, strip)
+        w = half[..., i]
+        inf = torch.isinf(w)
+        w = torch.where(inf, torch.ones_like(w), w)
+        d = torch.where(inf, torch.zeros_like(offset[..., i]), offset[..., i])
+        strip = Strip(normal[..., i, :], d, w)
+        atol = rounding_margin(d, w).detach()
+        ok = ok & (inf | cur.intersects_strip(strip, atol=atol))
+        nxt = intersect(cur, strip)
+        a, b = align([nxt, cur])
+        cur = where(inf, b, a)
     return where(ok, cur, _like(S, cur)), ok
 
 
@@ -333,6 +357,7 @@ __all__ = [
     "measurement_strips",
     "prediction_remainder",
     "rounding_margin",
+    "sanitize_remainder",
     "sequential_strip_update",
     "step_function",
     "stirling_strip_update",

@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,9 +17,16 @@ from torch import Tensor, nn
 from diffsmf.sets.base import ConvexSet, align, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, StrictlyPositive, check_strictly_positive, register_positive
+from diffsmf.utils import (
+    Positive,
+    StrictlyPositive,
+    check_strictly_positive,
+    register_positive,
+    tracing,
+)
 
 __all__ = [
+    "MAX_SET_RADIUS",
     "FilterResult",
     "FilterState",
     "SetFilter",
@@ -28,23 +36,43 @@ __all__ = [
 ]
 
 
+#: A set whose interval hull has a half-width above this (or any non-finite field) is
+#: *unbounded*: flagged ``bounded=False`` from then on, its bounds reported as +-inf.
+MAX_SET_RADIUS = 1e100
+
+
 @dataclass(frozen=True)
 class FilterState:
     """Online filter state.
 
     set: current set, batch shape ``[B]``; consistent: ``[B]`` bool (False when the last
     measurement did not meet the predicted set); extras: filter-specific tensors
-    (e.g. ``"covariance" [B, n, n]``).
+    (e.g. ``"covariance" [B, n, n]``); bounded: ``[B]`` bool or ``None`` (= all True): False
+    from the step where the set stopped being finite (a remainder became unbounded, e.g. at a
+    singularity of the model, or the set outgrew :data:`MAX_SET_RADIUS`). Such an element's
+    guaranteed set is all of R^n; ``set`` then holds a finite placeholder (the initial set)
+    so that the batch carries on, and must not be read as an estimate.
     """
 
     set: ConvexSet
     consistent: Tensor
     extras: dict[str, Tensor] = field(default_factory=dict)
+    bounded: Tensor | None = None
 
     def replace(self, **kw: Any) -> FilterState:
-        d = {"set": self.set, "consistent": self.consistent, "extras": self.extras}
+        d = {
+            "set": self.set,
+            "consistent": self.consistent,
+            "extras": self.extras,
+            "bounded": self.bounded,
+        }
         d.update(kw)
         return FilterState(**d)
+
+    def and_bounded(self, ok: Tensor) -> FilterState:
+        """This state with ``bounded &= ok`` (``ok [B]`` bool)."""
+        b = ok if self.bounded is None else self.bounded & ok
+        return self.replace(bounded=b)
 
 
 @dataclass(frozen=True)
@@ -53,7 +81,10 @@ class FilterResult:
 
     sets: batch shape ``[B, T+1]`` (index 0 = initial set, k = after ``y_k``);
     center, lower, upper: ``[B, T+1, n]``; volume: ``[B, T+1]``; consistent: ``[B, T+1]``
-    bool; extras: stacked filter-specific tensors, e.g. ``"covariance" [B, T+1, n, n]``.
+    bool; extras: stacked filter-specific tensors, e.g. ``"covariance" [B, T+1, n, n]``;
+    bounded: ``[B, T+1]`` bool, False where the set stopped being finite (see
+    :class:`FilterState`): there ``lower = -inf``, ``upper = +inf``, ``volume = inf`` and
+    ``center`` is NaN (never a plausible-looking number); ``sets`` holds a placeholder.
     """
 
     sets: ConvexSet
@@ -63,10 +94,19 @@ class FilterResult:
     volume: Tensor
     consistent: Tensor
     extras: dict[str, Tensor] = field(default_factory=dict)
+    bounded: Tensor | None = None
 
     @property
     def covariance(self) -> Tensor | None:
         return self.extras.get("covariance")
+
+
+def _rebuild_as(cls: type, fields: tuple[Tensor, ...]) -> ConvexSet:
+    """A set of type ``cls`` from its field tensors (no validation)."""
+    obj = object.__new__(cls)
+    for name, t in zip(cls._fields, fields):
+        object.__setattr__(obj, name, t)
+    return obj
 
 
 def _pad_and_stack(sets: list[ConvexSet]) -> ConvexSet:
@@ -89,6 +129,21 @@ class SetFilter(nn.Module):
 
     process_noise = Positive()
     measurement_noise = Positive()
+
+    def __init_subclass__(cls, **kw: Any) -> None:
+        """Every subclass's ``predict`` validates ``u`` against the system first
+        (:meth:`~diffsmf.systems.System.check_input`: missing, wrong width, NaN raise)."""
+        super().__init_subclass__(**kw)
+        raw = cls.__dict__.get("predict")
+        if raw is None or getattr(raw, "_checks_u", False):
+            return
+
+        @functools.wraps(raw)
+        def predict(self: SetFilter, state: FilterState, u: Tensor | None = None) -> FilterState:
+            return raw(self, state, self._check_u(u, state))
+
+        predict._checks_u = True  # type: ignore[attr-defined]
+        cls.predict = predict  # type: ignore[method-assign]
 
     def __init__(
         self,
@@ -149,12 +204,18 @@ class SetFilter(nn.Module):
         raise NotImplementedError
 
     def update(self, state: FilterState, y: Tensor) -> FilterState:
-        """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) are skipped."""
+        """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) are skipped.
+
+        Ends with the boundedness guard (:meth:`guard`)."""
+        if not tracing():
+            bad = torch.isnan(y).any(-1)
+            if not bad.any():
+                return self.guard(self._update(state, y))
+            if not self.skip_nan:
+                raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
+        elif not self.skip_nan:
+            return self.guard(self._update(state, y))
         bad = torch.isnan(y).any(-1)
-        if not bad.any():
-            return self._update(state, y)
-        if not self.skip_nan:
-            raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
         new = self._update(state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y))
         keep = ~bad
         extras = {
@@ -162,25 +223,112 @@ class SetFilter(nn.Module):
             for k, v in new.extras.items()
             if k in state.extras
         }
-        return FilterState(
+        return self.guard(FilterState(
             set=where(keep, new.set, state.set),
             consistent=torch.where(keep, new.consistent, state.consistent),
             extras={**new.extras, **extras},
-        )
+            bounded=new.bounded,
+        ))
+
+    def guard(self, state: FilterState) -> FilterState:
+        """Flag and replace sets that stopped being finite (``bounded``, see FilterState).
+
+        An element is unbounded when a step flagged it (a remainder bound was not finite) or
+        its set has a non-finite field or an interval-hull half-width above
+        :data:`MAX_SET_RADIUS`. Its set is replaced by the initial set (a finite placeholder,
+        so that no NaN reaches the rest of the batch) and it stays flagged. Branch-free.
+        """
+        S = state.set
+        hull = S.interval_hull()
+        ok = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
+        for t in S._tensors():
+            ok = ok & torch.isfinite(t.detach()).flatten(len(S.batch_shape)).all(-1)
+        ok = ok & (hull.radius.detach() <= MAX_SET_RADIUS).all(-1)
+        new = state.and_bounded(ok)
+        b = new.bounded
+        init = self.initial_state(batch=int(b.shape[0]) if b.dim() else None)
+        ref = init.set
+        if type(ref) is not type(S) or ref.batch_shape != S.batch_shape:
+            return new
+        S_a, ref_a = align([S, ref])
+        safe = where(b, S_a, ref_a)
+        extras = dict(new.extras)
+        for k, v in new.extras.items():
+            if k in init.extras and init.extras[k].shape == v.shape:
+                keep = b.reshape(b.shape + (1,) * (v.dim() - b.dim()))
+                extras[k] = torch.where(keep, v, init.extras[k])
+        return new.replace(set=safe, extras=extras)
+
+    def _check_u(self, u: Tensor | None, state: FilterState) -> Tensor | None:
+        """``u [B, p]`` validated by the system (skipped while tracing for torch.compile)."""
+        if tracing():
+            return u
+        return self.system.check_input(u, state.set.batch_shape)
 
     def forward(self, y: Tensor, u: Tensor | None = None) -> FilterResult:
         """Filter measurements ``y [B, T, m]`` (inputs ``u [B, T, p]``) -> :class:`FilterResult`."""
         y = self._check_y(y)
         B, T, _ = y.shape
-        if u is not None and (u.dim() != 3 or u.shape[:2] != (B, T)):
-            raise ValueError(f"u: expected shape [{B}, {T}, p], got {tuple(u.shape)}")
+        if not tracing():
+            u = self.system.check_input(u, (B, T))
         state = self.initial_state(batch=B)
         states = [state]
+        step = self._compiled_step if getattr(self, "_compiled_step", None) else self.step
         for k in range(T):
-            state = self.predict(state, None if u is None else u[:, k])
-            state = self.update(state, y[:, k])
+            state = step(state, None if u is None else u[:, k], y[:, k])
             states.append(state)
         return self.collect(states)
+
+    def step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
+        """One step: ``update(predict(state, u), y)`` (``u [B, p]`` or None, ``y [B, m]``)."""
+        return self.update(self.predict(state, u), y)
+
+    def compile(self, **compile_kwargs: Any) -> SetFilter:  # type: ignore[override]
+        """The fast path: compile one filter step with ``torch.compile(fullgraph=True)``.
+
+        The step (predict + update, the guard included) is traced once per state structure
+        (set type and field shapes, batch size, input / measurement shapes) into a single
+        graph without host syncs: in the traced code the argument checks that would
+        synchronise are skipped (``forward`` still validates ``y`` and ``u`` once for the
+        whole horizon, eagerly) and data-dependent branches take their branch-free general
+        form (same sets up to rounding; every bound stays guaranteed). ``forward`` then runs
+        the compiled step in its time loop; ``predict`` / ``update`` stay eager. Returns
+        ``self``. ``compile_kwargs`` go to :func:`torch.compile` (default ``fullgraph=True,
+        dynamic=False``). Unlike ``nn.Module.compile`` this compiles the step, not the whole
+        unrolled horizon, so compile time does not grow with T.
+        """
+        kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
+        flat = torch.compile(self._flat_step, **kw)
+
+        def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
+            S = state.set
+            b = state.bounded
+            if b is None:
+                b = torch.ones_like(state.consistent)
+            fields, consistent, bounded, extras = flat(
+                S._tensors(), state.consistent, b, dict(state.extras), u, y, type(S)
+            )
+            return FilterState(_rebuild_as(self._out_type, fields), consistent, extras, bounded)
+
+        self._out_type = type(self.initial_state(batch=1).set)
+        self._compiled_step = compiled
+        return self
+
+    def _flat_step(
+        self,
+        fields: tuple[Tensor, ...],
+        consistent: Tensor,
+        bounded: Tensor,
+        extras: dict[str, Tensor],
+        u: Tensor | None,
+        y: Tensor,
+        set_type: type,
+    ) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
+        """:meth:`step` on flat tensors (the function that ``compile`` traces)."""
+        S = _rebuild_as(set_type, fields)
+        new = self.step(FilterState(S, consistent, extras, bounded), u, y)
+        nb = torch.ones_like(new.consistent) if new.bounded is None else new.bounded
+        return new.set._tensors(), new.consistent, nb, dict(new.extras)
 
     def collect(self, states: list[FilterState]) -> FilterResult:
         """Assemble a :class:`FilterResult` from the per-step states."""
@@ -191,14 +339,23 @@ class SetFilter(nn.Module):
             for k in states[-1].extras
             if all(k in s.extras for s in states)
         }
+        consistent = torch.stack([s.consistent for s in states], 1)
+        bounded = torch.stack(
+            [torch.ones_like(s.consistent) if s.bounded is None else s.bounded for s in states],
+            1,
+        )
+        lower, upper, center, volume = hull.lower, hull.upper, sets.center, sets.volume()
+        b = bounded.unsqueeze(-1)
+        inf = torch.full_like(lower, torch.inf)
         return FilterResult(
             sets=sets,
-            center=sets.center,
-            lower=hull.lower,
-            upper=hull.upper,
-            volume=sets.volume(),
-            consistent=torch.stack([s.consistent for s in states], 1),
+            center=torch.where(b, center, torch.full_like(center, torch.nan)),
+            lower=torch.where(b, lower, -inf),
+            upper=torch.where(b, upper, inf),
+            volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
+            consistent=consistent,
             extras=extras,
+            bounded=bounded,
         )
 
     def _check_y(self, y: Tensor) -> Tensor:

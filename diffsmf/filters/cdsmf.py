@@ -100,6 +100,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         R = C.prediction_remainder(
             self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin
         )
+        R, bounded = C.sanitize_remainder(R)  # flag, never NaN
         W = self.process_noise_box()
         fc = fn(c)
         rad = R.radius + W.radius
@@ -110,7 +111,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         # p = minkowski_scale * rule p (any p > 0 is an outer bound; 1 = the rule exactly)
         new = scaled_minkowski_sum(lin, box.to_ellipsoid(), self.sum_method, self.minkowski_scale)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
-        return state.replace(set=new, extras={})
+        return state.replace(set=new, extras={}).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Seed 000 Theorem 3 strips intersected one by one with the ellipsoid."""

@@ -95,6 +95,7 @@ class CZSMF(SetFilter):
         remainder_margin: float | Tensor = 0.0,
         rescale: bool = True,
         lp_iters: int = 15,
+        elimination: str = "hull",
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
@@ -134,6 +135,9 @@ class CZSMF(SetFilter):
         self.remainder = remainder
         self.rescale = rescale
         self.lp_iters = lp_iters
+        if elimination not in ("hull", "lp", "propagation"):
+            raise ValueError(f"elimination: unknown {elimination!r} (hull | lp | propagation)")
+        self.elimination = elimination
         self._x0 = ConstrainedZonotope.from_set(
             initial_set if initial_set is not None else system.x0_set
         )
@@ -170,7 +174,7 @@ class CZSMF(SetFilter):
         if Z.num_constraints > self.max_constraints:
             if self.rescale:
                 Z = Z.rescale()
-            Z = Z.reduce_constraints(self.max_constraints)
+            Z = Z.reduce_constraints(self.max_constraints, self.elimination)
         extra = 0 if box is None else Z.dim
         if Z.num_generators + extra > self.max_generators:
             if self.rescale and Z.num_constraints:

@@ -119,7 +119,7 @@ class ESMF(C.EllipsoidalSetFilter):
         box = C.remainder_box(E, state.extras)  # eq. 27 (∩ the initial box at k = 0)
         fn = C.step_function(self.system, u)
         A = jacobian(fn, c)  # eq. 25
-        R = C.finite_remainder(self.remainder_fn(fn, box, c, A), "f")  # eq. 26-28
+        R, bounded = C.sanitize_remainder(self.remainder_fn(fn, box, c, A))  # eq. 26-28
         fc = fn(c)
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
         R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
@@ -131,12 +131,13 @@ class ESMF(C.EllipsoidalSetFilter):
             D = parameter_deviation(
                 self.system.f, box, self.system.parameters, self.system.theta_nominal, u
             )
-            D = C.finite_remainder(D, "parameter deviation")
+            D, ok_d = C.sanitize_remainder(D)
+            bounded = bounded & ok_d
             Qhat = scaled_minkowski_sum(Qhat, D.to_ellipsoid(), "trace", s)
         lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
         new = scaled_minkowski_sum(lin, Qhat, "trace", s)  # eq. 34-35
         new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
-        return state.replace(set=new, extras={})
+        return state.replace(set=new, extras={}).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Eq. 36-40: prior ∩ linearised observation set (``Ellipsoid.intersect_measurement``)."""
@@ -148,7 +149,8 @@ class ESMF(C.EllipsoidalSetFilter):
         H = jacobian(h, c)
         hc = h(c)
         V = self.measurement_noise_box()
-        Rh = C.finite_remainder(self.remainder_fn(h, E.interval_hull(), c, H), "h")
+        # unbounded remainder of h: the measurement cannot shrink the set (update skipped)
+        Rh, ok_h = C.sanitize_remainder(self.remainder_fn(h, E.interval_hull(), c, H))
         noise = Interval(V.lower + Rh.lower, V.upper + Rh.upper)
         noise = C.widen(noise, C.rounding_margin(y, hc, noise.center, noise.radius))
         Rhat = noise.to_ellipsoid().shape  # diag(m r^2): covering ellipsoid of the box
@@ -163,9 +165,9 @@ class ESMF(C.EllipsoidalSetFilter):
             D = _sym(r[..., None, None] * HPH + (1 - r)[..., None, None] * Rhat)
             Dnu = torch.linalg.solve(D, nu.expand(grid.shape[0], *nu.shape).unsqueeze(-1))
             xi = (1 - r * (1 - r) * (nu * Dnu.squeeze(-1)).sum(-1)).amin(0)
-            ok = xi > 0
+            ok = (xi > 0) | ~ok_h
             new = E.intersect_measurement(H, ylin, Rhat, method="volume")
-            return state.replace(set=where(ok, new, E), consistent=ok)
+            return state.replace(set=where(ok & ok_h, new, E), consistent=ok)
         d1, d2 = _max_sv(Rhat), _max_sv(HPH)
         if self.rho_rule == "eq13":
             d1, d2 = d2, d1
@@ -173,6 +175,6 @@ class ESMF(C.EllipsoidalSetFilter):
         D = _sym(rho[..., None, None] * HPH + (1 - rho)[..., None, None] * Rhat)
         Dnu = torch.linalg.solve(D, nu.unsqueeze(-1)).squeeze(-1)
         xi = 1 - rho * (1 - rho) * (nu * Dnu).sum(-1)  # eq. 36 (times rho (1 - rho))
-        ok = xi > 0  # seed 001: xi <= 0 means the bounds are violated (a fault)
+        ok = (xi > 0) | ~ok_h  # seed 001: xi <= 0 means the bounds are violated (a fault)
         new = E.intersect_measurement(H, ylin, Rhat, rho=torch.where(ok, rho, 0.5 * rho))
-        return state.replace(set=where(ok, new, E), consistent=ok)
+        return state.replace(set=where(ok & ok_h, new, E), consistent=ok)

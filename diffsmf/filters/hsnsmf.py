@@ -83,6 +83,7 @@ class HSNSMF(SetFilter):
         E = C.prediction_remainder(
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin
         )  # eq. 14-18 (+ margin)
+        E, bounded = C.sanitize_remainder(E)  # flag, never NaN
         W = self.process_noise_box()
         fc, FT = fn(c), F @ T
         ctr = fc + E.center + W.center  # eq. 20
@@ -90,7 +91,7 @@ class HSNSMF(SetFilter):
         rad = rad + C.rounding_margin(fc, E.center, FT.abs().sum(-1), rad)
         G = torch.cat([FT, torch.diag_embed(rad)], -1)  # eq. 21
         Z = Zonotope(ctr, G)
-        return state.replace(set=Z.to_parallelotope())  # eq. 22 (Chisci 1996)
+        return state.replace(set=Z.to_parallelotope()).and_bounded(bounded)  # eq. 22 (Chisci)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Theorem 3 strips (eq. 23-29) intersected one by one (eq. 30-41)."""

@@ -122,12 +122,13 @@ class MSZM(SetFilter):
         E = C.prediction_remainder(
             self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin
         )
+        E, bounded = C.sanitize_remainder(E)  # flag, never NaN
         W = self.process_noise_box()
         fc, FG = fn(c), F @ G
         rad = E.radius + W.radius
         rad = rad + C.rounding_margin(fc, E.center, FG.abs().sum(-1), rad)
         Zp = Zonotope(fc + E.center + W.center, torch.cat([FG, torch.diag_embed(rad)], -1))
-        return state.replace(set=self._fit(Zp))
+        return state.replace(set=self._fit(Zp)).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Strips (seed 000 eq. 23-29) intersected with Alamo 2005 Property 2, then reduced."""

@@ -15,6 +15,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from diffsmf.utils import tracing
+
 __all__ = ["hessian", "jacobian", "stirling_jacobian"]
 
 Fn = Callable[[Tensor], Tensor]
@@ -43,6 +45,8 @@ def jacobian(fn: Fn, x: Tensor) -> Tensor:
     output batch shape.
     """
     x = _check_x(x)
+    if tracing():
+        return _jacobian_forward(fn, x)
     graph = torch.is_grad_enabled()
     with torch.enable_grad():
         base = x if x.requires_grad else x.detach().requires_grad_()
@@ -65,6 +69,27 @@ def jacobian(fn: Fn, x: Tensor) -> Tensor:
             )
             rows.append(torch.zeros_like(wrt) if g is None else g)
     return torch.stack(rows, -2)
+
+
+def _jacobian_forward(fn: Fn, x: Tensor) -> Tensor:
+    """Forward-mode Jacobian ``[..., k, n]``: one ``torch.func.jvp`` per basis direction,
+    vectorised by ``vmap`` over the n directions (not over the batch, so closures over
+    batched tensors broadcast as usual). Used while ``torch.compile`` traces a filter step
+    (``autograd.grad`` would break the graph); the values equal the reverse-mode ones up to
+    rounding, and the result stays differentiable (reverse-over-forward).
+    """
+    n = x.shape[-1]
+    y0 = fn(x)
+    batch = torch.broadcast_shapes(x.shape[:-1], y0.shape[:-1])
+    xb = x.expand(*batch, n)
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
+    E = eye.reshape(n, *([1] * len(batch)), n).expand(n, *batch, n)
+
+    def column(t: Tensor) -> Tensor:
+        return torch.func.jvp(fn, (xb,), (t,))[1]
+
+    cols = torch.func.vmap(column)(E)  # [n, *batch, k]
+    return cols.movedim(0, -1)
 
 
 def hessian(fn: Fn, x: Tensor) -> Tensor:
@@ -95,7 +120,7 @@ def stirling_jacobian(fn: Fn, x: Tensor, h: Tensor | float) -> Tensor:
     """
     x = _check_x(x)
     h = torch.as_tensor(h, dtype=x.dtype, device=x.device)
-    if torch.isnan(h.detach()).any() or (h.detach() <= 0).any():
+    if not tracing() and (torch.isnan(h.detach()).any() or (h.detach() <= 0).any()):
         raise ValueError("h: the Stirling step must be positive")
     n = x.shape[-1]
     try:

@@ -25,6 +25,7 @@ from diffsmf.linearize.jacobians import jacobian
 from diffsmf.linearize.jets import Jet, interval_jacobian, jet_eval
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval, interval_eval
+from diffsmf.utils import tracing
 
 __all__ = [
     "AUTO_LAGRANGE_MAX_N",
@@ -58,6 +59,8 @@ _AFFINE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _known_affine(fn: Fn) -> bool:
+    if tracing():  # the cache is host state; the traced graph takes the general path
+        return False
     try:
         return bool(_AFFINE.get(fn, False))
     except TypeError:  # unhashable callable
@@ -66,7 +69,7 @@ def _known_affine(fn: Fn) -> bool:
 
 def _remember(fn: Fn, jet: Jet) -> bool:
     """Record ``fn`` as affine when ``jet``'s Hessian is structurally zero -> that flag."""
-    if jet.hess_is_zero:
+    if jet.hess_is_zero and not tracing():
         try:
             _AFFINE[fn] = True
         except TypeError:
@@ -173,7 +176,7 @@ def _lagrange(
     """Seed 001 eq. 26-28 from the jet over ``box``; ``D = J_exact(c) - J`` or None."""
     d = box - c  # [..., n] (outward rounded)
     R = _quad_form(jet.hess, d) * 0.5
-    if D is not None and not bool((D.detach() == 0).all()):
+    if D is not None and (tracing() or not bool((D.detach() == 0).all())):
         R = R + _linear_range(S, D, c)
     # float evaluation of fn(x) - fn(c) - J (x - c) is padded by its rounding scale
     Jm = 0.0 if J is None else (J.abs() * d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2))
@@ -336,7 +339,7 @@ def dc_remainder(
     if _remember(fn, jet):  # same result as every later call (which skips the jets)
         return _affine_remainder(fn, S, c, J)
     H = jet.hess  # [..., k, n, n]
-    if bool((H.lower.detach() == 0).all() and (H.upper.detach() == 0).all()):
+    if not tracing() and bool((H.lower.detach() == 0).all() and (H.upper.detach() == 0).all()):
         # fn is affine on the hull: r(x) = (J_exact - J)(x - c) exactly, no vertices needed
         return _lagrange(jet, box, S, c, J, None if J is None else jacobian(fn, c) - J)
     # the four convexifications at once (leading dim 4): r + q convex with q the ball

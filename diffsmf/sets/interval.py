@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_tensor
+from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -64,7 +65,7 @@ def _step(x: Tensor, k: int, direction: float, absolute: bool = True) -> Tensor:
     # Overflowed bounds must be clamped first (inf - inf = nan). On the CPU a host check is
     # cheaper than an autograd node on every call; on accelerators it would synchronise, so
     # the clamp is always applied there.
-    if x.device.type != "cpu" or bool(torch.isinf(pad).any()):
+    if tracing() or x.device.type != "cpu" or bool(torch.isinf(pad).any()):
         big = torch.finfo(x.dtype).max
         x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
         pad = torch.nan_to_num(x.detach().abs() * (2.0 * k * _eps(x)), posinf=0.0)
@@ -126,7 +127,7 @@ class Interval(ConvexSet):
             raise ValueError(
                 f"upper: shape {tuple(hi.shape)} does not broadcast with lower {tuple(lo.shape)}"
             ) from exc
-        if (lo.detach() > hi.detach()).any():
+        if not tracing() and (lo.detach() > hi.detach()).any():
             raise ValueError("lower: must be <= upper elementwise")
         self._set(lower=lo, upper=hi)
 

@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
+from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -55,7 +56,7 @@ class Parallelotope(ConvexSet):
                 f"T: batch shape {tuple(T.shape[:-2])} does not broadcast with center batch "
                 f"shape {tuple(c.shape[:-1])}"
             ) from exc
-        if T.numel() > 0:
+        if T.numel() > 0 and not tracing():
             sv = torch.linalg.svdvals(T.detach())
             if (sv[..., -1] <= 1e-13 * sv[..., 0]).any() or (sv[..., 0] == 0).any():
                 raise ValueError("T: singular (parallelotope must be full-dimensional)")

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_tensor
+from diffsmf.utils import tracing
 
 __all__ = ["Strip"]
 
@@ -38,12 +39,13 @@ class Strip(ConvexSet):
         a = as_tensor("normal", normal, min_dim=1)
         o = as_tensor("offset", offset, like=a)
         h = as_tensor("halfwidth", halfwidth, like=a)
-        if (h.detach() < 0).any():
-            raise ValueError("halfwidth: must be >= 0")
-        if not torch.isfinite(a.detach()).all():
-            raise ValueError("normal: contains inf")
-        if (a.detach().abs().amax(-1) == 0).any():
-            raise ValueError("normal: must be non-zero")
+        if not tracing():
+            if (h.detach() < 0).any():
+                raise ValueError("halfwidth: must be >= 0")
+            if not torch.isfinite(a.detach()).all():
+                raise ValueError("normal: contains inf")
+            if (a.detach().abs().amax(-1) == 0).any():
+                raise ValueError("normal: must be non-zero")
         try:
             batch = torch.broadcast_shapes(a.shape[:-1], o.shape, h.shape)
         except RuntimeError as exc:

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
+from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -480,7 +481,7 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
         else:
             scale = Gd.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
         best, ok = _best_basis(Gd / scale)
-    if bool(ok.all()):
+    if not tracing() and bool(ok.all()):
         return _basis_T(G, best)
     aug = torch.where(ok.reshape(*ok.shape, 1, 1), 0.0 * eye, (1e-9 * scale) * eye)
     Gaug = torch.cat([G, aug.expand(*G.shape[:-2], n, n)], -1)

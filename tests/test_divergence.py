@@ -1,0 +1,99 @@
+"""Divergence is flagged, never a crash or a NaN: ``FilterResult.bounded`` (issue 12).
+
+A system designed for the purpose: ``x1`` is unmeasured and integrates ``x2``, and the model
+has a pole at ``x1 = 2``. Trajectory A drifts towards the pole (its true state stays below
+1.7, but the uncertainty of the unmeasured ``x1`` grows until the set reaches the pole, where
+no bounded guaranteed set exists); trajectory B drifts away and stays bounded. Plus the
+built-in fermenter with an initial set that contains the pole of its growth rate.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import diffsmf as ds
+
+F64 = torch.float64
+GUARANTEED = ["hsnsmf", "mszm", "cdsmf", "esmf"]
+
+
+def _pole_system() -> ds.System:
+    dt = 0.1
+
+    def f(x, u=None, theta=None):
+        x1, x2 = x[..., 0], x[..., 1]
+        return torch.stack([x1 + dt * x2, 0.9 * x2 + dt * 0.01 / (2.0 - x1)], -1)
+
+    def h(x):
+        return x[..., 1:2]
+
+    x0 = ds.Interval(torch.tensor([-0.1, -1.6], dtype=F64), torch.tensor([0.1, 1.6], dtype=F64))
+    W = ds.Interval(torch.tensor([-0.05, -1e-3], dtype=F64), torch.tensor([0.05, 1e-3],
+                                                                           dtype=F64))
+    V = ds.Interval(torch.tensor([-1e-2], dtype=F64), torch.tensor([1e-2], dtype=F64))
+    return ds.System(f, h, x0, W, V, name="pole")
+
+
+def _two_trajectories(s: ds.System, T: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """True states ``[2, T+1, 2]`` from x0 = (0, +1.5) and (0, -1.5), measurements ``[2, T, 1]``
+    (vertex-free: noise 0, inside every bound)."""
+    x = torch.tensor([[0.0, 1.5], [0.0, -1.5]], dtype=F64)
+    xs, ys = [x], []
+    for _ in range(T):
+        x = s.f(x, None, None)
+        xs.append(x)
+        ys.append(s.h(x))
+    return torch.stack(xs, 1), torch.stack(ys, 1)
+
+
+@pytest.mark.parametrize("name", GUARANTEED)
+def test_unbounded_row_flagged_other_row_unaffected(name):
+    s = _pole_system()
+    x, y = _two_trajectories(s, 30)
+    assert x[0, :, 0].max() < 1.7  # the true state never reaches the pole
+    filt = ds.filters.by_name(name)(s)
+    res = filt(y)
+    assert not torch.isnan(res.lower).any() and not torch.isnan(res.upper).any()
+    assert not res.bounded[0, -1]  # A: the set reached the pole -> flagged
+    k = int((~res.bounded[0]).nonzero()[0])  # first flagged step; flags are sticky
+    assert (~res.bounded[0, k:]).all() and res.bounded[0, :k].all()
+    assert torch.isinf(res.lower[0, k:]).all() and torch.isinf(res.upper[0, k:]).all()
+    assert torch.isinf(res.volume[0, k:]).all()
+    # B: unaffected by A -- the same bounds and flags as a run of B alone (an ellipsoidal
+    # set of B, looser, may itself reach the pole late in the horizon: then it is flagged too)
+    assert res.bounded[1, : k + 1].all()
+    alone = ds.filters.by_name(name)(s)(y[1:])
+    assert torch.equal(alone.bounded[0], res.bounded[1])
+    torch.testing.assert_close(alone.lower[0], res.lower[1], rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(alone.upper[0], res.upper[1], rtol=1e-9, atol=1e-12)
+    inside = (res.lower[1] - 1e-12 <= x[1]) & (x[1] <= res.upper[1] + 1e-12)
+    assert inside.all()  # guaranteed (trivially where flagged: the bounds are infinite)
+
+
+@pytest.mark.parametrize("name", ["hsnsmf", "cdsmf"])
+def test_gradients_finite_for_bounded_rows(name):
+    s = _pole_system()
+    _, y = _two_trajectories(s, 25)
+    filt = ds.filters.by_name(name)(s)
+    res = filt(y)
+    assert not res.bounded[0, -1]
+    keep = res.bounded[1]  # B's bounded steps (all of them for HSNSMF)
+    assert keep[:15].all()
+    loss = res.volume[1, 1:][keep[1:]].log().mean()
+    loss.backward()
+    grads = [p.grad for p in filt.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_fermenter_large_initial_set_flagged_not_raised():
+    """The fermenter's growth rate has a pole at S = -1.27: an initial box reaching it has no
+    bounded guaranteed prediction. Before, the run raised mid-way and the batch was lost."""
+    s = ds.systems.get("fermenter")
+    big = ds.Interval(s.x0_set.center - 3.0, s.x0_set.center + 3.0)
+    tr = s.simulate(steps=5, batch=3, seed=0)
+    for name in ("hsnsmf", "esmf"):
+        res = ds.filters.by_name(name)(s, initial_set=big)(tr.y, u=tr.u)
+        assert not torch.isnan(res.lower).any()
+        assert not res.bounded[:, -1].any()
+        assert torch.isinf(res.upper[:, -1]).all()
