@@ -99,7 +99,7 @@ def build_subparser(name: str, prog: str | None = None) -> tuple[argparse.Argume
     doc = (module.__doc__ or "").strip().replace("``", "")
     sub = CommandParser(
         prog=prog or f"diffsmf {name}",
-        description=COMMANDS[name][1] + (f"\n\n{doc}" if doc else ""),
+        description=doc or COMMANDS[name][1],
         formatter_class=HelpFormatter,
     )
     module.add_arguments(sub)

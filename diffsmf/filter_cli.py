@@ -44,9 +44,6 @@ __all__ = [
     "write_bounds",
 ]
 
-GUARANTEED = ("hsnsmf", "mszm", "cdsmf", "esmf", "combined")
-
-
 # ------------------------------------------------------------------ model
 def load_object(spec: str, what: str = "--model") -> object:
     """``"path/to/file.py:FUNCTION"`` -> whatever ``FUNCTION()`` returns (no arguments).
@@ -412,7 +409,7 @@ def main(args: argparse.Namespace) -> int:
     bounds_path = write_bounds(out, run, args.format)
     files = {"bounds": bounds_path.name}
     name = type(filt).__name__
-    guaranteed = args.filter.lower().replace("-", "").replace("_", "") in GUARANTEED
+    guaranteed = not isinstance(filt, ds.filters.EKF)  # every other filter bounds guaranteed
     if args.figure:
         from diffsmf.plot import bounds_figure
 

@@ -1,4 +1,4 @@
-"""Command line of the tuner: ``python -m training.tune`` and ``diffsmf tune`` (issue 7).
+"""Tune a filter's noise bounds (and step sizes) on simulated data of a built-in system.
 
     python -m training.tune --system spring_damper --filter hsnsmf --epochs 200 --out runs/sd
     python -m training.tune --config sd.toml
