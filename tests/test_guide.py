@@ -13,7 +13,6 @@ Each page runs in its own temporary folder, so files written by one block are re
 
 from __future__ import annotations
 
-import os
 import re
 import shlex
 import sys
@@ -51,25 +50,28 @@ def test_guide_page_runs(page, tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(str(tmp_path))
     text = (GUIDE / page).read_text()
     ns: dict = {"__name__": f"guide_{page[:-3]}"}
+    before = set(sys.modules)
     ran = 0
-    for i, (lang, attrs, code) in enumerate(blocks(text)):
-        where = f"{page} block {i + 1}"
-        if lang == "python":
-            title = re.search(r'title="([^"]+)"', attrs)
-            if title:
-                Path(title.group(1)).write_text(code)
-                continue
-            exec(compile(code, where, "exec"), ns)  # noqa: S102 - the guide's own code
-            ran += 1
-        elif lang == "bash":
-            for cmd in _commands(code):
-                argv = shlex.split(cmd)
-                assert argv[0] == "diffsmf", f"{where}: only diffsmf commands run here: {cmd}"
-                rc = main([*argv[1:], *(["--quiet"] if argv[1] in ("filter", "audit") else [])])
-                assert rc == 0, f"{where}: {cmd} exited with {rc}"
+    try:
+        for i, (lang, attrs, code) in enumerate(blocks(text)):
+            where = f"{page} block {i + 1}"
+            if lang == "python":
+                title = re.search(r'title="([^"]+)"', attrs)
+                if title:
+                    Path(title.group(1)).write_text(code)
+                    continue
+                exec(compile(code, where, "exec"), ns)  # noqa: S102 - the guide's own code
                 ran += 1
+            elif lang == "bash":
+                for cmd in _commands(code):
+                    argv = shlex.split(cmd)
+                    assert argv[0] == "diffsmf", f"{where}: only diffsmf commands run: {cmd}"
+                    quiet = ["--quiet"] if argv[1] in ("filter", "audit", "tune") else []
+                    rc = main([*argv[1:], *quiet])
+                    assert rc == 0, f"{where}: {cmd} exited with {rc}"
+                    ran += 1
+    finally:  # forget the modules this page imported from its folder (my_model, ...)
+        for name in set(sys.modules) - before:
+            if str(tmp_path) in str(getattr(sys.modules[name], "__file__", "") or ""):
+                del sys.modules[name]
     assert ran > 0, f"{page}: nothing was run"
-    for name in list(sys.modules):  # model files written by this page
-        if name.startswith("_diffsmf_user_model_") or name in ("my_model",):
-            sys.modules.pop(name, None)
-    os.chdir(tmp_path)
