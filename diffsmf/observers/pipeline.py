@@ -35,6 +35,7 @@ __all__ = [
     "simplex_error_bound",
     "design_observer_pipeline",
     "fit_nonlinearity",
+    "interval_hess_bound",
     "plot_pipeline",
     "simulate",
     "vdp_model",
@@ -45,8 +46,18 @@ __all__ = [
 class ContinuousModel:
     """x' = A x + B_f phi(H x) + B u(t), y = C x, on the box domain (lower, upper) of H x.
 
-    phi: torch function [..., q] -> [..., r]; hess_bound(simplex vertices [M, q+1, q]) -> [M, r]
-    upper bounds of the Hessian 2-norm of each phi_i on each simplex (None: eps not certified).
+    The model a user gives to :func:`design_observer_pipeline` and to
+    ``diffsmf design-observer --model FILE.py:FUNC`` (``FUNC()`` returns one). Shapes: A [n, n],
+    B [n, p], C [l, n], B_f [n, r], H [q, n], lower/upper [q] (lower < upper), x0/xhat0 [n]
+    (true and observer initial states, for the simulation).
+    phi: torch function [..., q] -> [..., r]; u: t (0-d tensor) -> [p] input.
+    hess_bound(simplex vertices [M, q+1, q]) -> [M, r] upper bounds of the Hessian 2-norm of
+    each phi_i on each simplex; None: computed by interval arithmetic
+    (:func:`interval_hess_bound`, certified for phi built from the operations that
+    :mod:`diffsmf.linearize.jets` supports). The observer's bound holds while H x stays in the
+    domain (checked in the simulation).
+    Checked on construction: ValueError naming the field for wrong shapes, NaN or inf, an empty
+    domain, or a phi / u / hess_bound that is not callable.
     """
 
     name: str
@@ -62,6 +73,72 @@ class ContinuousModel:
     x0: np.ndarray
     xhat0: np.ndarray
     u: Callable[[Tensor], Tensor]
+
+    def __post_init__(self) -> None:
+        def mat(name, rows=None, cols=None, ndim=2):
+            try:
+                M = np.asarray(getattr(self, name), dtype=float)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"ContinuousModel.{name} must be numeric") from exc
+            if M.ndim != ndim or not np.all(np.isfinite(M)):
+                raise ValueError(f"ContinuousModel.{name} must be a finite {ndim}-D array, got "
+                                 f"shape {M.shape}")
+            if (rows is not None and M.shape[0] != rows) or (
+                    cols is not None and ndim == 2 and M.shape[1] != cols):
+                want = f"[{rows if rows is not None else '.'}" + (
+                    f", {cols if cols is not None else '.'}]" if ndim == 2 else "]")
+                raise ValueError(f"ContinuousModel.{name} must have shape {want}, got {M.shape}")
+            setattr(self, name, M)
+            return M
+
+        A = mat("A")
+        n = A.shape[0]
+        if A.shape != (n, n) or n == 0:
+            raise ValueError(f"ContinuousModel.A must be square [n, n], got {A.shape}")
+        mat("B", rows=n)
+        mat("C", cols=n)
+        mat("B_f", rows=n)
+        q = mat("H", cols=n).shape[0]
+        lo, hi = mat("lower", rows=q, ndim=1), mat("upper", rows=q, ndim=1)
+        if not np.all(lo < hi):
+            raise ValueError("ContinuousModel.lower must be < upper in every component")
+        mat("x0", rows=n, ndim=1)
+        mat("xhat0", rows=n, ndim=1)
+        for name in ("phi", "u"):
+            if not callable(getattr(self, name)):
+                raise ValueError(f"ContinuousModel.{name} must be callable")
+        if self.hess_bound is None:
+            self.hess_bound = interval_hess_bound(self.phi)
+        elif not callable(self.hess_bound):
+            raise ValueError("ContinuousModel.hess_bound must be callable or None")
+
+
+def interval_hess_bound(phi: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
+    """A certified ``hess_bound`` for phi by interval arithmetic (seed 001 eq. 26-28).
+
+    For simplex vertices V [M, q+1, q]: the interval Hessian [H_lo, H_hi] of each phi_i over the
+    simplex's bounding box (:func:`diffsmf.linearize.jets.interval_hessian`); with
+    Hmax = max(|H_lo|, |H_hi|) entrywise, every Hessian in the box has 2-norm <= rho(|H|) <=
+    rho(Hmax) = |Hmax|_2 (Perron-Frobenius). Returns [M, r] (times 1 + 1e-9 for rounding).
+    """
+    from diffsmf.linearize.jets import interval_hessian
+    from diffsmf.sets import Interval
+
+    def bound(V: Tensor) -> Tensor:
+        box = Interval(V.amin(-2), V.amax(-2))
+        try:
+            Hi = interval_hessian(phi, box)
+        except Exception as exc:  # noqa: BLE001 - an operation jets do not support
+            raise ValueError(
+                f"ContinuousModel.phi: the interval Hessian bound failed ({type(exc).__name__}: "
+                f"{exc}); give hess_bound= explicitly") from exc
+        Hmax = torch.maximum(Hi.lower.abs(), Hi.upper.abs())
+        if not torch.all(torch.isfinite(Hmax)):
+            raise ValueError("ContinuousModel.phi: the interval Hessian is not finite on the "
+                             "domain; give hess_bound= explicitly")
+        return torch.linalg.matrix_norm(Hmax, ord=2) * (1 + 1e-9)
+
+    return bound
 
 
 def _vdp_phi(x: Tensor) -> Tensor:
@@ -134,13 +211,14 @@ def fit_nonlinearity(
     samples: int = 4000,
     max_regions: int = 20000,
     seed: int = 0,
+    progress: bool | None = False,
 ) -> tuple[object, dict]:
     """SCPLNN model of phi on the domain with certified error, and a report dict.
 
     method "scplnn": ``diffsmf.pwl.fit_scplnn`` (seed 004 sec. 3.1.2) on ``samples`` uniform
     random samples, with the vertex values taken from phi (``vertex_fn``) and every region also
-    split until its certified bound (:func:`simplex_error_bound`) is below eps
-    (``region_bound``); without ``hess_bound`` a plain least-squares fit (uncertified).
+    split until its certified bound (:func:`simplex_error_bound`, with ``sysm.hess_bound``) is
+    below eps (``region_bound``).
     "grid": interpolation on a Kuhn-triangulated grid refined until the certified error <= eps.
     "auto": "scplnn", falling back to "grid" when its certified error exceeds eps or its
     Lipschitz bound is above 2x the grid model's.
@@ -153,7 +231,7 @@ def fit_nonlinearity(
     info: dict = {}
     model = None
     if method in ("auto", "scplnn"):
-        model = _scplnn_model(sysm, eps, samples, max_regions, seed, info)
+        model = _scplnn_model(sysm, eps, samples, max_regions, seed, info, progress)
     if method in ("auto", "grid"):
         gm, cells = _refined_grid(sysm, eps)
         if model is not None:
@@ -177,7 +255,7 @@ def fit_nonlinearity(
 
 
 def _scplnn_model(sysm: ContinuousModel, eps: float, samples: int, max_regions: int, seed: int,
-                  info: dict):
+                  info: dict, progress: bool | None = False):
     """fit_scplnn on uniform random samples of phi; certified when sysm.hess_bound is given."""
     from diffsmf.pwl import fit_scplnn
 
@@ -192,7 +270,8 @@ def _scplnn_model(sysm: ContinuousModel, eps: float, samples: int, max_regions: 
         eps_i = eps / math.sqrt(Y.shape[1])  # per-output bounds -> 2-norm over outputs <= eps
         kw = dict(vertex_fn=sysm.phi, region_bound=lambda V, W: simplex_error_bound(
             V, W, sysm.phi, sysm.hess_bound), rule="edge")
-    model, rep = fit_scplnn(X, Y, eps_i, max_regions=max_regions, domain=(lo, hi), **kw)
+    model, rep = fit_scplnn(X, Y, eps_i, max_regions=max_regions, domain=(lo, hi),
+                            progress=progress, **kw)
     model.outside = "clamp"
     info.update(method="scplnn", fit_converged=bool(rep.converged), regions=int(rep.regions),
                 sample_max_error=float(rep.max_error.max()), fit_seconds=float(rep.seconds),
@@ -212,10 +291,12 @@ def _refined_grid(sysm: ContinuousModel, eps: float):
         cells = [int(math.ceil(c * min(2.0, 1.05 * math.sqrt(ce / eps)))) for c in cells]
 
 
-def simulate(sysm: ContinuousModel, observer: PWLObserver, T: float, dt: float) -> dict:
+def simulate(sysm: ContinuousModel, observer: PWLObserver, T: float, dt: float,
+             progress: bool = False) -> dict:
     """Joint RK4 of the true system and the observer (exact y and u at every stage).
 
     Returns numpy arrays t [K+1], x [K+1, n], xhat [K+1, n], d [K+1] = |phi(H x) - f̂(H x)|.
+    progress: a tqdm bar over the K = round(T / dt) steps.
     """
     n = sysm.A.shape[0]
     A, B, Bf, H = (torch.as_tensor(M) for M in (sysm.A, sysm.B, sysm.B_f, sysm.H))
@@ -230,8 +311,11 @@ def simulate(sysm: ContinuousModel, observer: PWLObserver, T: float, dt: float) 
     steps = int(round(T / dt))
     z = torch.as_tensor(np.concatenate([sysm.x0, sysm.xhat0]))
     zs = [z]
+    from tqdm.auto import tqdm
+
     with torch.no_grad():
-        for k in range(steps):  # time loop only
+        for k in tqdm(range(steps), desc="simulate", unit="step", disable=not progress,
+                      leave=False):  # time loop only
             z = rk4_step(rhs, z, torch.tensor(k * dt, dtype=torch.float64), dt)
             zs.append(z)
         Z = torch.stack(zs)
@@ -283,13 +367,37 @@ def design_observer_pipeline(
     dt: float = 5e-3,
     max_gain: float = 1e4,
     simulate_system: bool = True,
+    samples: int = 4000,
+    seed: int = 0,
+    progress: bool = False,
 ) -> PipelineResult:
     """Sample phi, fit SCPLNN with certified error, design L (structured and general LMIs),
-    build the :class:`PWLObserver`, simulate system and observer, check the guarantee."""
-    sysm = vdp_model() if system == "vdp" else system
-    if not isinstance(sysm, ContinuousModel):
-        raise ValueError(f"system must be 'vdp' or a ContinuousModel, got {system!r}")
-    model, fit = fit_nonlinearity(sysm, eps, method=method)
+    build the :class:`PWLObserver`, simulate system and observer, check the guarantee.
+
+    system: "vdp" (seed 004 eq. 23) or a :class:`ContinuousModel`; eps: target certified model
+    error; T, dt: simulated time and RK4 step; max_gain: cap on |L|_2; samples, seed: the
+    uniform random samples of phi for ``fit_scplnn``; progress: tqdm bars (fit, simulation).
+    Bad arguments raise ValueError naming them.
+    """
+    if isinstance(system, str):
+        if system != "vdp":
+            raise ValueError(f"system: unknown built-in {system!r} (built-in: 'vdp'; or pass a "
+                             "ContinuousModel)")
+        sysm = vdp_model()
+    elif isinstance(system, ContinuousModel):
+        sysm = system
+    else:
+        raise ValueError(f"system must be 'vdp' or a ContinuousModel, got "
+                         f"{type(system).__name__}")
+    for name, v in (("eps", eps), ("T", T), ("dt", dt), ("max_gain", max_gain)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a positive number, got {v!r}")
+    if dt > T:
+        raise ValueError(f"dt must be <= T, got dt={dt}, T={T}")
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise ValueError(f"samples must be a positive integer, got {samples!r}")
+    model, fit = fit_nonlinearity(sysm, eps, method=method, samples=samples, seed=seed,
+                                  progress=progress)
     gamma, eps_c = fit["lipschitz"], fit["certified_error"]
     design = design_lipschitz_observer(sysm.A, sysm.C, gamma, eps_c,
                                        structure=(sysm.B_f, sysm.H), max_gain=max_gain)
@@ -298,7 +406,7 @@ def design_observer_pipeline(
     if not (simulate_system and design.feasible):
         return res
     obs = PWLObserver(sysm.A, sysm.B, sysm.C, design.L, model, B_f=sysm.B_f, H=sysm.H)
-    sim = simulate(sysm, obs, T, dt)
+    sim = simulate(sysm, obs, T, dt, progress=progress)
     e = np.linalg.norm(sim["x"] - sim["xhat"], axis=-1)
     env = error_envelope(design, sysm.x0 - sysm.xhat0, sim["t"])
     after = sim["t"] >= T / 2
@@ -316,24 +424,29 @@ def design_observer_pipeline(
 
 
 def plot_pipeline(res: PipelineResult, path: str) -> None:
-    """Figure: x1, x2 and their estimates; |e(t)| against the envelope and the bound."""
+    """Figure: the first (up to 3) states and their estimates; |e(t)| against the guaranteed
+    envelope and the bound."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     s = res.sim
-    fig, ax = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
-    for i in range(2):
+    k = min(s["x"].shape[1], 3)
+    fig, ax = plt.subplots(k + 1, 1, figsize=(7, 2.5 * (k + 1)), sharex=True)
+    for i in range(k):
         ax[i].plot(s["t"], s["x"][:, i], "k", lw=1.2, label=f"x{i + 1}")
         ax[i].plot(s["t"], s["xhat"][:, i], "r--", lw=1.0, label=f"x̂{i + 1}")
+        ax[i].set_ylabel(f"x{i + 1}")
         ax[i].legend(loc="upper right")
-    ax[2].semilogy(s["t"], s["err"], "b", lw=1.0, label="|e(t)|")
-    ax[2].semilogy(s["t"], s["envelope"], "g", lw=1.0, label="guaranteed envelope")
-    ax[2].axhline(res.design.bound, color="r", ls=":", label=f"bound {res.design.bound:.3g}")
-    ax[2].set_xlabel("t")
-    ax[2].legend(loc="upper right")
-    ax[0].set_title(f"PWL observer, eps = {res.fit['certified_error']:.3g} (certified)")
+    ax[k].semilogy(s["t"], s["err"], "b", lw=1.0, label="|e(t)|")
+    ax[k].semilogy(s["t"], s["envelope"], "g", lw=1.0, label="guaranteed envelope")
+    ax[k].axhline(res.design.bound, color="r", ls=":", label=f"bound {res.design.bound:.3g}")
+    ax[k].set_xlabel("t")
+    ax[k].set_ylabel("|x - x̂|")
+    ax[k].legend(loc="upper right")
+    ax[0].set_title(f"PWL observer ({res.system.name}), eps = {res.fit['certified_error']:.3g} "
+                    "(certified)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
