@@ -73,10 +73,7 @@ def filters_demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0)
 
 def sets_demo(outdir: Path) -> str:
     """Seed 000 worked example (under eq. 22) and a strip intersection; writes sets.png."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from diffsmf.plot import plot_set
     from diffsmf.sets import Strip, Zonotope
@@ -90,7 +87,8 @@ def sets_demo(outdir: Path) -> str:
     S = Strip(torch.tensor([1.0, -1.0], dtype=f64), torch.tensor(0.30, dtype=f64), 0.08)
     PS = P.intersect_strip(S)
     ZS = Z.intersect_strip(S)
-    fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    fig = Figure(figsize=(6.4, 5.6))  # no pyplot: no backend switch, no global state
+    ax = fig.subplots()
     plot_set(ax, P, facecolor="none", edgecolor="C1", linewidth=1.6,
              label="P: minimal outer parallelotope of Z")
     plot_set(ax, Z, facecolor="C0", alpha=0.35, edgecolor="C0", label="zonotope Z")
@@ -109,7 +107,6 @@ def sets_demo(outdir: Path) -> str:
     ax.set_title("seed 000 worked example (eq. 22) and a strip intersection", fontsize=10)
     fig.tight_layout()
     fig.savefig(outdir / "sets.png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
     rows = ("[" + ", ".join(f"{v:.4f}" for v in row) + "]" for row in P.T.tolist())
     T = "[" + ", ".join(rows) + "]"
     return (

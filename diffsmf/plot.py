@@ -20,6 +20,7 @@ from torch import Tensor
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
     from diffsmf.filters.base import FilterResult
     from diffsmf.sets.base import ConvexSet
@@ -161,27 +162,30 @@ def plot_volumes(
 
 
 # ---------------------------------------------------------------------- whole figures
-def _pyplot():
-    import matplotlib
+def _figure(figsize: tuple[float, float]) -> Figure:
+    """A figure outside pyplot: no backend switch, no global state (safe in notebooks)."""
+    from matplotlib.figure import Figure
 
-    if matplotlib.get_backend().lower() not in ("agg", "pdf", "svg", "cairo"):
-        matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    return Figure(figsize=figsize)
 
-    return plt
+
+def _save(fig: Figure, path: str | Path | None, dpi: int) -> Figure:
+    if path is not None:
+        fig.savefig(Path(path), dpi=dpi)
+    return fig
 
 
 def bounds_figure(
     lower: np.ndarray | Tensor,
     upper: np.ndarray | Tensor,
-    path: str | Path,
+    path: str | Path | None = None,
     consistent: np.ndarray | Tensor | None = None,
     truth: np.ndarray | Tensor | None = None,
     title: str | None = None,
     guaranteed: bool = True,
     state_names: list[str] | None = None,
-) -> Path:
-    """Bounds of every state over time for one trajectory -> the PNG at ``path``.
+) -> Figure:
+    """Bounds of every state over time for one trajectory -> a Figure (saved to ``path``).
 
     Args:
         lower, upper: ``[T+1, n]`` (row 0 = the initial set).
@@ -195,7 +199,6 @@ def bounds_figure(
     ``upper - lower`` on a log scale (bounds that are tight relative to the state's size are
     invisible on the left and readable on the right).
     """
-    plt = _pyplot()
     lo, up = np.asarray(_as_np(lower), float), np.asarray(_as_np(upper), float)
     if lo.ndim != 2 or lo.shape != up.shape:
         raise ValueError(f"lower, upper: expected the same shape [T+1, n], got {lo.shape} "
@@ -205,7 +208,8 @@ def bounds_figure(
     k = np.arange(T1)
     label = "guaranteed bounds" if guaranteed else "bounds (NOT guaranteed)"
     bad = None if consistent is None else np.flatnonzero(~np.asarray(_as_np(consistent), bool))
-    fig, axes = plt.subplots(n, 2, figsize=(11, 2.6 * n + 0.9), squeeze=False, sharex=True)
+    fig = _figure((11, 2.6 * n + 0.9))
+    axes = fig.subplots(n, 2, squeeze=False, sharex=True)
     for i in range(n):
         ax, axw = axes[i]
         ax.fill_between(k, lo[:, i], up[:, i], color="C0", alpha=0.3, linewidth=0, label=label)
@@ -241,10 +245,7 @@ def bounds_figure(
     if title:
         fig.suptitle(title)
     fig.tight_layout(rect=(0, 0.06 if n > 1 else 0.1, 1, 1))
-    out = Path(path)
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    return out
+    return _save(fig, path, dpi=100)
 
 
 def _as_np(t: Any) -> np.ndarray:
@@ -254,11 +255,11 @@ def _as_np(t: Any) -> np.ndarray:
 def comparison_figure(
     truth: Tensor,
     results: dict[str, FilterResult],
-    path: str | Path,
+    path: str | Path | None = None,
     guaranteed: dict[str, bool] | None = None,
     index: int = 0,
-) -> Path:
-    """Filters side by side on one batch of trajectories -> the PNG at ``path``.
+) -> Figure:
+    """Filters side by side on one batch of trajectories -> a Figure (saved to ``path``).
 
     Panel 1: mean set area / volume over time (log scale, over the batch). Panels 2..n+1: for
     trajectory ``index`` and each state, ``upper - x`` (above 0) and ``lower - x`` (below 0):
@@ -272,7 +273,6 @@ def comparison_figure(
         guaranteed: ``{name: bool}``; a filter marked False (e.g. the EKF) is dashed and
             labelled "not guaranteed" (default: every name but ``"EKF"`` is guaranteed).
     """
-    plt = _pyplot()
     if not results:
         raise ValueError("results: need at least one FilterResult")
     x = _np(truth).astype(float)
@@ -280,7 +280,8 @@ def comparison_figure(
     k = np.arange(x.shape[1])
     g = {name: name.upper() != "EKF" for name in results}
     g.update(guaranteed or {})
-    fig, axes = plt.subplots(1, 1 + n, figsize=(4.6 * (1 + n), 4.4))
+    fig = _figure((4.6 * (1 + n), 4.4))
+    axes = fig.subplots(1, 1 + n)
     for j, (name, res) in enumerate(results.items()):
         style = {"color": f"C{j}", "linestyle": "-" if g[name] else "--"}
         label = name if g[name] else f"{name} (not guaranteed)"
@@ -307,10 +308,7 @@ def comparison_figure(
     fig.legend(handles + h2, labels + l2, loc="lower center", ncol=len(labels) + len(l2),
                fontsize=10, frameon=False)
     fig.tight_layout(rect=(0, 0.08, 1, 1))
-    out = Path(path)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return _save(fig, path, dpi=90)
 
 
 def _gap_limit(results: dict[str, FilterResult], x: np.ndarray, index: int, i: int) -> float | None:

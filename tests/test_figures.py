@@ -37,16 +37,13 @@ def test_demo_figures(tmp_path):
     _assert_drawn(tmp_path / "sets.png")
 
 
-def test_comparison_figure_labels_every_panel_and_marks_the_ekf(tmp_path, monkeypatch):
+def test_comparison_figure_labels_every_panel_and_marks_the_ekf(tmp_path):
     system = ds.systems.get("spring_damper")
     traj = system.simulate(6, batch=2, seed=0)
     with torch.no_grad():
         results = {n: ds.filters.by_name(n)(system)(traj.y) for n in ("HSNSMF", "EKF")}
-    figs = []
-    monkeypatch.setattr(plt, "close", figs.append)  # keep the figure to inspect it
-    path = plot.comparison_figure(traj.x, results, tmp_path / "cmp.png")
-    _assert_drawn(path)
-    fig = figs[-1]
+    fig = plot.comparison_figure(traj.x, results, tmp_path / "cmp.png")
+    _assert_drawn(tmp_path / "cmp.png")
     axes = fig.axes
     assert len(axes) == 1 + system.n
     assert all(ax.get_ylabel() and ax.get_xlabel() for ax in axes)
@@ -56,7 +53,6 @@ def test_comparison_figure_labels_every_panel_and_marks_the_ekf(tmp_path, monkey
     # panels 2..: bounds relative to the truth -> a guaranteed filter's upper curve is >= 0
     upper_line = axes[1].get_lines()[0]
     assert (np.asarray(upper_line.get_ydata()) >= -1e-12).all()
-    plt.close("all")
 
 
 def test_bounds_figure(tmp_path):
@@ -66,9 +62,13 @@ def test_bounds_figure(tmp_path):
     lo, up = mid - 0.1, mid + 0.1
     consistent = np.ones(T + 1, bool)
     consistent[5] = False
-    path = plot.bounds_figure(lo, up, tmp_path / "b.png", consistent=consistent, truth=mid,
-                              title="t", guaranteed=False)
-    _assert_drawn(path)
+    fig = plot.bounds_figure(lo, up, tmp_path / "b.png", consistent=consistent, truth=mid,
+                             title="t", guaranteed=False)
+    _assert_drawn(tmp_path / "b.png")
+    assert len(fig.axes) == 2 * n and all(ax.get_ylabel() for ax in fig.axes)
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "bounds (NOT guaranteed)" in labels and "inconsistent step" in labels
+    assert "true state" in labels
     with pytest.raises(ValueError, match="lower, upper"):
         plot.bounds_figure(lo, up[:, :2], tmp_path / "bad.png")
 
