@@ -107,6 +107,15 @@ def test_tune_config_and_out_errors(capsys, tmp_path):
                     "nonsense")
     _one_line_error(capsys, ["tune", "--config", str(tmp_path / "none.toml")], "config",
                     "no such file")
+    weights = tmp_path / "weights.toml"
+    weights.write_text("weights = {volum = 1.0}\n")
+    _one_line_error(capsys, ["tune", "--config", str(weights), "--out", str(tmp_path / "w")],
+                    "config: weights", "volum", "volume")
+    kwargs = tmp_path / "kwargs.toml"
+    kwargs.write_text("filter_kwargs = {stirling = 0.1}\nsteps = 2\ntrajectories = 2\n"
+                      "val_trajectories = 0\ntest_trajectories = 0\n")
+    _one_line_error(capsys, ["tune", "--config", str(kwargs), "--out", str(tmp_path / "k"),
+                             "--quiet"], "config: filter_kwargs", "stirling")
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
     _one_line_error(capsys, ["tune", "--out", str(a_file)], "--out", "not a folder")

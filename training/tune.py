@@ -112,6 +112,12 @@ def _check_config(cfg: TuneConfig) -> None:
         raise ValueError(f"--init-scale: must be > 0, got {cfg.init_scale}")
     if not cfg.params:
         raise ValueError("--params: name at least one hyperparameter to tune")
+    from dataclasses import fields as _fields
+
+    known = [f.name for f in _fields(LossWeights)]
+    unknown = sorted(set(cfg.weights) - set(known))
+    if unknown:
+        raise ValueError(f"config: weights: unknown loss weights {unknown}; allowed: {known}")
     out = Path(cfg.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: {str(out)!r} exists and is not a folder")
@@ -151,7 +157,12 @@ def build(cfg: TuneConfig) -> tuple[Any, SetFilter, dict[str, Any]]:
     import diffsmf as ds
 
     system = ds.systems.get(cfg.system)
-    filt = ds.filters.by_name(cfg.filter)(system, **cfg.filter_kwargs)
+    try:
+        filt = ds.filters.by_name(cfg.filter)(system, **cfg.filter_kwargs)
+    except TypeError as exc:
+        if "unexpected keyword" not in str(exc):
+            raise
+        raise ValueError(f"config: filter_kwargs: {exc}") from None
     true = {
         "process_noise": filt.process_noise.detach().clone(),
         "measurement_noise": filt.measurement_noise.detach().clone(),
