@@ -136,17 +136,17 @@ def run_command(name: str, argv: list[str], prog: str | None = None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``diffsmf``; returns the exit status (2 for a user error)."""
+    """Entry point of ``diffsmf``; returns the sub-command's exit status (2 for a user error).
+
+    ``--version`` and an unknown command exit through argparse (``SystemExit`` 0 / 2).
+    """
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser()
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()
         return 0
     if argv[0] not in COMMANDS:
-        try:
-            parser.parse_args(argv[:1])  # --version, or prints the one-line error
-        except SystemExit as exc:
-            return int(exc.code or 0)
+        parser.parse_args(argv[:1])  # --version, or the one-line error: exits (0 or 2)
     return run_command(argv[0], argv[1:])
 
 

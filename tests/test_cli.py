@@ -26,7 +26,9 @@ def _one_line_error(capsys, argv: list[str], *pieces: str) -> str:
 
 
 def test_version(capsys):
-    assert main(["--version"]) == 0
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
     assert capsys.readouterr().out.strip() == f"diffsmf {diffsmf.__version__}"
 
 
@@ -38,7 +40,9 @@ def test_top_level_help_lists_every_command(capsys):
 
 
 def test_unknown_command_is_one_line(capsys):
-    assert main(["fliter"]) == 2
+    with pytest.raises(SystemExit) as exc:
+        main(["fliter"])
+    assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "invalid choice: 'fliter'" in err[0]
 

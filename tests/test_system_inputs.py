@@ -32,9 +32,23 @@ def test_n_inputs_inferred_from_schedule_and_default_zero():
     assert ds.systems.get("bilinear").n_inputs == 2
     assert ds.systems.get("vdp").n_inputs == 1
     assert ds.systems.get("spring_damper").n_inputs == 0
-    assert _forced_system(None).n_inputs == 0
     sched = _forced_system(None, inputs=torch.zeros(10, 2))
     assert sched.n_inputs == 2
+    auto = ds.System(lambda x, u, th=None: 0.9 * x, lambda x: x[..., :1],
+                     ds.Interval([0.0, 0.0], [1.0, 1.0]))
+    assert auto.n_inputs == 0
+
+
+def test_f_and_h_are_checked_at_construction():
+    X0 = ds.Interval([0.0, 0.0], [1.0, 1.0])
+    with pytest.raises(ValueError, match=r"^f: .*failed.*give n_inputs=p"):
+        ds.System(lambda x, u, th=None: x + u, lambda x: x[..., :1], X0)  # uses u, no inputs
+    with pytest.raises(ValueError, match=r"^f: must map x \[\.\.\., 2\].*returned \(1,\)"):
+        ds.System(lambda x, u, th=None: x[..., 0], lambda x: x[..., :1], X0)
+    with pytest.raises(ValueError, match=r"^h: must map .*x\[\.\.\., :1\].*returned \(1,\)"):
+        ds.System(lambda x, u, th=None: x, lambda x: x[..., 0], X0)
+    with pytest.raises(ValueError, match=r"^h: h\(x \[1, 2\]\).*failed"):
+        ds.System(lambda x, u, th=None: x, lambda x: x @ torch.ones(3, 1), X0)
 
 
 @pytest.mark.parametrize("bad", [-1, 1.5, True, "2"])
@@ -55,7 +69,9 @@ def test_check_input_accepts_and_converts():
     assert isinstance(out, torch.Tensor) and out.dtype == F64 and out.shape == (4, 2)
     out = s.check_input(torch.zeros(3, 5, 2, dtype=torch.float32), torch.Size([3, 5]))
     assert out.dtype == F64
-    assert _forced_system(0).check_input(None, (3,)) is None
+    auto = ds.System(lambda x, u, th=None: x, lambda x: x[..., :1],
+                     ds.Interval([0.0, 0.0], [1.0, 1.0]))
+    assert auto.check_input(None, (3,)) is None
 
 
 @pytest.mark.parametrize(

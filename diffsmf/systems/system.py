@@ -102,7 +102,7 @@ class System(nn.Module):
         self.h = h
         self.x0_set = x0_set
         self.n = x0_set.dim
-        self.m = int(h(x0_set.center).shape[-1])
+        self.m = _output_dim(h, x0_set.center)
         for label, s, d in (
             ("process_noise", process_noise, self.n),
             ("measurement_noise", measurement_noise, self.m),
@@ -114,12 +114,34 @@ class System(nn.Module):
         self.parameters = parameters
         self.inputs = _as_schedule("inputs", inputs)
         self.n_inputs = _infer_n_inputs(self.inputs, n_inputs)
+        self._check_f()
         self.theta_schedule = _as_schedule("theta_schedule", theta_schedule)
         self.process_cov = _check_cov("process_cov", process_cov, self.n)
         self.measurement_cov = _check_cov("measurement_cov", measurement_cov, self.m)
         self.name = name
 
     # ------------------------------------------------------------------ helpers
+    def _check_f(self) -> None:
+        """f on [1, n] (centre of X0, zero input, nominal theta) must give [1, n]."""
+        x = self.x0_set.center.detach().unsqueeze(0)
+        u = None if self.n_inputs == 0 else torch.zeros(1, self.n_inputs, dtype=x.dtype)
+        th = None if self.parameters is None else self.parameters.center.detach().unsqueeze(0)
+        try:
+            with torch.no_grad():
+                out = self.f(x, u, th)
+        except Exception as exc:  # the user's function: say which call failed
+            raise ValueError(
+                f"f: f(x [1, {self.n}], u {'None' if u is None else list(u.shape)}, theta) at the "
+                f"centre of x0_set failed ({type(exc).__name__}: {exc})"
+                + ("; if f uses u, give n_inputs=p (or an inputs schedule)" if u is None else "")
+            ) from exc
+        if not isinstance(out, Tensor) or tuple(out.shape) != (1, self.n):
+            got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+            raise ValueError(
+                f"f: must map x [..., {self.n}] to [..., {self.n}] with torch ops; on x [1, "
+                f"{self.n}] it returned {got}"
+            )
+
     @property
     def theta_nominal(self) -> Tensor | None:
         """Midpoint of the parameter interval ``[q]`` (or ``None``)."""
@@ -271,6 +293,25 @@ class System(nn.Module):
             u=None if self.n_inputs == 0 else torch.stack(us, 1),
             theta=None if self.parameters is None else torch.stack(ths, 1),
         )
+
+
+def _output_dim(h: Callable[[Tensor], Tensor], c: Tensor) -> int:
+    """m from ``h`` on ``[1, n]`` (must return ``[1, m]``, m >= 1)."""
+    try:
+        with torch.no_grad():
+            y = h(c.detach().unsqueeze(0))
+    except Exception as exc:  # the user's function: say which call failed
+        raise ValueError(
+            f"h: h(x [1, {c.shape[-1]}]) at the centre of x0_set failed "
+            f"({type(exc).__name__}: {exc})"
+        ) from exc
+    if not isinstance(y, Tensor) or y.dim() != 2 or y.shape[0] != 1 or y.shape[1] < 1:
+        got = tuple(y.shape) if isinstance(y, Tensor) else type(y).__name__
+        raise ValueError(
+            f"h: must map x [..., n] to [..., m] (keep the last dim, e.g. x[..., :1] rather than "
+            f"x[..., 0]); on x [1, {c.shape[-1]}] it returned {got}"
+        )
+    return int(y.shape[-1])
 
 
 def _infer_n_inputs(schedule: Callable[[int], Tensor] | None, n_inputs: int | None) -> int:
