@@ -25,6 +25,7 @@ matplotlib.use("Agg")
 
 GUIDE = Path(__file__).resolve().parents[1] / "docs" / "guide"
 FENCE = re.compile(r"^```(\w+)([^\n]*)\n(.*?)^```\s*$", re.M | re.S)
+QUIET = ("filter", "audit", "tune", "design-observer")  # commands run with --quiet in the test
 PAGES = sorted(p.name for p in GUIDE.glob("*.md") if p.name != "index.md")
 
 
@@ -66,7 +67,7 @@ def test_guide_page_runs(page, tmp_path, monkeypatch):
                 for cmd in _commands(code):
                     argv = shlex.split(cmd)
                     assert argv[0] == "diffsmf", f"{where}: only diffsmf commands run: {cmd}"
-                    quiet = ["--quiet"] if argv[1] in ("filter", "audit", "tune") else []
+                    quiet = ["--quiet"] if argv[1] in QUIET else []
                     rc = main([*argv[1:], *quiet])
                     assert rc == 0, f"{where}: {cmd} exited with {rc}"
                     ran += 1
