@@ -38,6 +38,8 @@ __all__ = ["ConstrainedZonotope", "as_constrained_zonotope", "distance_lp"]
 _EPS = torch.finfo(torch.float64).eps
 #: Sweeps of interval constraint propagation (Scott 2016 Appendix A) in reductions.
 PROPAGATION_SWEEPS = 3
+#: Weight of the constraint rows in the generator-reduction score (detached choice only).
+CONSTRAINT_WEIGHT = 1.0
 
 
 class ConstrainedZonotope(ConvexSet):
@@ -541,7 +543,7 @@ class ConstrainedZonotope(ConvexSet):
             c, self.generators * rad.unsqueeze(-2), self.A * rad.unsqueeze(-2), b
         )
 
-    def reduce_constraints(self, k: int) -> ConstrainedZonotope:
+    def reduce_constraints(self, k: int, heuristic: str = "lp") -> ConstrainedZonotope:
         """Outer approximation with ``k`` constraints, eliminating one constraint and one
         generator at a time (Scott 2016 sec. 4.2, Prop. 5).
 
@@ -558,16 +560,18 @@ class ConstrainedZonotope(ConvexSet):
         """
         if not isinstance(k, int) or k < 0:
             raise ValueError(f"k: must be an integer >= 0, got {k!r}")
+        if heuristic not in ("hull", "lp", "propagation"):
+            raise ValueError(f"heuristic: unknown {heuristic!r} (hull | lp | propagation)")
         Z = self
         while Z.num_constraints > k:
-            Z = Z._eliminate_one()
+            Z = Z._eliminate_one(heuristic)
         return Z
 
-    def _eliminate_one(self) -> ConstrainedZonotope:
+    def _eliminate_one(self, heuristic: str = "lp") -> ConstrainedZonotope:
         c, G, A, b = self._c, self.generators, self.A, self.b
         k, m = A.shape[-2], A.shape[-1]
         with torch.no_grad():
-            i, j = _elimination_choice(G.detach(), A.detach(), b.detach())
+            i, j = _elimination_choice(G.detach(), A.detach(), b.detach(), heuristic)
         batch = self.batch_shape
         ar = torch.gather(A, -2, i.reshape(*batch, 1, 1).expand(*batch, 1, m)).squeeze(
             -2
@@ -624,6 +628,7 @@ class ConstrainedZonotope(ConvexSet):
         L = torch.cat([G, A], -2)  # lifted [..., n + k, m]
         with torch.no_grad():
             La = L.detach().abs()
+            La = torch.cat([La[..., :n, :], CONSTRAINT_WEIGHT * La[..., n:, :]], -2)
             score = La.sum(-2) - La.amax(-2) if method == "girard" else La.square().sum(-2)
             order = torch.sort(score, dim=-1, descending=True, stable=True).indices
         Ls = torch.gather(L, -1, order.unsqueeze(-2).expand(*batch, n + k, m))
@@ -722,10 +727,49 @@ def _propagate(A: Tensor, b: Tensor, sweeps: int) -> tuple[Tensor, Tensor, Tenso
     return lo, hi, Rlo, Rhi
 
 
-def _elimination_choice(G: Tensor, A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """Row i and column j ``[...]`` of the next elimination (Scott 2016 Appendix A)."""
+def _lp_ranges(A: Tensor, b: Tensor, big: float = 1e3, iters: int = 12) -> tuple[Tensor, Tensor]:
+    """Range ``[..., m]`` of each ``xi_j`` over ``{A xi = b, |xi_k| <= 1 (k != j)}`` (its own
+    bound relaxed to ``|xi_j| <= big``), by ``2 m`` batched LPs (:func:`box_lp`): the exact
+    version of Scott 2016's propagated ``R_j`` (Appendix A)."""
+    m = A.shape[-1]
+    eye = torch.eye(m, dtype=A.dtype, device=A.device)
+    scale = 1 + (big - 1) * eye  # row j: column j scaled by big (xi_j = big eta_j)
+    Aj = A.unsqueeze(-3) * scale.unsqueeze(-2)  # [..., m, k, m]
+    g = torch.stack([big * eye, -big * eye])  # [2, m, m]
+    g = g.reshape(2, *([1] * (A.dim() - 2)), m, m)
+    up, _, _, _ = box_lp(g, Aj.unsqueeze(0), b.unsqueeze(-2).unsqueeze(0), iters)  # [2, ..., m]
+    return -up[1], up[0]
+
+
+def _hull_score(
+    G: Tensor, A: Tensor, b: Tensor, cand: Tensor, big: float = 1e3, iters: int = 12
+) -> Tensor:
+    """Score ``[..., K]`` of eliminating ``xi_j`` for the candidates ``cand [..., K]``: the sum
+    over axes of the hull width of the relaxed set ``{A xi = b, |xi_k| <= 1 (k != j)}`` --
+    exactly the set left by eliminating ``xi_j`` through any row -- divided by the current
+    width (``2 n (K + 1)`` batched LPs, :func:`box_lp`)."""
+    n, m = G.shape[-2], A.shape[-1]
+    K = cand.shape[-1]
+    onehot = torch.nn.functional.one_hot(cand, m).to(A.dtype)  # [..., K, m]
+    onehot = torch.cat([onehot, onehot.new_zeros(*onehot.shape[:-2], 1, m)], -2)  # + nothing
+    scale = 1 + (big - 1) * onehot  # [..., K + 1, m]: column j scaled by big (xi_j = big eta_j)
+    Aj = A.unsqueeze(-3) * scale.unsqueeze(-2)  # [..., K + 1, k, m]
+    Gj = G.unsqueeze(-3) * scale.unsqueeze(-2)  # [..., K + 1, n, m]
+    g = torch.cat([Gj, -Gj], -2).movedim(-2, 0)  # [2n, ..., K + 1, m]
+    up, _, _, _ = box_lp(g, Aj.unsqueeze(0), b.unsqueeze(-2).unsqueeze(0), iters)
+    width = up[:n] + up[n:]  # [n, ..., K + 1]: the centre terms cancel
+    ref = width[..., K:].clamp_min(1e-300)
+    return (width[..., :K] / ref).sum(0)
+
+
+#: Candidates (best Scott 2016 Appendix A scores) re-ranked by the exact hull in ``"hull"``.
+HULL_CANDIDATES = 8
+
+
+def _scott_score(G: Tensor, A: Tensor, b: Tensor, Rlo: Tensor, Rhi: Tensor) -> Tensor:
+    """Scott 2016 Appendix A estimate ``r_j / sqrt(s_j)`` ``[..., m]`` (``inf`` for columns
+    without a pivot), see :meth:`ConstrainedZonotope.reduce_constraints`."""
     k, m = A.shape[-2], A.shape[-1]
-    _, _, Rlo, Rhi = _propagate(A, b, PROPAGATION_SWEEPS)
     r = (torch.maximum(Rlo.abs(), Rhi.abs()) - 1).clamp_min(0)  # eq. A.6
     r = torch.where(torch.isfinite(r), r, torch.full_like(r, 1e300))
     eye = torch.eye(m, dtype=G.dtype, device=G.device)
@@ -741,8 +785,36 @@ def _elimination_choice(G: Tensor, A: Tensor, b: Tensor) -> tuple[Tensor, Tensor
     score = torch.where(r == 0, torch.zeros_like(score), score)
     Aa = A.abs()
     pivot = Aa > 1e-10 * Aa.amax(-1, keepdim=True).clamp_min(1e-300)  # [..., k, m]
-    has = pivot.any(-2)
-    score = torch.where(has, score, torch.full_like(score, float("inf")))
+    return torch.where(pivot.any(-2), score, torch.full_like(score, float("inf")))
+
+
+def _elimination_choice(
+    G: Tensor, A: Tensor, b: Tensor, heuristic: str = "lp"
+) -> tuple[Tensor, Tensor]:
+    """Row i and column j ``[...]`` of the next elimination (Scott 2016 Appendix A)."""
+    k, m = A.shape[-2], A.shape[-1]
+    if heuristic == "hull":
+        pre = _scott_score(G, A, b, *_propagate(A, b, PROPAGATION_SWEEPS)[2:])
+        K = min(HULL_CANDIDATES, m)
+        cand = pre.topk(K, dim=-1, largest=False).indices  # [..., K]
+        score = _hull_score(G, A, b, cand)
+        score = torch.where(torch.isfinite(torch.gather(pre, -1, cand)), score, float("inf"))
+        j = torch.gather(cand, -1, score.argmin(-1, keepdim=True)).squeeze(-1)
+        Aa = A.abs()
+        pivot = Aa > 1e-10 * Aa.amax(-1, keepdim=True).clamp_min(1e-300)
+        col = torch.gather(
+            torch.where(pivot, Aa, torch.zeros_like(Aa)),
+            -1,
+            j.reshape(*j.shape, 1, 1).expand(*j.shape, k, 1),
+        ).squeeze(-1)
+        return col.argmax(-1), j
+    if heuristic == "lp":
+        Rlo, Rhi = _lp_ranges(A, b)
+    else:
+        _, _, Rlo, Rhi = _propagate(A, b, PROPAGATION_SWEEPS)
+    score = _scott_score(G, A, b, Rlo, Rhi)
+    Aa = A.abs()
+    pivot = Aa > 1e-10 * Aa.amax(-1, keepdim=True).clamp_min(1e-300)  # [..., k, m]
     j = score.argmin(-1)  # [...]
     col = torch.gather(
         torch.where(pivot, Aa, torch.zeros_like(Aa)),
@@ -762,11 +834,12 @@ def distance_lp(Z: ConstrainedZonotope, x: Tensor) -> Tensor:
 
     batch = torch.broadcast_shapes(Z.batch_shape, x.shape[:-1])
     n, m, k = Z.dim, Z.num_generators, Z.num_constraints
-    c = Z.center.detach().expand(*batch, n).reshape(-1, n).numpy()
-    G = Z.generators.detach().expand(*batch, n, m).reshape(-1, n, m).numpy()
-    A = Z.A.detach().expand(*batch, k, m).reshape(-1, k, m).numpy()
-    b = Z.b.detach().expand(*batch, k).reshape(-1, k).numpy()
-    X = x.detach().expand(*batch, n).reshape(-1, n).numpy()
+    N = math.prod(batch)
+    c = Z.center.detach().expand(*batch, n).reshape(N, n).numpy()
+    G = Z.generators.detach().expand(*batch, n, m).reshape(N, n, m).numpy()
+    A = Z.A.detach().expand(*batch, k, m).reshape(N, k, m).numpy()
+    b = Z.b.detach().expand(*batch, k).reshape(N, k).numpy()
+    X = x.detach().expand(*batch, n).reshape(N, n).numpy()
     out = np.empty(len(X))
     cost = np.zeros(m + 1)
     cost[-1] = 1.0

@@ -113,6 +113,7 @@ def box_lp(
     """
     batch = torch.broadcast_shapes(g.shape[:-1], A.shape[:-2], b.shape[:-1])
     k, m = A.shape[-2], A.shape[-1]
+    A0, b0 = A, b
     g = g.expand(*batch, m)
     A = A.expand(*batch, k, m)
     b = b.expand(*batch, k)
@@ -121,18 +122,27 @@ def box_lp(
         lam = g.new_zeros(*batch, k)
         xi = torch.sign(g)
         return dual_bound(g, A, b, lam) + _rounding(gabs, A, b, lam), lam, xi, torch.zeros_like(g)
-    # scale each LP so that |g|, |A| are O(1) (the bound is re-evaluated on the raw data)
-    sg = gabs.amax(-1, keepdim=True).clamp_min(1e-300)
-    sa = A.abs().amax(-1).clamp_min(1e-300)  # row scales [..., k]
-    As, bs, c = A / sa.unsqueeze(-1), b / sa, -g / sg  # minimise c'x
+    # orthonormal rows for the iteration (on the un-broadcast A: one SVD per distinct A):
+    # A xi = b  <=>  Vh_r xi = S_r^-1 U_r' b on the range of A; rank-deficient or badly scaled
+    # constraint matrices then give well-conditioned normal equations. The bound is always
+    # re-evaluated on the raw data, so this only shapes the candidate.
+    U, S, Vh = torch.linalg.svd(A0, full_matrices=False)
+    keep = S > 1e-11 * S.amax(-1, keepdim=True)
+    Sinv = torch.where(keep, 1 / torch.where(keep, S, torch.ones_like(S)), torch.zeros_like(S))
+    r = S.shape[-1]
+    As = (Vh * keep.unsqueeze(-1)).expand(*batch, r, m)
+    bs = (Sinv * (U.mT @ b0.unsqueeze(-1)).squeeze(-1)).expand(*batch, r)
+    T = U * Sinv.unsqueeze(-2)  # [..., k, r]: multipliers of the rows of A from those of Vh_r
+    sg = gabs.amax(-1, keepdim=True)
+    sg = torch.where(sg > 0, sg, torch.ones_like(sg))  # g = 0 (feasibility): any scale
+    c = -g / sg  # minimise c'x
     At = As.transpose(-1, -2)
     x = torch.zeros_like(g)
     z = torch.ones_like(g)
     w = torch.ones_like(g)
-    y = torch.zeros_like(b)
+    y = torch.zeros_like(bs)
     best_lam = torch.zeros_like(b)
     best = dual_bound(g, A, b, best_lam)
-    scale = sg / sa
     for _ in range(iters):
         ixl, ixu = 1 / (x + 1), 1 / (1 - x)
         zl, wu = z * ixl, w * ixu
@@ -157,7 +167,7 @@ def box_lp(
         ad = _dual_step(z, w, dz, dw)
         x = (x + ap * dx).clamp(-1 + 1e-15, 1 - 1e-15)
         y, z, w = y + ad * dy, z + ad * dz, w + ad * dw
-        lam = -y * scale  # dual of the unscaled problem: a candidate, kept if better
+        lam = -(T @ y.unsqueeze(-1)).squeeze(-1) * sg  # dual of the raw problem: a candidate
         val = dual_bound(g, A, b, lam)
         better = val < best  # False for NaN
         best = torch.where(better, val, best)

@@ -1,0 +1,419 @@
+"""ConstrainedZonotope (Scott 2016): LP bounds against scipy HiGHS, exact operations,
+reductions (outer), conversions, membership, sampling, gradients, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import linprog
+
+import diffsmf as ds
+from diffsmf.sets.constrained_zonotope import ConstrainedZonotope as CZ
+from diffsmf.sets.constrained_zonotope import distance_lp
+from diffsmf.sets.czono_lp import box_lp
+
+
+def random_cz(B: int, n: int, m: int, k: int, seed: int = 0, feasible: bool = True) -> CZ:
+    g = torch.Generator().manual_seed(seed)
+    c = torch.randn(B, n, generator=g)
+    G = torch.randn(B, n, m, generator=g)
+    A = torch.randn(B, k, m, generator=g)
+    xi = (2 * torch.rand(B, m, generator=g) - 1) * 0.9
+    b = (A @ xi.unsqueeze(-1)).squeeze(-1)
+    if not feasible:
+        b = b + 10 * A.abs().sum(-1)
+    return CZ(c, G, A, b)
+
+
+def lp_hull(Z: CZ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-coordinate HiGHS bounds (lower, upper [B, n]) and status (0 ok, 2 infeasible)."""
+    B, n = Z.batch_shape[0], Z.dim
+    lo, hi, st = np.zeros((B, n)), np.zeros((B, n)), np.zeros(B, dtype=int)
+    for i in range(B):
+        c, G = Z.center[i].numpy(), Z.generators[i].numpy()
+        A, b = Z.A[i].numpy(), Z.b[i].numpy()
+        kw = dict(A_eq=A, b_eq=b) if A.shape[0] else {}
+        for j in range(n):
+            for s in (1.0, -1.0):
+                r = linprog(-s * G[j], bounds=[(-1, 1)] * G.shape[1], method="highs", **kw)
+                st[i] = r.status
+                if r.status != 0:
+                    continue
+                if s > 0:
+                    hi[i, j] = c[j] - r.fun
+                else:
+                    lo[i, j] = c[j] + r.fun
+    return lo, hi, st
+
+
+@pytest.mark.parametrize("n,m,k", [(2, 6, 1), (3, 10, 3), (2, 20, 6), (4, 30, 12)])
+def test_interval_hull_matches_highs(n, m, k):
+    Z = random_cz(25, n, m, k, seed=n + m + k)
+    H = Z.interval_hull()
+    lo, hi, st = lp_hull(Z)
+    assert (st == 0).all()
+    scale = 1 + np.abs(hi).max()
+    assert np.abs(H.upper.numpy() - hi).max() <= 1e-9 * scale
+    assert np.abs(H.lower.numpy() - lo).max() <= 1e-9 * scale
+    # outer: never inside the exact box (beyond HiGHS' own tolerance)
+    assert (H.upper.numpy() >= hi - 1e-9).all() and (H.lower.numpy() <= lo + 1e-9).all()
+
+
+def test_bounds_valid_when_solver_stops_early():
+    """Any iteration count (even 0) gives a valid outer bound (weak duality)."""
+    Z = random_cz(20, 3, 10, 4, seed=3)
+    lo, hi, _ = lp_hull(Z)
+    for iters in (0, 1, 2, 4):
+        H = Z.interval_hull(iters=iters)
+        assert (H.upper.numpy() >= hi - 1e-12).all()
+        assert (H.lower.numpy() <= lo + 1e-12).all()
+    # 0 iterations: never worse than the zonotope bound that ignores the constraints
+    H0 = Z.interval_hull(iters=0)
+    r = Z.generators.abs().sum(-1)
+    assert (H0.upper <= Z.center + r + 1e-12).all()
+
+
+def test_no_constraints_is_plain_zonotope():
+    g = torch.Generator().manual_seed(0)
+    c, G = torch.randn(5, 3, generator=g), torch.randn(5, 3, 7, generator=g)
+    Z = CZ(c, G)
+    Zr = ds.Zonotope(c, G)
+    H, Hr = Z.interval_hull(), Zr.interval_hull()
+    assert torch.allclose(H.lower, Hr.lower, atol=1e-12) and torch.allclose(
+        H.upper, Hr.upper, atol=1e-12
+    )
+    d = torch.randn(5, 3, generator=g)
+    assert torch.allclose(Z.support(d), Zr.support(d), atol=1e-12)
+    assert not Z.is_empty().any()
+
+
+def test_empty_sets_certified():
+    Z = random_cz(15, 2, 8, 3, seed=5, feasible=False)
+    _, _, st = lp_hull(Z)
+    assert (st == 2).all()
+    assert Z.is_empty().all()
+    H = Z.interval_hull()
+    assert ((H.lower > H.upper).any(-1)).all()
+    assert (Z.volume() == 0).all()
+    # feasible ones are never certified empty
+    assert not random_cz(30, 2, 8, 3, seed=6).is_empty().any()
+
+
+def test_tight_constraints_single_point():
+    """Constraints that pin xi to a vertex of the box: the set is one point."""
+    m = 4
+    A = torch.eye(m)[:3]
+    b = torch.tensor([1.0, -1.0, 1.0])
+    G = torch.tensor([[1.0, 2.0, 0.5, 0.0], [0.0, 1.0, -1.0, 0.0]])
+    Z = CZ(
+        torch.zeros(2),
+        G,
+        torch.cat([A, torch.tensor([[0.0, 0, 0, 1.0]])]),
+        torch.cat([b, torch.tensor([1.0])]),
+    )
+    p = G @ torch.tensor([1.0, -1.0, 1.0, 1.0])
+    H = Z.interval_hull()
+    assert torch.allclose(H.lower, p, atol=1e-8) and torch.allclose(H.upper, p, atol=1e-8)
+    assert (H.lower <= p + 1e-12).all() and (H.upper >= p - 1e-12).all()
+    assert bool(Z.contains(p, atol=1e-7))
+    assert not bool(Z.contains(p + 0.1, atol=1e-7))
+
+
+def test_support_matches_highs():
+    Z = random_cz(10, 3, 9, 3, seed=8)
+    d = torch.randn(10, 3, generator=torch.Generator().manual_seed(1))
+    h = Z.support(d)
+    for i in range(10):
+        g = (d[i] @ Z.generators[i]).numpy()
+        r = linprog(
+            -g, A_eq=Z.A[i].numpy(), b_eq=Z.b[i].numpy(), bounds=[(-1, 1)] * 9, method="highs"
+        )
+        ref = float(d[i] @ Z.center[i]) - r.fun
+        assert ref - 1e-12 <= float(h[i]) <= ref + 1e-9 * (1 + abs(ref))
+
+
+def test_box_lp_direct():
+    g = torch.Generator().manual_seed(2)
+    A = torch.randn(50, 4, 12, generator=g)
+    x0 = (2 * torch.rand(50, 12, generator=g) - 1) * 0.8
+    b = (A @ x0.unsqueeze(-1)).squeeze(-1)
+    obj = torch.randn(50, 12, generator=g)
+    bound, lam, xi, x = box_lp(obj, A, b)
+    for i in range(50):
+        r = linprog(
+            -obj[i].numpy(),
+            A_eq=A[i].numpy(),
+            b_eq=b[i].numpy(),
+            bounds=[(-1, 1)] * 12,
+            method="highs",
+        )
+        assert -r.fun - 1e-12 <= float(bound[i]) <= -r.fun + 1e-9
+    assert (xi.abs() <= 1).all() and (x.abs() < 1).all()
+
+
+def test_contains_against_highs():
+    Z = random_cz(6, 2, 8, 2, seed=9)
+    gen = torch.Generator().manual_seed(3)
+    H = Z.interval_hull()
+    pts = H.lower.unsqueeze(1) + torch.rand(6, 60, 2, generator=gen) * (
+        H.upper - H.lower
+    ).unsqueeze(1)
+    pts = pts.transpose(0, 1)  # [60, 6, 2]
+    got = Z.contains(pts, atol=1e-9)
+    out = Z.excludes(pts)
+    dist = distance_lp(Z, pts)
+    assert not (got & out).any()
+    far_out = dist > 1e-6
+    # certified answers agree with HiGHS; points clearly outside are certified outside
+    assert not (got & far_out).any()
+    assert not (out & (dist <= 1e-12)).any()
+    assert (out | ~(dist > 1e-3)).all()
+    # points inside (hit-and-run samples) are certified inside
+    x = Z.sample(40, generator=gen).transpose(0, 1)
+    assert Z.contains(x, atol=1e-9).all()
+
+
+def test_sample_inside_and_extreme_on_boundary():
+    Z = random_cz(4, 2, 7, 2, seed=10)
+    x = Z.sample(50, generator=torch.Generator().manual_seed(0)).transpose(0, 1)
+    assert distance_lp(Z, x).max() <= 1e-9
+    e = Z.sample_extreme(20, generator=torch.Generator().manual_seed(1)).transpose(0, 1)
+    assert distance_lp(Z, e).max() <= 1e-9
+    # boundary: a small step away from the centre of the hull leaves the set for some
+    assert Z.sample(5).shape == (4, 5, 2)
+
+
+def test_linear_map_and_minkowski_exact():
+    Z = random_cz(5, 2, 6, 2, seed=11)
+    M = torch.tensor([[1.0, 2.0], [0.0, -1.0], [0.5, 0.5]])
+    d = torch.tensor([1.0, 2.0, 3.0])
+    Y = Z.linear_map(M, d)
+    assert Y.dim == 3 and Y.num_constraints == 2
+    x = Z.sample(20, generator=torch.Generator().manual_seed(0))
+    assert Y.contains((x @ M.T + d).transpose(0, 1), atol=1e-9).all()
+    box = ds.Interval(torch.tensor([-0.1, 0.0]), torch.tensor([0.2, 0.3]))
+    S = Z.minkowski_sum(box)
+    HZ, HS = Z.interval_hull(), S.interval_hull()
+    assert torch.allclose(HS.lower, HZ.lower + box.lower, atol=1e-9)
+    assert torch.allclose(HS.upper, HZ.upper + box.upper, atol=1e-9)
+    S2 = Z.minkowski_sum(Z)
+    assert torch.allclose(
+        S2.interval_hull().upper - S2.center, 2 * (HZ.upper - Z.center), atol=1e-8
+    )
+
+
+def _lp_hull_with(Z: CZ, rows: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray, i: int):
+    """HiGHS hull of Z[i] cap {lo_b <= rows x <= hi_b}."""
+    c, G = Z.center[i].numpy(), Z.generators[i].numpy()
+    RG, Rc = rows @ G, rows @ c
+    A_ub = np.vstack([RG, -RG])
+    b_ub = np.concatenate([hi_b - Rc, -(lo_b - Rc)])
+    out = []
+    for j in range(Z.dim):
+        for s in (1.0, -1.0):
+            r = linprog(
+                -s * G[j],
+                A_ub=A_ub,
+                b_ub=b_ub,
+                A_eq=Z.A[i].numpy(),
+                b_eq=Z.b[i].numpy(),
+                bounds=[(-1, 1)] * G.shape[1],
+                method="highs",
+            )
+            out.append(s * c[j] - r.fun)
+    return np.array(out).reshape(Z.dim, 2)
+
+
+def test_intersect_strip_and_halfspace_exact():
+    Z = random_cz(4, 2, 6, 1, seed=12)
+    H = Z.interval_hull()
+    a = torch.tensor([1.0, -0.5])
+    mid = (H.center * a).sum(-1)
+    S = ds.Strip(a, mid, 0.2 * torch.ones(4))
+    Zs = Z.intersect_strip(S)
+    assert Zs.num_generators == 7 and Zs.num_constraints == 2
+    Hs = Zs.interval_hull()
+    for i in range(4):
+        ref = _lp_hull_with(
+            Z, a.numpy()[None], np.array([mid[i] - 0.2]), np.array([mid[i] + 0.2]), i
+        )
+        assert np.allclose(Hs.upper[i].numpy(), ref[:, 0], atol=1e-8)
+        assert np.allclose(Hs.lower[i].numpy(), -ref[:, 1], atol=1e-8)
+    Zh = Z.intersect_halfspace(a, mid)
+    Hh = Zh.interval_hull()
+    for i in range(4):
+        ref = _lp_hull_with(Z, a.numpy()[None], np.array([-1e9]), np.array([mid[i]]), i)
+        assert np.allclose(Hh.upper[i].numpy(), ref[:, 0], atol=1e-8)
+        assert np.allclose(Hh.lower[i].numpy(), -ref[:, 1], atol=1e-8)
+    # a half-space that misses the set: certified empty
+    assert (
+        Z.intersect_halfspace(a, (H.lower * a.clamp(min=0) + H.upper * a.clamp(max=0)).sum(-1) - 1)
+        .is_empty()
+        .all()
+    )
+    # several strips at once == one by one
+    Z2 = Z.intersect_strips(
+        torch.stack([a, torch.tensor([0.0, 1.0])]).expand(4, 2, 2),
+        torch.stack([mid, H.center[:, 1]], -1),
+        torch.full((4, 2), 0.3),
+    )
+    Z3 = Z.intersect_strip(ds.Strip(a, mid, 0.3 * torch.ones(4))).intersect_strip(
+        ds.Strip(torch.tensor([0.0, 1.0]), H.center[:, 1], 0.3 * torch.ones(4))
+    )
+    assert torch.allclose(Z2.interval_hull().upper, Z3.interval_hull().upper, atol=1e-9)
+
+
+def _outer(big: CZ, small: CZ, x: torch.Tensor) -> None:
+    Hb, Hs = big.interval_hull(), small.interval_hull()
+    assert (Hb.lower <= Hs.lower + 1e-9).all() and (Hb.upper >= Hs.upper - 1e-9).all()
+    assert distance_lp(big, x).max() <= 1e-9
+
+
+@pytest.mark.parametrize("heuristic", ["hull", "lp", "propagation"])
+def test_constraint_elimination_outer(heuristic):
+    Z = random_cz(6, 2, 10, 4, seed=13)
+    x = Z.sample(30, generator=torch.Generator().manual_seed(0)).transpose(0, 1)
+    for k in (3, 1, 0):
+        Zr = Z.reduce_constraints(k, heuristic)
+        assert Zr.num_constraints == k and Zr.num_generators == 10 - (4 - k)
+        _outer(Zr, Z, x)
+    assert isinstance(Z.to_zonotope(), ds.Zonotope)
+
+
+def test_elimination_exact_when_bound_redundant():
+    """xi_0 = xi_1 / 2: the bound |xi_0| <= 1 is implied, eliminating xi_0 is exact."""
+    G = torch.tensor([[1.0, 0.0, 0.3], [1.0, 1.0, -0.2]])
+    A = torch.tensor([[1.0, -0.5, 0.0]])
+    Z = CZ(torch.zeros(2), G, A, torch.zeros(1))
+    Zr = Z.reduce_constraints(0, "hull")
+    H, Hr = Z.interval_hull(), Zr.interval_hull()
+    assert torch.allclose(H.lower, Hr.lower, atol=1e-9) and torch.allclose(
+        H.upper, Hr.upper, atol=1e-9
+    )
+
+
+@pytest.mark.parametrize("method", ["girard", "combastel"])
+def test_generator_reduction_outer(method):
+    Z = random_cz(6, 2, 14, 3, seed=14)
+    x = Z.sample(30, generator=torch.Generator().manual_seed(1)).transpose(0, 1)
+    Zr = Z.reduce_generators(8, method)
+    assert Zr.num_generators == 8 and Zr.num_constraints == 3
+    _outer(Zr, Z, x)
+    r = torch.tensor([0.1, 0.2])
+    Zb = Z.reduce_generators(8, method, box_radius=r)
+    _outer(Zb, Z.minkowski_sum(ds.Interval(-r, r)), x)
+    Zf = Z.reduce(9, 2)
+    assert Zf.num_generators <= 9 and Zf.num_constraints == 2
+    _outer(Zf, Z, x)
+
+
+def test_rescale_is_exact():
+    Z = random_cz(5, 2, 8, 3, seed=15)
+    R = Z.rescale()
+    H, HR = Z.interval_hull(), R.interval_hull()
+    assert torch.allclose(H.lower, HR.lower, atol=1e-9) and torch.allclose(
+        H.upper, HR.upper, atol=1e-9
+    )
+    assert (R.generators.abs() <= Z.generators.abs() + 1e-15).all()
+
+
+def test_conversions():
+    box = ds.Interval(torch.tensor([-1.0, 0.0]), torch.tensor([2.0, 0.5]))
+    Zb = CZ.from_set(box)
+    Hb = Zb.interval_hull()
+    assert torch.allclose(Hb.lower, box.lower) and torch.allclose(Hb.upper, box.upper)
+    Zz = ds.Zonotope(torch.zeros(2), torch.tensor([[1.0, 0.5, 0.2], [0.0, 1.0, -0.3]]))
+    assert torch.allclose(CZ.from_set(Zz).interval_hull().upper, Zz.interval_hull().upper)
+    P = ds.Parallelotope(torch.ones(2), torch.tensor([[1.0, 0.5], [0.0, 1.0]]))
+    assert torch.allclose(CZ.from_set(P).interval_hull().upper, P.interval_hull().upper)
+    E = ds.Ellipsoid(torch.zeros(2), torch.tensor([[2.0, 0.8], [0.8, 1.0]]))
+    ZE = CZ.from_set(E)
+    pts = E.sample_extreme(100, generator=torch.Generator().manual_seed(0))
+    assert distance_lp(ZE, pts).max() == 0  # outer (HiGHS)
+    assert ZE.contains(pts, atol=1e-7).all()  # boundary points: certified within 1e-7
+    HE, HEh = ZE.interval_hull(), E.interval_hull()
+    assert torch.allclose(HE.upper, HEh.upper, rtol=1e-6)  # the box hull is kept
+    with pytest.raises(ValueError, match="S"):
+        CZ.from_set(ds.Strip(torch.tensor([1.0, 0.0]), 0.0, 1.0))
+
+
+def test_batch_utilities():
+    Z = random_cz(4, 2, 5, 2, seed=16)
+    assert Z.batch_shape == (4,) and Z.dim == 2 and Z.dtype == torch.float64
+    assert Z[1:3].batch_shape == (2,)
+    W = CZ(torch.zeros(2), torch.eye(2)).expand(3, 4)
+    assert W.batch_shape == (3, 4)
+    S = ds.stack([Z, Z], dim=1)
+    assert S.batch_shape == (4, 2)
+    P = Z.pad(9, 5)
+    assert P.num_generators == 9 and P.num_constraints == 5
+    assert torch.allclose(P.interval_hull().upper, Z.interval_hull().upper, atol=1e-8)
+    # broadcasting of the fields
+    B = CZ(torch.zeros(3, 2), torch.eye(2), torch.ones(1, 2), torch.zeros(1))
+    assert B.batch_shape == (3,)
+    with pytest.raises(AttributeError):
+        Z.A = None
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="center"):
+        CZ(torch.tensor([float("nan"), 0.0]), torch.eye(2))
+    with pytest.raises(ValueError, match="generators"):
+        CZ(torch.zeros(2), torch.eye(3))
+    with pytest.raises(ValueError, match="A"):
+        CZ(torch.zeros(2), torch.eye(2), torch.ones(1, 3), torch.zeros(1))
+    with pytest.raises(ValueError, match="b"):
+        CZ(torch.zeros(2), torch.eye(2), torch.ones(1, 2), torch.zeros(2))
+    with pytest.raises(ValueError, match="A"):
+        CZ(torch.zeros(2), torch.eye(2), torch.ones(1, 2))
+    with pytest.raises(ValueError, match="b"):
+        CZ(torch.zeros(2), torch.eye(2), torch.ones(1, 2), torch.tensor([float("inf")]))
+    Z = CZ(torch.zeros(2), torch.eye(2), torch.ones(1, 2), torch.zeros(1))
+    with pytest.raises(ValueError, match="q"):
+        Z.reduce_generators(2)
+    with pytest.raises(ValueError, match="k"):
+        Z.reduce_constraints(-1)
+    with pytest.raises(ValueError, match="x"):
+        Z.contains(torch.zeros(3))
+    with pytest.raises(ValueError, match="halfwidth"):
+        Z.intersect_strips(torch.ones(1, 2), torch.zeros(1), -torch.ones(1))
+
+
+# ---------------------------------------------------------------------- gradients
+def _fields(seed: int = 17):
+    Z = random_cz(1, 2, 5, 2, seed=seed)
+    return [t[0].clone().requires_grad_(True) for t in (Z.center, Z.generators, Z.A, Z.b)]
+
+
+def test_gradcheck_interval_hull():
+    c, G, A, b = _fields()
+
+    def f(c, G, A, b):
+        H = CZ(c, G, A, b).interval_hull()
+        return torch.cat([H.lower, H.upper])
+
+    assert torch.autograd.gradcheck(f, (c, G, A, b), eps=1e-6, atol=1e-6)
+
+
+def test_gradcheck_linear_ops():
+    c, G, A, b = _fields(18)
+    M = torch.tensor([[1.0, 0.3], [-0.2, 0.9]], requires_grad=True)
+    box = torch.tensor([0.1, 0.2], requires_grad=True)
+    a = torch.tensor([0.7, -0.4], requires_grad=True)
+    y = torch.tensor(0.05, requires_grad=True)
+    s = torch.tensor(0.3, requires_grad=True)
+
+    def f(c, G, A, b, M, box, a, y, s):
+        Z = CZ(c, G, A, b).linear_map(M, torch.ones(2)).minkowski_sum(ds.Interval(-box, box))
+        Z = Z.intersect_strip(ds.Strip(a, y, s))
+        return torch.cat([Z.center, Z.generators.flatten(), Z.A.flatten(), Z.b])
+
+    assert torch.autograd.gradcheck(f, (c, G, A, b, M, box, a, y, s))
+
+    def g(c, G, A, b, a, y, s):
+        Z = CZ(c, G, A, b).intersect_strip(ds.Strip(a, y, s))
+        H = Z.interval_hull()
+        return torch.cat([H.lower, H.upper])
+
+    assert torch.autograd.gradcheck(g, (c, G, A, b, a, y, s), eps=1e-6, atol=1e-6)

@@ -1,0 +1,273 @@
+"""CZSMF: exactness on linear systems (per-coordinate HiGHS LPs over the whole horizon),
+containment audits with worst-case noise, the filter contract, gradients, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import linprog
+
+import diffsmf as ds
+from diffsmf.filters.czsmf import CZSMF
+from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
+
+A_LIN = torch.tensor([[0.9, 0.25], [-0.3, 0.85]])
+C_LIN = torch.tensor([[1.0, 0.0]])
+
+
+def linear_system(C: torch.Tensor = C_LIN, name: str = "linear") -> ds.System:
+    """x_k = A x_{k-1} + w, y = C x + v, box X0, W, V (non-centred W to test offsets)."""
+    A = A_LIN
+
+    def f(x, u=None, theta=None):
+        return x @ A.T
+
+    def h(x):
+        return x @ C.T
+
+    m = C.shape[0]
+    return ds.System(
+        f,
+        h,
+        ds.Interval(torch.tensor([-1.0, -0.5]), torch.tensor([1.0, 1.5])),
+        process_noise=ds.Interval(torch.tensor([-0.05, -0.12]), torch.tensor([0.07, 0.1])),
+        measurement_noise=ds.Interval(-0.1 * torch.ones(m), 0.15 * torch.ones(m)),
+        name=name,
+    )
+
+
+def exact_hulls(system: ds.System, y: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Interval hull of the exact feasible set of x_k given y_1..y_k, k = 0..T, by HiGHS LPs
+    on the stacked variables (x0, w_0, ..., w_{T-1}) with the measurement inequalities."""
+    A = A_LIN.numpy()
+    n, T = 2, y.shape[0]
+    x0 = system.x0_set
+    W, V = system.process_noise, system.measurement_noise
+    bounds0 = list(zip(x0.lower.numpy(), x0.upper.numpy()))
+    wb = list(zip(W.lower.numpy(), W.upper.numpy()))
+    vlo, vhi = V.lower.numpy(), V.upper.numpy()
+    lo = np.zeros((T + 1, n))
+    hi = np.zeros((T + 1, n))
+    lo[0], hi[0] = x0.lower.numpy(), x0.upper.numpy()
+    for k in range(1, T + 1):
+        nv = n * (k + 1)
+        # x_j = M_j z with z = (x0, w_0..w_{k-1})
+        M = [np.hstack([np.eye(n), np.zeros((n, n * k))])]
+        for j in range(1, k + 1):
+            Mj = A @ M[-1]
+            Mj[:, n * j : n * (j + 1)] += np.eye(n)
+            M.append(Mj)
+        rows, rhs = [], []
+        for j in range(1, k + 1):  # vlo <= y_j - C x_j <= vhi
+            CM = C @ M[j]
+            rows += [CM, -CM]
+            rhs += [y[j - 1] - vlo, -(y[j - 1] - vhi)]
+        A_ub, b_ub = np.vstack(rows), np.concatenate(rhs)
+        bnds = bounds0 + wb * k
+        for i in range(n):
+            for s in (1.0, -1.0):
+                r = linprog(-s * M[k][i], A_ub=A_ub, b_ub=b_ub, bounds=bnds, method="highs")
+                assert r.status == 0
+                if s > 0:
+                    hi[k, i] = -r.fun
+                else:
+                    lo[k, i] = r.fun
+        assert nv == len(bnds)
+    return lo, hi
+
+
+@pytest.fixture(scope="module")
+def linear_run():
+    system = linear_system()
+    T = 15
+    traj = system.simulate(steps=T, batch=3, seed=3, noise="vertex")
+    exact = [exact_hulls(system, traj.y[i].numpy(), C_LIN.numpy()) for i in range(3)]
+    return system, traj, exact
+
+
+def test_exact_on_linear_system(linear_run):
+    """No reduction: the hull of CZSMF equals the exact feasible set's hull at every step."""
+    system, traj, exact = linear_run
+    filt = CZSMF(system, max_generators=None, max_constraints=None)
+    with torch.no_grad():
+        res = filt(traj.y)
+    for i, (lo, hi) in enumerate(exact):
+        scale = 1 + np.abs(hi).max()
+        assert np.abs(res.lower[i].numpy() - lo).max() <= 1e-7 * scale
+        assert np.abs(res.upper[i].numpy() - hi).max() <= 1e-7 * scale
+        # outer, never inner (beyond rounding)
+        assert (res.lower[i].numpy() <= lo + 1e-12 * scale).all()
+        assert (res.upper[i].numpy() >= hi - 1e-12 * scale).all()
+    assert res.consistent.all()
+
+
+def test_reduced_close_to_exact(linear_run):
+    """Default caps: hull widths within a few percent of the exact set (measured ~1.00)."""
+    system, traj, exact = linear_run
+    with torch.no_grad():
+        res = CZSMF(system)(traj.y)
+    ratios = []
+    for i, (lo, hi) in enumerate(exact):
+        w = (res.upper[i] - res.lower[i]).numpy()[1:]
+        ratios.append(w / (hi - lo)[1:])
+        assert (res.lower[i].numpy() <= lo + 1e-9).all() and (
+            res.upper[i].numpy() >= hi - 1e-9
+        ).all()
+    r = np.mean(ratios)
+    assert 1.0 - 1e-9 <= r <= 1.05, r
+
+
+def test_exact_two_outputs():
+    """Two outputs (two strips per step), no reduction, short horizon."""
+    C = torch.tensor([[1.0, 0.0], [0.5, -1.0]])
+    system = linear_system(C, "linear2")
+    traj = system.simulate(steps=6, batch=1, seed=5, noise="uniform")
+    lo, hi = exact_hulls(system, traj.y[0].numpy(), C.numpy())
+    with torch.no_grad():
+        res = CZSMF(system, max_generators=None, max_constraints=None)(traj.y)
+    assert np.abs(res.lower[0].numpy() - lo).max() <= 1e-7 * (1 + np.abs(lo).max())
+    assert np.abs(res.upper[0].numpy() - hi).max() <= 1e-7 * (1 + np.abs(hi).max())
+
+
+def _bounded_systems() -> list[str]:
+    out = []
+    for name in ds.systems.names():
+        s = ds.systems.get(name)
+        if s.process_cov is None and s.measurement_cov is None:
+            out.append(name)
+    return out
+
+
+def audit(filt, system, trials: int, steps: int, noise: str, seed: int = 11) -> tuple[int, int]:
+    """(violations, inconsistent steps). A pair is a violation when the true state is outside
+    the certified hull, or neither ``contains`` (torch LP) nor HiGHS puts it within 1e-9
+    (relative) of the set."""
+    traj = system.simulate(steps=steps, batch=trials, seed=seed, noise=noise)
+    with torch.no_grad():
+        res = filt(traj.y, u=traj.u)
+    x = traj.x
+    scale = 1 + x.abs().amax(-1)
+    tol = 1e-9 * scale
+    out_hull = ((x < res.lower - tol.unsqueeze(-1)) | (x > res.upper + tol.unsqueeze(-1))).any(-1)
+    inside = res.sets.contains(x, atol=1e-9 * float(scale.max()))
+    unsure = (~inside & ~out_hull).nonzero().tolist()
+    bad = int(out_hull.sum())
+    for i, k in unsure:
+        Z = res.sets[i, k]
+        if float(distance_lp(Z, x[i, k])) > tol[i, k]:
+            bad += 1
+    return bad, int((~res.consistent).sum())
+
+
+@pytest.mark.parametrize("noise", ["vertex", "uniform"])
+@pytest.mark.parametrize("system_name", _bounded_systems())
+def test_containment(system_name, noise):
+    system = ds.systems.get(system_name)
+    trials, steps = (60, 4) if system_name == "fermenter" else (300, 8)
+    bad, inconsistent = audit(CZSMF(system), system, trials, steps, noise)
+    assert bad == 0
+    assert inconsistent == 0
+
+
+def test_contract_online_equals_forward():
+    system = ds.systems.get("bilinear")
+    traj = system.simulate(steps=5, batch=4, seed=0)
+    filt = CZSMF(system)
+    with torch.no_grad():
+        res = filt(traj.y, u=traj.u)
+        st = filt.initial_state(batch=4)
+        for k in range(5):
+            st = filt.predict(st, None if traj.u is None else traj.u[:, k])
+            st = filt.update(st, traj.y[:, k])
+    assert res.sets.batch_shape == (4, 6)
+    assert res.lower.shape == (4, 6, 2) and res.volume.shape == (4, 6)
+    assert res.consistent.shape == (4, 6)
+    assert torch.allclose(st.extras["lower"], res.lower[:, -1], rtol=0, atol=1e-14)
+    assert torch.allclose(st.extras["upper"], res.upper[:, -1], rtol=0, atol=1e-14)
+    # fixed size after the first steps: constant cost per step
+    assert st.set.num_generators == filt.max_generators
+    assert st.set.num_constraints == filt.max_constraints
+
+
+def test_batch_elements_independent():
+    system = ds.systems.get("spring_damper")
+    traj = system.simulate(steps=6, batch=3, seed=1)
+    filt = CZSMF(system)
+    with torch.no_grad():
+        res = filt(traj.y)
+        one = filt(traj.y[1:2])
+    assert torch.allclose(res.lower[1], one.lower[0], atol=1e-12)
+    assert torch.allclose(res.upper[1], one.upper[0], atol=1e-12)
+
+
+def test_inconsistent_measurement_flagged():
+    system = linear_system()
+    traj = system.simulate(steps=4, batch=2, seed=2)
+    y = traj.y.clone()
+    y[0, 2] += 50.0  # impossible measurement at step 3 for element 0
+    with torch.no_grad():
+        res = CZSMF(system)(y)
+    assert not bool(res.consistent[0, 3])
+    assert bool(res.consistent[1].all())
+    assert torch.isfinite(res.lower).all() and (res.lower <= res.upper).all()
+
+
+def test_skip_nan():
+    system = linear_system()
+    traj = system.simulate(steps=3, batch=2, seed=2)
+    y = traj.y.clone()
+    y[1, 1] = float("nan")
+    with pytest.raises(ValueError, match="y"):
+        CZSMF(system)(y)
+    with torch.no_grad():
+        res = CZSMF(system, skip_nan=True)(y)
+    assert torch.isfinite(res.lower).all()
+    # the skipped update keeps the predicted set: contains the truth
+    assert ((traj.x >= res.lower - 1e-9) & (traj.x <= res.upper + 1e-9)).all()
+
+
+def test_gradients_flow_to_hyperparameters():
+    system = ds.systems.get("spring_damper")
+    traj = system.simulate(steps=4, batch=2, seed=0)
+    filt = CZSMF(system)
+    res = filt(traj.y)
+    res.volume[:, 1:].log().mean().backward()
+    for name in ("raw_process_noise", "raw_measurement_noise", "raw_stirling_step"):
+        g = getattr(filt, name).grad
+        assert g is not None and torch.isfinite(g).all(), name
+    assert filt.raw_process_noise.grad.abs().sum() > 0
+
+
+def test_lagrange_remainder_option():
+    system = ds.systems.get("bilinear")
+    bad, _ = audit(CZSMF(system, remainder="lagrange"), system, 50, 4, "vertex")
+    assert bad == 0
+
+
+def test_bad_arguments():
+    system = ds.systems.get("bilinear")
+    with pytest.raises(ValueError, match="max_generators"):
+        CZSMF(system, max_generators=3, max_constraints=3)
+    with pytest.raises(ValueError, match="max_generators"):
+        CZSMF(system, max_generators=None, max_constraints=3)
+    with pytest.raises(ValueError, match="max_constraints"):
+        CZSMF(system, max_generators=20, max_constraints=-2)
+    with pytest.raises(ValueError, match="remainder"):
+        CZSMF(system, remainder="taylor")
+    with pytest.raises(ValueError, match="reduce_method"):
+        CZSMF(system, reduce_method="pca")
+    with pytest.raises(ValueError, match="stirling_step"):
+        CZSMF(system, stirling_step=-1.0)
+    with pytest.raises(ValueError, match="y"):
+        CZSMF(system)(torch.zeros(2, 3, 5))
+
+
+def test_by_name_and_initial_set():
+    system = ds.systems.get("mismatch_quadratic")  # ellipsoidal X0: outer conversion
+    filt = ds.filters.by_name("czsmf")(system)
+    assert isinstance(filt, CZSMF)
+    S = filt.initial_state(batch=2).set
+    assert isinstance(S, ConstrainedZonotope)
+    pts = system.x0_set.sample_extreme(200, generator=torch.Generator().manual_seed(0))
+    assert bool(S[0].contains(pts, atol=1e-9).all())
