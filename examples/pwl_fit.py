@@ -4,9 +4,10 @@
 
 1. Adaptive fits for eps in {0.1, 0.03, 0.01} on a 101x101 grid of samples: regions, vertices,
    max training error, held-out error on the 200x200 grid of cell centres, time.
-2. The split rules on random samples: "interior" (default: seed 004's rule, longest-edge cut
-   near faces), "edge", and "paper" (seed 004 literally: always connect the sample to the
-   region's vertices).
+2. The split rules on random samples: "rivara" (default: conforming longest-edge bisection
+   of every region above eps, with held-out samples), "interior" (seed 004's rule, longest-edge
+   cut near faces; the default before issue 15), "edge", and "paper" (seed 004 literally:
+   always connect the sample to the region's vertices).
 3. Seed 004's comparison with hinging hyperplanes ("model 3") at the same number of regions and
    at the same number of parameters.
 4. A figure of the eps = 0.1 partition over its held-out error (out/pwl/pwl_fit.png).
@@ -65,7 +66,7 @@ def main() -> None:
     print("| rule | converged | regions | vertices | train max | held-out max | s |")
     print("|---|---|---|---|---|---|---|")
     Xr = torch.rand(10_000, 2, generator=torch.Generator().manual_seed(0)) * 4 - 2
-    for rule in ("interior", "edge", "paper"):
+    for rule in ("rivara", "interior", "edge", "paper"):
         model, rep = fit_scplnn(Xr, f(Xr), 0.1, rule=rule, max_rounds=40, max_regions=20_000)
         hm, _ = held_out(model, Xh)
         print(f"| {rule} | {rep.converged} | {rep.regions} | {rep.vertices} | "
