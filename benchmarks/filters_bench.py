@@ -10,7 +10,13 @@ Runtime is capped: each (filter, batch) cell runs ``--steps`` steps (default 10;
 batch 10,000) and the per-trajectory numpy loop runs at most ``--max-numpy`` trajectories, its
 rate at larger batches being extrapolated (it is linear in the batch; stated in the table).
 
-    python benchmarks/filters_bench.py [--steps 10] [--batches 1 100 10000]
+    python benchmarks/filters_bench.py [--steps 10] [--batches 1 100 10000] [--compiled]
+    python benchmarks/filters_bench.py --scaling [--dims 2 4 8 16 32]
+
+``--compiled`` adds rows for ``filt.compile()`` (the fullgraph step; its one-off compile time
+is printed separately). ``--scaling`` prints time per step vs the state dimension on the
+``oscillator_chain`` system (remainder ``"auto"``: vertices up to n = 8, then vertex-free) with
+the fitted growth exponent (least squares of log time on log n).
 """
 
 from __future__ import annotations
@@ -121,14 +127,43 @@ def numpy_hsnsmf(y: np.ndarray, c0, r0, w: float, v: float, h: float = 0.1) -> n
 
 
 # ---------------------------------------------------------------------- timing
-def _time_torch(name: str, system, batch: int, steps: int) -> float:
+def _time_torch(
+    name: str, system, batch: int, steps: int, compiled: bool = False, repeats: int = 3
+) -> tuple[float, float]:
+    """(median trajectory-steps/s over ``repeats`` runs, one-off compile seconds or 0)."""
     traj = system.simulate(steps=steps, batch=batch, seed=0, noise="uniform")
     filt = filters.by_name(name)(system)
+    t_compile = 0.0
+    if compiled:
+        filt.compile()
     with torch.no_grad():
-        filt(traj.y[:, :1], u=None if traj.u is None else traj.u[:, :1])  # warm-up
         t0 = time.perf_counter()
-        filt(traj.y, u=traj.u)
-    return batch * steps / (time.perf_counter() - t0)
+        filt(traj.y[:, :1], u=None if traj.u is None else traj.u[:, :1])  # warm-up / compile
+        t_compile = time.perf_counter() - t0 if compiled else 0.0
+        rates = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            filt(traj.y, u=traj.u)
+            rates.append(batch * steps / (time.perf_counter() - t0))
+    return float(np.median(rates)), t_compile
+
+
+def scaling(dims: list[int], names: list[str], batch: int, steps: int) -> None:
+    """Time per step vs n on ``oscillator_chain`` and the fitted growth exponent."""
+    print(f"\n| filter | remainder | {' | '.join(f'n={n}' for n in dims)} | exponent |")
+    print("|---|---|" + "---:|" * (len(dims) + 1))
+    for name in names:
+        ms, rem = [], set()
+        for n in dims:
+            system = systems.get("oscillator_chain", n=n)
+            rem.add(getattr(filters.by_name(name)(system), "remainder", "-"))
+            rate, _ = _time_torch(name, system, batch, steps, repeats=1)
+            ms.append(1e3 * batch / rate)
+        slope = float(np.polyfit(np.log(dims), np.log(ms), 1)[0])
+        cells = " | ".join(f"{t:.1f}" for t in ms)
+        print(f"| {name} | {'/'.join(sorted(rem))} | {cells} | {slope:.2f} |", flush=True)
+    print(f"\nms per step (B = {batch}, {steps} steps, median of 1 run per cell); "
+          "exponent: slope of log(ms) on log(n).")
 
 
 def _time_numpy(system, batch: int, steps: int, max_traj: int) -> tuple[float, bool]:
@@ -148,19 +183,32 @@ def main() -> None:
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 100, 10000])
     ap.add_argument("--filters", nargs="+", default=["hsnsmf", "mszm", "cdsmf", "esmf", "ekf"])
     ap.add_argument("--max-numpy", type=int, default=100)
+    ap.add_argument("--compiled", action="store_true", help="add filt.compile() rows")
+    ap.add_argument("--compiled-filters", nargs="+", default=["hsnsmf"])
+    ap.add_argument("--scaling", action="store_true", help="time per step vs n instead")
+    ap.add_argument("--dims", type=int, nargs="+", default=[2, 4, 8, 16, 32])
     args = ap.parse_args()
     torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} intra-op thread(s)")
+    if args.scaling:
+        scaling(args.dims, [f for f in args.filters if f != "ekf"], 10, max(2, args.steps // 2))
+        return
     system = systems.get("spring_damper")
     rows = []
     for batch in args.batches:
         steps = args.steps if batch <= 1000 else max(2, args.steps // 5)
         ref, extrap = _time_numpy(system, batch, steps, args.max_numpy)
-        for name in args.filters:
-            rate = _time_torch(name, system, batch, steps)
-            rows.append((name, batch, steps, rate, ref, extrap))
+        variants = [(n, False) for n in args.filters]
+        if args.compiled:
+            variants += [(n, True) for n in args.compiled_filters]
+        for name, comp in variants:
+            rate, tc = _time_torch(name, system, batch, steps, compiled=comp)
+            label = f"{name} (compiled)" if comp else name
+            rows.append((label, batch, steps, rate, ref, extrap))
             print(
-                f"{name:<7} B={batch:<6} {rate:12.0f} traj-steps/s   numpy HSNSMF {ref:10.0f}"
-                f"{' (extrapolated)' if extrap else ''}   ratio {rate / ref:8.2f}",
+                f"{label:<18} B={batch:<6} {rate:12.0f} traj-steps/s   numpy HSNSMF {ref:10.0f}"
+                f"{' (extrapolated)' if extrap else ''}   ratio {rate / ref:8.2f}"
+                + (f"   compile {tc:.0f} s" if comp else ""),
                 flush=True,
             )
     print("\n| filter | batch | steps | diffsmf traj-steps/s | numpy HSNSMF traj-steps/s | ratio |")

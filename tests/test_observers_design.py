@@ -142,7 +142,7 @@ def test_unverified_design_claims_no_bound():
                                              ("unbounded", "error"),
                                              ("solver_error: boom", "error")])
 def test_solver_statuses_reported_not_turned_into_numbers(monkeypatch, status, expected):
-    def fake_solve(prob, solver):
+    def fake_solve(prob, solver, rows=0):
         return status
 
     monkeypatch.setattr(lmi_mod, "_solve", fake_solve)
@@ -154,8 +154,8 @@ def test_solver_statuses_reported_not_turned_into_numbers(monkeypatch, status, e
 def test_solver_status_optimal_inaccurate_is_reported(monkeypatch):
     orig = lmi_mod._solve
 
-    def inaccurate(prob, solver):
-        st = orig(prob, solver)
+    def inaccurate(prob, solver, rows=0):
+        st = orig(prob, solver, rows)
         return "optimal_inaccurate" if st == "optimal" else st
 
     monkeypatch.setattr(lmi_mod, "_solve", inaccurate)

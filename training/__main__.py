@@ -1,9 +1,7 @@
-"""``python -m training`` is ``python -m training.tune``."""
+"""``python -m training`` is ``python -m training.tune`` (same one-line user errors)."""
 
-import argparse
+import sys
 
-from training.tune import add_arguments, main
+from diffsmf.cli import run_command
 
-parser = argparse.ArgumentParser(prog="python -m training", description="tune a filter")
-add_arguments(parser)
-raise SystemExit(main(parser.parse_args()))
+raise SystemExit(run_command("tune", sys.argv[1:], prog="python -m training"))

@@ -144,9 +144,11 @@ def _quad_form(H: Interval, d: Interval) -> Interval:
     n = d.shape[-1]
     dd = d.unsqueeze(-1) * d.unsqueeze(-2)  # [..., n, n]
     sq = d.square()
-    diag = Interval(torch.diag_embed(sq.lower), torch.diag_embed(sq.upper))
     eye = torch.eye(n, dtype=torch.bool, device=d.lower.device)
-    dd = torch.where(eye, diag, dd)
+    dd = Interval._make(  # exact squares on the diagonal (field-wise: no Interval dispatch)
+        torch.where(eye, torch.diag_embed(sq.lower), dd.lower),
+        torch.where(eye, torch.diag_embed(sq.upper), dd.upper),
+    )
     return (H * dd.unsqueeze(-3)).sum((-2, -1))
 
 
@@ -174,7 +176,7 @@ def _lagrange(
     jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, D: Tensor | None
 ) -> Interval:
     """Seed 001 eq. 26-28 from the jet over ``box``; ``D = J_exact(c) - J`` or None."""
-    d = box - c  # [..., n] (outward rounded)
+    d = box.__sub__(c)  # [..., n] (outward rounded; the method call traces under Dynamo)
     R = _quad_form(jet.hess, d) * 0.5
     if D is not None and (tracing() or not bool((D.detach() == 0).all())):
         R = R + _linear_range(S, D, c)
@@ -423,7 +425,7 @@ def parameter_deviation(
     zhi = torch.cat([box.upper.expand(*batch, n), theta_box.upper.expand(*batch, q)], -1)
     Jz = interval_jacobian(lambda z: f(z[..., :n], u, z[..., n:]), Interval(zlo, zhi))
     Jth = Jz[..., n:]  # [..., n, q]
-    mv = (Jth * (params - th_nom).unsqueeze(-2)).sum(-1)
+    mv = (Jth * params.__sub__(th_nom).unsqueeze(-2)).sum(-1)
     return nat.intersect(mv)
 
 
@@ -448,8 +450,8 @@ def mean_value_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = Non
     Jint = jet.grad  # [..., k, n]
     if J is None:
         J = jacobian(fn, c)
-    d = box - c  # [..., n] (outward rounded)
-    R = ((Jint - J) * d.unsqueeze(-2)).sum(-1)
+    d = box.__sub__(c)  # [..., n] (outward rounded; the method call traces under Dynamo)
+    R = (Jint.__sub__(J) * d.unsqueeze(-2)).sum(-1)
     mag = d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2)
     scale = _abs_max(jet.val) + (J.abs() * mag).sum(-1).detach()
     return _padded(R.lower, R.upper, scale)

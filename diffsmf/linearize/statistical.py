@@ -17,6 +17,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from diffsmf.utils import tracing
+
 __all__ = ["axis_points", "statistical_linearization"]
 
 _AXES = ("principal", "symmetric")
@@ -139,7 +141,7 @@ def _weight_vector(weights: Tensor | Sequence[float] | None, K: int, nlev: int, 
     w = torch.as_tensor(weights, dtype=like.dtype, device=like.device)
     if w.dim() != 1 or w.shape[0] not in (K, 1 + nlev):
         raise ValueError(f"weights: expected shape [{K}] or [{1 + nlev}], got {tuple(w.shape)}")
-    if torch.isnan(w).any() or (w < 0).any():
+    if not tracing() and (torch.isnan(w).any() or (w < 0).any()):
         raise ValueError("weights: must be non-negative and not NaN")
     if w.shape[0] == 1 + nlev and K != 1 + nlev:  # centre weight, then one weight per level
         n = (K - 1) // (2 * nlev)
@@ -178,7 +180,7 @@ def statistical_linearization(
     w = _weight_vector(weights, K, len(tuple(levels)), z)
     Z1 = torch.cat([z, torch.ones(K, 1, dtype=z.dtype, device=z.device)], -1)  # [K, n+1]
     normal = Z1.mT @ (w.unsqueeze(-1) * Z1)  # eq. 54: F L F'
-    if bool(torch.linalg.cholesky_ex(normal)[1] != 0):
+    if not tracing() and bool(torch.linalg.cholesky_ex(normal)[1] != 0):
         raise ValueError("weights: the weighted points do not determine an affine fit")
     Y = fn(points)  # [K, ..., k]
     if Y.dim() != points.dim() or Y.shape[0] != K:

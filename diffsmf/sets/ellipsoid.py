@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_tensor, check_finite
+from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
@@ -32,7 +33,7 @@ def _sym(S: Tensor) -> Tensor:
 def _chol(name: str, S: Tensor) -> Tensor:
     """Cholesky factor; ``ValueError`` naming ``name`` if not positive definite."""
     L, info = torch.linalg.cholesky_ex(S)
-    if bool((info != 0).any()):
+    if not tracing() and bool((info != 0).any()):
         raise ValueError(f"{name}: not symmetric positive definite")
     return L
 
@@ -66,7 +67,7 @@ class Ellipsoid(ConvexSet):
             raise ValueError(f"shape: expected [..., {n}, {n}], got {tuple(S.shape)}")
         Sd = S.detach()
         scale = Sd.abs().amax(dim=(-2, -1)).clamp(min=1e-300)
-        if ((Sd - Sd.mT).abs().amax(dim=(-2, -1)) > 1e-8 * scale).any():
+        if not tracing() and ((Sd - Sd.mT).abs().amax(dim=(-2, -1)) > 1e-8 * scale).any():
             raise ValueError("shape: not symmetric")
         try:
             batch = torch.broadcast_shapes(c.shape[:-1], S.shape[:-2])
@@ -157,7 +158,7 @@ class Ellipsoid(ConvexSet):
         S = _sym(A @ self.shape @ A.mT)
         k = A.shape[-2]
         _, info = torch.linalg.cholesky_ex(S.detach())
-        if bool((info != 0).any()) or k > self.dim:
+        if tracing() or bool((info != 0).any()) or k > self.dim:
             eye = torch.eye(k, dtype=S.dtype, device=S.device)
             tr = torch.diagonal(S, dim1=-2, dim2=-1).sum(-1) / k
             jitter = (reg * (tr + 1e-300)).unsqueeze(-1).unsqueeze(-1) * eye
@@ -227,7 +228,7 @@ class Ellipsoid(ConvexSet):
         _, info = torch.linalg.cholesky_ex(Sg.detach())
         ok = info == 0
         if method == "generators":
-            if not bool(ok.all()):
+            if not tracing() and not bool(ok.all()):
                 raise ValueError("Z: generators are not of full row rank; use method='hull'")
             return Ellipsoid._make(Z.center, Sg)
         eye = torch.eye(Z.dim, dtype=Sg.dtype, device=Sg.device)
@@ -261,7 +262,7 @@ class Ellipsoid(ConvexSet):
             p = minkowski_weight(S1, S2, method)
         else:
             p = as_tensor("p", p, like=S1)
-            if (p.detach() <= 0).any():
+            if not tracing() and (p.detach() <= 0).any():
                 raise ValueError("p: must be > 0")
         pp = p[..., None, None]
         S = _sym((1.0 + 1.0 / pp) * S1 + (1.0 + pp) * S2) * (1.0 + INFLATE)
@@ -296,7 +297,7 @@ class Ellipsoid(ConvexSet):
         P, c = self.shape, self.center_
         e = y - (H @ c.unsqueeze(-1)).squeeze(-1)
         G = _sym(H @ P @ H.mT)
-        if H.shape[-2] == self.dim and rho is None:
+        if H.shape[-2] == self.dim and rho is None and not tracing():
             # square H: the measurement set is the ellipsoid E(H^-1 y, H^-1 R H^-T); use the
             # two-sided form (no cancellation as rho -> 1) when H is invertible everywhere
             Hi_y, info = torch.linalg.solve_ex(H, y.unsqueeze(-1))
@@ -327,7 +328,7 @@ class Ellipsoid(ConvexSet):
     def _pick_rho(self, fam: _MeasFamily, method: str, rho: Any, H: Tensor, R: Tensor) -> Tensor:
         if rho is not None:
             r = as_tensor("rho", rho, like=self.center_)
-            if ((r.detach() < 0) | (r.detach() >= 1)).any():
+            if not tracing() and ((r.detach() < 0) | (r.detach() >= 1)).any():
                 raise ValueError("rho: must be in [0, 1)")
             return r.expand(fam.batch)
         if method == "fixed":

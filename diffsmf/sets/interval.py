@@ -144,7 +144,7 @@ class Interval(ConvexSet):
         """Box ``[c - r, c + r]`` (bounds rounded outward); ``radius >= 0`` elementwise."""
         c = as_tensor("center", center)
         r = as_tensor("radius", radius, like=c)
-        if (r.detach() < 0).any():
+        if not tracing() and (r.detach() < 0).any():
             raise ValueError("radius: must be >= 0")
         return cls._make(_down(c - r), _up(c + r))
 
@@ -696,7 +696,7 @@ def _trig(
 
 def _count(shape: torch.Size, dim: Any) -> int:
     dims = (dim,) if isinstance(dim, int) else tuple(dim)
-    return math.prod(shape[d] for d in dims)
+    return math.prod([shape[d] for d in dims])  # a list: Dynamo traces it
 
 
 def _sum(x: Interval, dim: Any = None, keepdim: bool = False) -> Interval:
