@@ -24,9 +24,10 @@ Sections (each prints a markdown table):
    and the old one, held-out on the 200 x 200 grid of cell centres.
 
 Threads: torch runs with one intra-op thread here (``fit_scplnn`` always fits on one);
-LinearNDInterpolator (qhull + scipy) is single-threaded; pwlf uses numpy/scipy (BLAS threads
-as configured). Timings on a shared machine are noisy: compare ours and the peer of the same
-row, measured in the same run.
+numpy/scipy BLAS is limited to one thread (threadpoolctl) for every method: with two OpenBLAS
+threads on the loaded 2-core machine, LinearNDInterpolator's first evaluation took 62 s instead
+of 0.01 s. LinearNDInterpolator (qhull) is single-threaded anyway. Timings on a shared
+machine are noisy: compare ours and the peer of the same row, measured in the same run.
 """
 
 from __future__ import annotations
@@ -227,8 +228,15 @@ def main() -> None:
     ap.add_argument("--dims", default=None, help="comma-separated d for the dimension table")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="blas"):  # numpy/scipy BLAS on one thread as well
+        _run(args)
+
+
+def _run(args: argparse.Namespace) -> None:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
-    head = (f"torch {torch.__version__}, torch threads {torch.get_num_threads()}, "
+    head = (f"torch {torch.__version__}, torch threads {torch.get_num_threads()}, BLAS threads 1, "
             f"{os.cpu_count()} CPUs, load average at start {load:.1f}")
     print(head, flush=True)
     peak_lines, peers = peak_section(args.repeats, args.quick)

@@ -327,7 +327,7 @@ def fit_scplnn(
     if ridge is None:
         ridge = 0.01 if rule == "rivara" else 0.1
     opts = _Opts(holdout=holdout if rule == "rivara" else 0.0, seed=seed, degenerate=degenerate)
-    with single_thread():
+    with single_thread(blas=True):
         return _fit(X, Y, eps, max_regions, domain, max_rounds, ridge, snap, mark, rule,
                     edge_clip, outside, progress, _Known(vertex_fn, region_bound), opts)
 

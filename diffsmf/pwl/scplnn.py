@@ -22,6 +22,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
+from diffsmf.pwl._threads import single_thread
 from diffsmf.pwl.partition import PointLocator, barycentric_matrices
 
 __all__ = ["SCPLNN", "Regions"]
@@ -152,7 +153,9 @@ class SCPLNN(nn.Module):
             if name == "bary":
                 self._cache[name] = barycentric_matrices(self.vertices, self.simplices)
             elif name == "locator":
-                self._cache[name] = PointLocator(self.vertices, self.simplices, self._get("bary"))
+                with single_thread():
+                    self._cache[name] = PointLocator(self.vertices, self.simplices,
+                                                     self._get("bary"))
         return self._cache[name]
 
     def prepare(self) -> SCPLNN:
@@ -169,16 +172,19 @@ class SCPLNN(nn.Module):
     # ------------------------------------------------------------------ evaluation
     def locate(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Simplex index ``[N]`` and a boolean ``inside [N]`` for points x [N, n] (no grad)."""
-        s, lam = self._get("locator").locate(x)
+        with single_thread():
+            s, lam = self._get("locator").locate(x)
         return s, lam.amin(-1) >= -self.atol
 
     def _prepare(self, x: Tensor, outside: str, traced: bool = False) -> tuple[Tensor, Tensor]:
         """Apply the outside policy; return (points to evaluate [N, n], simplex ids [N])."""
         if self._box and outside == "clamp":
             x = torch.maximum(torch.minimum(x, self.upper), self.lower)
-        s, lam = self._get("locator").locate(x, padded=traced)
         if traced:  # no data-dependent check inside vmap / jacrev / torch.compile
+            s, _ = self._get("locator").locate(x, padded=True)
             return x, s
+        with single_thread():  # a loop of small ops: thread hand-offs cost more than the work
+            s, lam = self._get("locator").locate(x)
         inside = lam.amin(-1) >= -self.atol
         if outside == "error" and not bool(inside.all()):
             bad = x[~inside][0].tolist()
