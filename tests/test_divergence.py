@@ -97,3 +97,12 @@ def test_fermenter_large_initial_set_flagged_not_raised():
         assert not torch.isnan(res.lower).any()
         assert not res.bounded[:, -1].any()
         assert torch.isinf(res.upper[:, -1]).all()
+
+
+@pytest.mark.parametrize("bad", [[1e-3, 1e-3], [float("nan")], [-1e-3], "x", [[1e-3]]])
+def test_noise_override_errors_name_the_argument(bad):
+    s = ds.systems.get("spring_damper")  # m = 1 output
+    with pytest.raises(ValueError, match="measurement_noise"):
+        ds.filters.HSNSMF(s, measurement_noise=bad)
+    with pytest.raises(ValueError, match="process_noise"):
+        ds.filters.CDSMF(s, process_noise=[1e-3, 1e-3, 1e-3] if bad != "x" else "x")

@@ -101,6 +101,23 @@ class FilterResult:
         return self.extras.get("covariance")
 
 
+def _check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> Tensor:
+    """Noise half-width override -> ``[dim]``; ``ValueError`` naming ``name`` for a wrong
+    length (a scalar or ``[1]`` broadcasts), NaN, inf, negative values or non-numbers."""
+    try:
+        v = torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{name}: expected a number or a [{dim}] tensor, got {value!r}") from exc
+    if v.dim() > 1 or (v.dim() == 1 and v.shape[0] not in (1, dim)):
+        raise ValueError(
+            f"{name}: expected a scalar or a [{dim}] tensor (one half-width per component), "
+            f"got shape {tuple(v.shape)}"
+        )
+    if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
+        raise ValueError(f"{name}: half-widths must be finite and >= 0, got {v.tolist()}")
+    return v.expand(dim).clone()
+
+
 def _rebuild_as(cls: type, fields: tuple[Tensor, ...]) -> ConvexSet:
     """A set of type ``cls`` from its field tensors (no validation)."""
     obj = object.__new__(cls)
@@ -171,7 +188,7 @@ class SetFilter(nn.Module):
                 hull = s.interval_hull()
                 c, r = hull.center.detach(), hull.radius.detach()
             if override is not None:
-                r = torch.as_tensor(override, dtype=dt).expand(dim).clone()
+                r = _check_half_widths(name, override, dim, dt)
             register_positive(self, name, r, learnable=learn_noise)
             self.register_buffer(f"{name}_center", c.clone())
 
