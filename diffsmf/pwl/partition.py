@@ -198,11 +198,13 @@ def face_neighbours(simplices: Tensor) -> Tensor:
     M, n1 = simplices.shape
     faces = torch.cat([torch.cat([simplices[:, :j], simplices[:, j + 1:]], 1)
                        for j in range(n1)]).sort(-1).values  # [(n+1) M, n], row j*M + m
+    import numpy as np
+
     owner = torch.arange(M).repeat(n1)
-    _, inv = torch.unique(faces, dim=0, return_inverse=True)
-    order = torch.argsort(inv, stable=True)
-    inv_s = inv[order]
-    same = inv_s[1:] == inv_s[:-1]  # consecutive equal faces: the two sides
+    F = faces.numpy()
+    order = torch.from_numpy(np.lexsort(F.T[::-1]))  # rows sorted lexicographically
+    Fs = faces[order]
+    same = (Fs[1:] == Fs[:-1]).all(-1)  # consecutive equal faces: the two sides
     nb = torch.full((n1 * M,), -1, dtype=torch.long)
     a, b = order[:-1][same], order[1:][same]
     nb[a], nb[b] = owner[b], owner[a]
