@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters import _common as C
-from diffsmf.filters.base import FilterResult, FilterState, SetFilter
+from diffsmf.filters.base import MAX_SET_RADIUS, FilterResult, FilterState, SetFilter
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
@@ -55,10 +55,15 @@ class CZSMF(SetFilter):
 
     Args:
         system: the system to filter.
-        max_generators: generator cap ``q`` (``None``: no reduction). Must be
-            ``>= n + max_constraints + 1``. Default ``8 n + max_constraints``.
-        max_constraints: constraint cap (``None``: no reduction). Default ``max(2, m)``... see
-            the docs page for the measured table; default 3 per output... (``3 m``).
+        max_generators: generator cap ``q`` (``None``: no reduction), at least
+            ``n + max_constraints + 1``. Default ``35 n + max_constraints`` (80 for n = 2,
+            m = 1: 1.0000 of the exact hull widths on the linear benchmark, see
+            docs/constrained_zonotopes.md for the measured table of tightness vs cost).
+        max_constraints: constraint cap (``None``: no reduction). Default ``4 + 6 m``.
+        elimination: choice of the eliminated constraint (Scott 2016 sec. 4.2): ``"hull"``
+            (default: the 8 best Appendix A candidates re-ranked by the exact hull of the
+            result, 2 n x 9 batched LPs), ``"lp"`` (Appendix A with LP ranges) or
+            ``"propagation"`` (Appendix A as published, interval propagation; cheapest).
         reduce_method: lifted generator reduction, ``"girard"`` | ``"combastel"``.
         remainder: ``"dc"`` (seed 000, :func:`~diffsmf.linearize.dc_remainder`) or
             ``"lagrange"`` (seed 001, :func:`~diffsmf.linearize.lagrange_remainder`), both over
@@ -103,9 +108,9 @@ class CZSMF(SetFilter):
         n, m = system.n, system.m
         C.check_initial_set("initial_set", initial_set, n)
         if max_constraints == -1:
-            max_constraints = 3 * m
+            max_constraints = 4 + 6 * m
         if max_generators == -1:
-            max_generators = 8 * n + (max_constraints or 0)
+            max_generators = 35 * n + (max_constraints or 0)
         if (max_generators is None) != (max_constraints is None):
             raise ValueError("max_generators: give both caps or None for both (no reduction)")
         if max_constraints is not None and (
@@ -195,6 +200,7 @@ class CZSMF(SetFilter):
         E = C.prediction_remainder(
             self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin
         )  # remainder over the interval hull of Z (+ margin)
+        E, finite = C.sanitize_remainder(E)  # not finite: flagged unbounded (placeholder set)
         W = self.process_noise_box()
         fp = fn(p)
         Fp = (F @ p.unsqueeze(-1)).squeeze(-1)
@@ -204,7 +210,7 @@ class CZSMF(SetFilter):
         rad = rad + C.rounding_margin(fp, Fp, E.center, (F.abs() @ Z.generators.abs()).sum(-1), rad)
         Zp = FZ.translate(shift)
         Zp = self._cap(Zp, rad) if self.reduces else Zp._append_box(rad)
-        return self._state(Zp, state.consistent)
+        return self._state(Zp, state.consistent).replace(bounded=state.bounded).and_bounded(finite)
 
     def update(self, state: FilterState, y: Tensor) -> FilterState:
         """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) leave the set
@@ -232,7 +238,11 @@ class CZSMF(SetFilter):
         pr = pr + C.rounding_margin(pm, pr)
         atol = C.rounding_margin(d, w).detach()
         miss = ((pm - d).abs() > pr + w + atol).any(-1)  # a strip misses the hull: empty
-        off = miss if skip is None else miss | skip
+        miss = miss & torch.isfinite(w).all(-1)
+        # a skipped measurement or an unbounded remainder of h (infinite half-width) does not
+        # shrink the set: its strips are replaced by ones that contain the predicted set
+        off = miss | torch.isinf(w).any(-1)
+        off = off if skip is None else off | skip
         o1 = off.unsqueeze(-1)
         d = torch.where(o1, pm, d)
         w = torch.where(o1, pr, w)
@@ -253,7 +263,10 @@ class CZSMF(SetFilter):
             Zu = where(empty, Zf, Zu)
             e1 = empty.unsqueeze(-1)
             ulo, uhi = torch.where(e1, lo, ulo), torch.where(e1, hi, uhi)
-        return FilterState(set=Zu, consistent=ok, extras={"lower": ulo, "upper": uhi})
+        bounded = torch.isfinite(ulo).all(-1) & torch.isfinite(uhi).all(-1)
+        bounded = bounded & ((uhi - ulo) <= 2 * MAX_SET_RADIUS).all(-1)
+        new = FilterState(set=Zu, consistent=ok, extras={"lower": ulo, "upper": uhi})
+        return new.replace(bounded=state.bounded).and_bounded(bounded)
 
     def collect(self, states: list[FilterState]) -> FilterResult:
         """Results from the cached hulls (no LP re-solve); sets padded to a common size."""
@@ -262,12 +275,21 @@ class CZSMF(SetFilter):
         sets = stack([s.set.pad(mg, mc) for s in states], dim=1)
         lower = torch.stack([s.extras["lower"] for s in states], 1)
         upper = torch.stack([s.extras["upper"] for s in states], 1)
+        bounded = torch.stack(
+            [torch.ones_like(s.consistent) if s.bounded is None else s.bounded for s in states],
+            1,
+        )
+        b = bounded.unsqueeze(-1)
+        inf = torch.full_like(lower, torch.inf)
+        center = 0.5 * (lower + upper)
+        volume = (upper - lower).clamp_min(0).prod(-1)
         return FilterResult(
             sets=sets,
-            center=0.5 * (lower + upper),
-            lower=lower,
-            upper=upper,
-            volume=(upper - lower).clamp_min(0).prod(-1),
+            center=torch.where(b, center, torch.full_like(center, torch.nan)),
+            lower=torch.where(b, lower, -inf),
+            upper=torch.where(b, upper, inf),
+            volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
             consistent=torch.stack([s.consistent for s in states], 1),
             extras={"lower": lower, "upper": upper},
+            bounded=bounded,
         )

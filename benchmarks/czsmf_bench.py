@@ -1,0 +1,157 @@
+"""CZSMF tightness and cost (issue 13): markdown tables on stdout.
+
+1. Linear system (``tests/test_czsmf.py::linear_system``, 2 states, 1 output, box noise):
+   summed interval-hull widths of CZSMF over the horizon divided by those of the exact
+   feasible set (per-coordinate HiGHS LPs on the stacked x0, w, v constraints), for several
+   reduction caps; "none" = no reduction (must be 1 to ~1e-9).
+2. Seed 000 examples (``spring_damper``, ``bilinear``): mean set area over steps 1..T of
+   HSNSMF (parallelotope, exact area), MSZM (zonotope, exact area) and CZSMF (the area of the
+   outer polygon of 64 support directions, an upper bound of its true area, and its interval
+   hull area), uniform noise.
+3. Time per step at batch 1 and 10,000 (``--big-steps`` steps at 10,000).
+
+    python benchmarks/czsmf_bench.py --steps 30 --trials 4 --seed-steps 50 --seed-trials 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import diffsmf as ds
+from diffsmf.filters.czsmf import CZSMF
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from test_czsmf import C_LIN, exact_hulls, linear_system  # noqa: E402
+
+CONFIGS = {
+    "none": dict(max_generators=None, max_constraints=None),
+    "default (80, 10, hull)": {},
+    "(40, 6, hull)": dict(max_generators=40, max_constraints=6),
+    "(20, 4, hull)": dict(max_generators=20, max_constraints=4),
+    "(12, 3, propagation)": dict(max_generators=12, max_constraints=3, elimination="propagation"),
+}
+
+
+def polygon_area(S, K: int = 64) -> torch.Tensor:
+    """Area of the outer polygon ``{x : d_k.x <= h(d_k)}`` of a 2-D set -> ``[...]``."""
+    t = torch.arange(K, dtype=torch.float64) * (2 * math.pi / K)
+    D = torch.stack([t.cos(), t.sin()], -1)  # [K, 2]
+    h = S.support(D.reshape(K, *([1] * len(S.batch_shape)), 2)).movedim(0, -1)  # [..., K]
+    # vertex between consecutive half-planes k, k+1 (Cramer), then the shoelace formula
+    D2, h2 = D.roll(-1, 0), h.roll(-1, -1)
+    det = D[:, 0] * D2[:, 1] - D[:, 1] * D2[:, 0]
+    vx = (h * D2[:, 1] - h2 * D[:, 1]) / det
+    vy = (D[:, 0] * h2 - D2[:, 0] * h) / det
+    return 0.5 * (vx * vy.roll(-1, -1) - vx.roll(-1, -1) * vy).sum(-1).abs()
+
+
+def linear_table(steps: int, trials: int) -> None:
+    system = linear_system()
+    traj = system.simulate(steps=steps, batch=trials, seed=4, noise="uniform")
+    exact = [exact_hulls(system, traj.y[i].numpy(), C_LIN.numpy()) for i in range(trials)]
+    W = np.stack([hi - lo for lo, hi in exact])[:, 1:]
+    print(f"\nLinear system, {trials} trajectories x {steps} steps, uniform noise\n")
+    print(
+        "| CZSMF caps (generators, constraints, elimination) | mean width / exact | "
+        "worst step | time per step [s] |"
+    )
+    print("|---|---:|---:|---:|")
+    for label, kw in CONFIGS.items():
+        filt = CZSMF(system, **kw)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            res = filt(traj.y)
+        dt = (time.perf_counter() - t0) / steps
+        w = (res.upper - res.lower).numpy()[:, 1:]
+        ratio = float((w.sum((1, 2)) / W.sum((1, 2))).mean())
+        worst = float((w.sum(-1) / W.sum(-1)).max())
+        print(f"| {label} | {ratio:.6f} | {worst:.4f} | {dt:.3f} |", flush=True)
+    for name, cls in (("MSZM (order 5)", ds.filters.MSZM), ("HSNSMF", ds.filters.HSNSMF)):
+        with torch.no_grad():
+            res = cls(system)(traj.y)
+        w = (res.upper - res.lower).numpy()[:, 1:]
+        print(
+            f"| {name} (reference) | {float((w.sum((1, 2)) / W.sum((1, 2))).mean()):.4f} | "
+            f"{float((w.sum(-1) / W.sum(-1)).max()):.4f} | |",
+            flush=True,
+        )
+
+
+def seed_table(steps: int, trials: int) -> None:
+    print(
+        f"\nSeed 000 examples, {trials} trajectories x {steps} steps, uniform noise "
+        "(mean over steps 1..T)\n"
+    )
+    print("| system | filter | mean area | mean hull area | time per step [s] |")
+    print("|---|---|---:|---:|---:|")
+    for name in ("spring_damper", "bilinear"):
+        system = ds.systems.get(name)
+        traj = system.simulate(steps=steps, batch=trials, seed=0, noise="uniform")
+        filts = [("HSNSMF", ds.filters.HSNSMF(system)), ("MSZM", ds.filters.MSZM(system))]
+        filts += [(f"CZSMF {k}", CZSMF(system, **v)) for k, v in CONFIGS.items() if k != "none"]
+        for label, filt in filts:
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                res = filt(traj.y, u=traj.u)
+            dt = (time.perf_counter() - t0) / steps
+            hull = float((res.upper - res.lower).prod(-1)[:, 1:].mean())
+            if isinstance(filt, CZSMF):
+                with torch.no_grad():
+                    area = float(polygon_area(res.sets[:, 1:]).mean())
+            else:
+                area = float(res.volume[:, 1:].mean())
+            print(f"| {name} | {label} | {area:.4e} | {hull:.4e} | {dt:.3f} |", flush=True)
+
+
+def cost_table(big_steps: int) -> None:
+    print("\nTime per step (spring_damper, uniform noise)\n")
+    print("| filter | batch | steps | time per step [s] |")
+    print("|---|---:|---:|---:|")
+    system = ds.systems.get("spring_damper")
+    for batch, steps in ((1, 10), (10_000, big_steps)):
+        traj = system.simulate(steps=steps, batch=batch, seed=0, noise="uniform")
+        filts = [("HSNSMF", ds.filters.HSNSMF(system)), ("MSZM", ds.filters.MSZM(system))]
+        filts += [
+            (f"CZSMF {k}", CZSMF(system, **v))
+            for k, v in CONFIGS.items()
+            if k in ("default (80, 10, hull)", "(12, 3, propagation)")
+        ]
+        for label, filt in filts:
+            with torch.no_grad():
+                filt(traj.y[:1, :1], u=None if traj.u is None else traj.u[:1, :1])  # warm-up
+                t0 = time.perf_counter()
+                filt(traj.y, u=traj.u)
+            dt = (time.perf_counter() - t0) / steps
+            print(f"| {label} | {batch} | {steps} | {dt:.4f} |", flush=True)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--trials", type=int, default=4)
+    ap.add_argument("--seed-steps", type=int, default=50)
+    ap.add_argument("--seed-trials", type=int, default=10)
+    ap.add_argument("--big-steps", type=int, default=2)
+    ap.add_argument("--parts", nargs="*", default=["linear", "seed", "cost"])
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    torch.set_default_dtype(torch.float64)
+    torch.set_num_threads(args.threads)
+    if "linear" in args.parts:
+        linear_table(args.steps, args.trials)
+    if "seed" in args.parts:
+        seed_table(args.seed_steps, args.seed_trials)
+    if "cost" in args.parts:
+        cost_table(args.big_steps)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
