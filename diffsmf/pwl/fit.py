@@ -1,13 +1,15 @@
 """Adaptive least-squares fitting of SCPLNN models (seed 004 sec. 3.1.2).
 
 Step 1: least-squares affine fit; stop if its max sample error is below eps.
-Step 2: connect the max-error sample p1 to the domain's vertices (:func:`cone_partition`);
-p1 closer than ``snap`` (relative) to a side of the box is first moved onto it, else the cones
-over the near facets are slivers that no later split repairs.
+Step 2: an initial partition. Default (``rule="rivara"``, issue 15): the Kuhn triangulation of
+the box. Older rules: connect the max-error sample p1 to the domain's vertices
+(:func:`cone_partition`); p1 closer than ``snap`` (relative) to a side of the box is first
+moved onto it, else the cones over the near facets are slivers that no later split repairs.
 Step 3: least-squares fit of the vertex weights (refit of the whole model); every region whose
-max sample error exceeds eps is split at its max-error sample by connecting it to the region's
-vertices (:class:`Refiner`); repeat until no region exceeds eps.
-"""
+max sample error exceeds eps is split; repeat until no region exceeds eps. Default: conforming
+longest-edge bisection (:class:`BisectionRefiner`) of those regions, with a held-out part of
+the samples also marking regions (the error between samples); older rules: split at the
+max-error sample by connecting it to the region's vertices (:class:`Refiner`)."""
 
 from __future__ import annotations
 
