@@ -302,6 +302,11 @@ class PointLocator:
         rep, _ = self._walk_from(centres, guess)
         self.table = rep[:, None]  # [bins, 1]
         self.counts = torch.ones(nbins, dtype=torch.long)
+        # probe walks from the bins' simplices to every simplex's centroid and to points near
+        # its vertices: sets ``walk_steps`` (the traced walk's length) from the partition itself
+        self.walk_steps = 0
+        probes = torch.cat([V.mean(1), (0.9 * V + 0.1 * V.mean(1, keepdim=True)).reshape(-1, n)])
+        self._walk_from(probes, self.table[self._bin(probes), 0])
 
     def _walk_from(self, x: Tensor, start: Tensor) -> tuple[Tensor, Tensor]:
         """Visibility walk (batched): step to the neighbour across the face of the most negative
@@ -351,8 +356,9 @@ class PointLocator:
         padded only to the chunk's largest count. ``padded=True`` (for ``vmap`` /
         ``torch.compile``): fixed shapes and no data-dependent control flow -- every query
         against its bin's full padded candidate row, or in walk mode a walk of a fixed number
-        of steps (twice the most any eager walk on this partition needed, plus 8; the bins'
-        centres are walked at construction)."""
+        of steps (twice the most any eager walk on this partition needed, plus 8; at
+        construction every simplex's centroid and points near each of its vertices are walked
+        to from their bins)."""
         x = x.detach()
         flat = self._bin(x)
         if self.mode == "walk":
