@@ -60,7 +60,7 @@ def test_pwl_regressor_check_estimator():
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        # max_regions kept small for test time; the defaults pass too (42 s, docs/pwl.md)
+        # max_regions kept small for test time; the defaults pass too (12 s, docs/pwl.md)
         results = check_estimator(PWLRegressor(max_regions=200), on_fail=None)
     failed = [r["check_name"] for r in results if r["status"] == "failed"]
     assert not failed, failed
