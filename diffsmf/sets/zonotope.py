@@ -44,8 +44,7 @@ _CHUNK_ELEMS = 4_000_000
 _EPS = torch.finfo(torch.float64).eps
 
 
-@functools.lru_cache(maxsize=64)
-def _combinations_cpu(m: int, r: int) -> Tensor:
+def _combinations_list(m: int, r: int) -> Tensor:
     if r > m:
         return torch.zeros(0, r, dtype=torch.long)
     if r == 0:
@@ -54,8 +53,14 @@ def _combinations_cpu(m: int, r: int) -> Tensor:
     return torch.tensor(flat, dtype=torch.long).reshape(-1, r)
 
 
+_combinations_cpu = functools.lru_cache(maxsize=64)(_combinations_list)
+
+
 def _combinations(m: int, r: int, device: torch.device | None = None) -> Tensor:
-    """All r-subsets of range(m) as ``[C(m, r), r]`` long tensor (lexicographic, cached)."""
+    """All r-subsets of range(m) as ``[C(m, r), r]`` long tensor (lexicographic, cached;
+    while ``torch.compile`` traces, built directly: a graph constant, no cache)."""
+    if tracing():
+        return _combinations_list(m, r).to(device)
     return _combinations_cpu(m, r).to(device)
 
 
