@@ -22,7 +22,6 @@ CASES = [
     ("esmf", "spring_damper"),
     ("ekf", "spring_damper"),
     ("combined", "radar"),
-    ("hsnsmf", "bilinear"),
 ]
 
 
