@@ -16,7 +16,7 @@ from diffsmf import filters, systems
 from diffsmf.audit import containment
 
 # (trajectories, steps) per system: cheap 2-D systems get 1000 trajectories
-BUDGET = {"fermenter": (200, 4)}
+BUDGET = {"fermenter": (200, 4), "oscillator_chain": (20, 4)}  # n = 8: 256 vertices
 DEFAULT = (1000, 8)
 
 
