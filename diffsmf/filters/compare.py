@@ -135,30 +135,9 @@ def demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
 
 
 def _figure(traj: Trajectory, results: dict[str, FilterResult], path: Path) -> None:
-    import matplotlib
+    """The comparison figure of :func:`diffsmf.plot.comparison_figure` (one home for it):
+    set size over time and, per state, the bounds minus the truth; the EKF marked as not
+    guaranteed."""
+    from diffsmf.plot import comparison_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n = traj.x.shape[-1]
-    fig, axes = plt.subplots(1, 1 + n, figsize=(5 * (1 + n), 4))
-    k = torch.arange(traj.x.shape[1])
-    for name, res in results.items():
-        axes[0].semilogy(k[1:], res.volume[:, 1:].mean(0), label=name)
-    axes[0].set_xlabel("step k")
-    axes[0].set_ylabel("mean set area / volume")
-    axes[0].set_title("set size over time (mean over trajectories)")
-    axes[0].legend()
-    for i in range(n):
-        ax = axes[1 + i]
-        ax.plot(k, traj.x[0, :, i], "k-", lw=1.5, label="true state")
-        for j, (name, res) in enumerate(results.items()):
-            col = f"C{j}"
-            ax.plot(k, res.lower[0, :, i], color=col, lw=0.8, label=name)
-            ax.plot(k, res.upper[0, :, i], color=col, lw=0.8)
-        ax.set_xlabel("step k")
-        ax.set_title(f"bounds of x{i + 1} (trajectory 0)")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    comparison_figure(traj.x, results, path)
