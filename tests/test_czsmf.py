@@ -12,8 +12,8 @@ import diffsmf as ds
 from diffsmf.filters.czsmf import CZSMF
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
 
-A_LIN = torch.tensor([[0.9, 0.25], [-0.3, 0.85]])
-C_LIN = torch.tensor([[1.0, 0.0]])
+A_LIN = torch.tensor([[0.9, 0.25], [-0.3, 0.85]], dtype=torch.float64)
+C_LIN = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
 
 
 def linear_system(C: torch.Tensor = C_LIN, name: str = "linear") -> ds.System:

@@ -47,8 +47,6 @@ from diffsmf.utils import Positive
 
 __all__ = ["CZSMF"]
 
-_REMAINDERS = ("dc", "lagrange")
-
 
 class CZSMF(SetFilter):
     """Constrained-zonotope filter (Scott 2016 set family, seed 000 linearisation), guaranteed.
@@ -65,9 +63,10 @@ class CZSMF(SetFilter):
             result, 2 n x 9 batched LPs), ``"lp"`` (Appendix A with LP ranges) or
             ``"propagation"`` (Appendix A as published, interval propagation; cheapest).
         reduce_method: lifted generator reduction, ``"girard"`` | ``"combastel"``.
-        remainder: ``"dc"`` (seed 000, :func:`~diffsmf.linearize.dc_remainder`) or
-            ``"lagrange"`` (seed 001, :func:`~diffsmf.linearize.lagrange_remainder`), both over
-            the interval hull of the set.
+        remainder: guaranteed remainder bound by name, over the interval hull of the set
+            (:func:`~diffsmf.linearize.resolve_remainder`): ``"dc-vertices"`` (alias ``"dc"``,
+            seed 000 eq. 14-18 at the hull corners), ``"lagrange"`` (seed 001 eq. 26-28),
+            ``"mean-value"``, or ``"auto"`` (default, as the other filters).
         stirling_step: Stirling step h (scalar or ``[n]``), learnable.
         remainder_margin: learnable inflation ``m >= 0`` of the prediction remainder box
             (:func:`~diffsmf.filters._common.register_remainder_margin`).
@@ -95,7 +94,7 @@ class CZSMF(SetFilter):
         max_generators: int | None = -1,
         max_constraints: int | None = -1,
         reduce_method: str = "girard",
-        remainder: str = "dc",
+        remainder: str = "auto",
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
         remainder_margin: float | Tensor = 0.0,
         rescale: bool = True,
@@ -128,8 +127,6 @@ class CZSMF(SetFilter):
             )
         if reduce_method not in ("girard", "combastel"):
             raise ValueError(f"reduce_method: unknown {reduce_method!r} (girard | combastel)")
-        if remainder not in _REMAINDERS:
-            raise ValueError(f"remainder: must be one of {_REMAINDERS}, got {remainder!r}")
         if not isinstance(lp_iters, int) or lp_iters < 0:
             raise ValueError(f"lp_iters: must be an integer >= 0, got {lp_iters!r}")
         C.register_stirling_step(self, stirling_step, n)
@@ -137,7 +134,7 @@ class CZSMF(SetFilter):
         self.max_generators = max_generators
         self.max_constraints = max_constraints
         self.reduce_method = reduce_method
-        self.remainder = remainder
+        C.register_remainder(self, "dc-vertices" if remainder == "dc" else remainder, n)
         self.rescale = rescale
         self.lp_iters = lp_iters
         if elimination not in ("hull", "lp", "propagation"):
@@ -149,9 +146,7 @@ class CZSMF(SetFilter):
 
     # ------------------------------------------------------------------ helpers
     def _remainder_fn(self):
-        from diffsmf.linearize import dc_remainder, lagrange_remainder
-
-        return dc_remainder if self.remainder == "dc" else lagrange_remainder
+        return self.remainder_fn
 
     def _hull(self, Z: ConstrainedZonotope) -> tuple[Tensor, Tensor]:
         H = Z.interval_hull(iters=self.lp_iters)
