@@ -18,17 +18,6 @@ from diffsmf.pwl.partition import (
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small tensor ops on a loaded 2-core machine: thread hand-offs dominate (measured 30 s
-    instead of 2 s for one test); thread independence itself is tested explicitly."""
-    from threadpoolctl import threadpool_limits
-
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    with threadpool_limits(1, user_api="blas"):  # OpenBLAS too: 62 s instead of 0.01 s seen
-        yield
-    torch.set_num_threads(old)
 
 
 def _gen(seed=0):

@@ -14,17 +14,6 @@ from diffsmf.pwl import SCPLNN, fit_scplnn
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small tensor ops on a loaded 2-core machine: thread hand-offs dominate (measured 30 s
-    instead of 2 s for one test); thread independence itself is tested explicitly."""
-    from threadpoolctl import threadpool_limits
-
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    with threadpool_limits(1, user_api="blas"):  # OpenBLAS too: 62 s instead of 0.01 s seen
-        yield
-    torch.set_num_threads(old)
 
 
 def test_one_sample_and_copies_of_one_point_raise_naming_X():
