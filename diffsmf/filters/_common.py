@@ -75,6 +75,35 @@ def rounding_margin(*terms: Tensor) -> Tensor:
     return ROUND_REL * total
 
 
+def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Process noise for the zonotope-type predictions (HSNSMF, MSZM) -> ``(center [n],
+    box half-widths [n], generators [n, q] or None)``.
+
+    A box W (the built-ins) is ``(c, r, None)`` as before (bit for bit); a zonotope or
+    parallelotope W keeps its own generators (``(c, 0, G)``: exact Minkowski sum, issue 13); an
+    ellipsoid, which a zonotope cannot hold exactly, enters by its interval hull.
+    """
+    from diffsmf.sets.zonotope import Zonotope
+
+    W = filt.process_noise_set()
+    if isinstance(W, Zonotope):
+        return W.center, torch.zeros_like(W.center), W.generators
+    box = W if isinstance(W, Interval) else W.interval_hull()
+    return box.center, box.radius, None
+
+
+def noise_ellipsoid(filt: SetFilter) -> ConvexSet | None:
+    """Process noise for the ellipsoidal predictions (CDSMF, ESMF): ``None`` for a box W (the
+    filters keep their box sum with the remainder, as before), else the ellipsoid W itself or
+    the covering ellipsoid of a zonotope W (:meth:`Ellipsoid.from_zonotope`, not its hull)."""
+    from diffsmf.sets.ellipsoid import Ellipsoid
+
+    W = filt.process_noise_set()
+    if isinstance(W, Interval):
+        return None
+    return W if isinstance(W, Ellipsoid) else Ellipsoid.from_zonotope(W)
+
+
 def widen(box: Interval, margin: Tensor) -> Interval:
     """``box`` enlarged by ``margin`` on both sides."""
     return Interval(box.lower - margin, box.upper + margin)
@@ -356,6 +385,8 @@ __all__ = [
     "expand_state_set",
     "measurement_strips",
     "prediction_remainder",
+    "noise_ellipsoid",
+    "noise_generators",
     "rounding_margin",
     "sanitize_remainder",
     "sequential_strip_update",

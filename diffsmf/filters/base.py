@@ -191,12 +191,46 @@ class SetFilter(nn.Module):
                 r = _check_half_widths(name, override, dim, dt)
             register_positive(self, name, r, learnable=learn_noise)
             self.register_buffer(f"{name}_center", c.clone())
+            # the system's own set, scaled per component by half-width / hull half-width
+            # (process_noise_set): scale 1 is the system's set, for any set type
+            r0 = hull.radius.detach().clone() if s is not None else torch.zeros_like(r)
+            self.register_buffer(f"{name}_hull_radius", r0, persistent=False)
+        self._W_given = system.process_noise
 
     # ------------------------------------------------------------------ noise sets
     def process_noise_box(self) -> Interval:
         """Current process-noise box W ``[n]`` (differentiable in ``process_noise``)."""
         c, r = self.process_noise_center, self.process_noise
         return Interval(c - r, c + r)
+
+    def process_noise_set(self) -> ConvexSet:
+        """The process-noise set W as given by the system, scaled per component, ``[n]``.
+
+        ``W_s = c + diag(s) (W - c)`` with ``s = process_noise / (half-width of W's interval
+        hull)``: for a box this is exactly :meth:`process_noise_box`; a ``Zonotope`` /
+        ``Parallelotope`` keeps its generators (``diag(s) G``) and an ``Ellipsoid`` its shape
+        (``diag(s) S diag(s)``), so no filter pays for the interval hull of a non-box W
+        (issue 13). ``s = 1`` (the default) is the system's set. Differentiable in
+        ``process_noise``. A component with a zero hull half-width stays zero.
+        """
+        from diffsmf.sets.ellipsoid import Ellipsoid
+        from diffsmf.sets.parallelotope import Parallelotope
+        from diffsmf.sets.zonotope import Zonotope
+
+        W = self._W_given
+        if W is None or isinstance(W, Interval):
+            return self.process_noise_box()
+        r0 = self.process_noise_hull_radius
+        pos = r0 > 0
+        scale = torch.where(pos, self.process_noise / torch.where(pos, r0, 1.0), 0.0)
+        c = self.process_noise_center
+        if isinstance(W, (Zonotope, Parallelotope)):
+            G = W.generators.to(c.dtype)
+            return Zonotope(c, scale.unsqueeze(-1) * G)
+        if isinstance(W, Ellipsoid):
+            S = W.shape.to(c.dtype)
+            return Ellipsoid._make(c, scale.unsqueeze(-1) * S * scale.unsqueeze(-2))
+        return self.process_noise_box()
 
     def measurement_noise_box(self) -> Interval:
         """Current measurement-noise box V ``[m]`` (differentiable in ``measurement_noise``)."""

@@ -101,15 +101,19 @@ class CDSMF(C.EllipsoidalSetFilter):
             self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin
         )
         R, bounded = C.sanitize_remainder(R)  # flag, never NaN
-        W = self.process_noise_box()
+        Well = C.noise_ellipsoid(self)  # None: a box W, summed with the remainder box
+        W = self.process_noise_box() if Well is None else None
         fc = fn(c)
-        rad = R.radius + W.radius
+        rad = R.radius + (W.radius if W is not None else 0.0)
         rad = rad + C.rounding_margin(fc, R.center, rad)
-        shift = fc - (F @ c.unsqueeze(-1)).squeeze(-1) + R.center + W.center
+        wc = self.process_noise_center
+        shift = fc - (F @ c.unsqueeze(-1)).squeeze(-1) + R.center + (wc if Well is None else 0.0)
         lin = E.linear_map(F, shift)
         box = Interval(-rad, rad)
         # p = minkowski_scale * rule p (any p > 0 is an outer bound; 1 = the rule exactly)
         new = scaled_minkowski_sum(lin, box.to_ellipsoid(), self.sum_method, self.minkowski_scale)
+        if Well is not None:  # an ellipsoidal / zonotope W as given (issue 13), not its hull
+            new = scaled_minkowski_sum(new, Well, self.sum_method, self.minkowski_scale)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
         return state.replace(set=new, extras={}).and_bounded(bounded)
 

@@ -124,9 +124,9 @@ class ESMF(C.EllipsoidalSetFilter):
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
         R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
         s = self.minkowski_scale  # p = s * trace rule in every sum (s = 1: the paper)
-        Qhat = scaled_minkowski_sum(  # eq. 29-31
-            R.to_ellipsoid(), self.process_noise_box().to_ellipsoid(), "trace", s
-        )
+        Well = C.noise_ellipsoid(self)  # an ellipsoidal / zonotope W as given (issue 13)
+        Wq = self.process_noise_box().to_ellipsoid() if Well is None else Well
+        Qhat = scaled_minkowski_sum(R.to_ellipsoid(), Wq, "trace", s)  # eq. 29-31
         if self.system.parameters is not None:  # eq. 18-23, 30, 32
             D = parameter_deviation(
                 self.system.f, box, self.system.parameters, self.system.theta_nominal, u

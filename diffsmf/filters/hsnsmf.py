@@ -84,12 +84,15 @@ class HSNSMF(SetFilter):
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin
         )  # eq. 14-18 (+ margin)
         E, bounded = C.sanitize_remainder(E)  # flag, never NaN
-        W = self.process_noise_box()
+        wc, wr, Gw = C.noise_generators(self)  # a box W: (c, r, None); a zonotope W: its G
         fc, FT = fn(c), F @ T
-        ctr = fc + E.center + W.center  # eq. 20
-        rad = E.radius + W.radius  # Theorem 2: sum of two boxes
+        ctr = fc + E.center + wc  # eq. 20
+        rad = E.radius + wr  # Theorem 2: sum of two boxes
         rad = rad + C.rounding_margin(fc, E.center, FT.abs().sum(-1), rad)
-        G = torch.cat([FT, torch.diag_embed(rad)], -1)  # eq. 21
+        parts = [FT, torch.diag_embed(rad)]  # eq. 21
+        if Gw is not None:
+            parts.append(Gw.expand(*FT.shape[:-1], Gw.shape[-1]))
+        G = torch.cat(parts, -1)
         Z = Zonotope(ctr, G)
         return state.replace(set=Z.to_parallelotope()).and_bounded(bounded)  # eq. 22 (Chisci)
 

@@ -123,11 +123,14 @@ class MSZM(SetFilter):
             self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin
         )
         E, bounded = C.sanitize_remainder(E)  # flag, never NaN
-        W = self.process_noise_box()
+        wc, wr, Gw = C.noise_generators(self)  # a box W: (c, r, None); a zonotope W: its G
         fc, FG = fn(c), F @ G
-        rad = E.radius + W.radius
+        rad = E.radius + wr
         rad = rad + C.rounding_margin(fc, E.center, FG.abs().sum(-1), rad)
-        Zp = Zonotope(fc + E.center + W.center, torch.cat([FG, torch.diag_embed(rad)], -1))
+        parts = [FG, torch.diag_embed(rad)]
+        if Gw is not None:  # Alamo 2005: the noise zonotope's generators, not its hull
+            parts.append(Gw.expand(*FG.shape[:-1], Gw.shape[-1]))
+        Zp = Zonotope(fc + E.center + wc, torch.cat(parts, -1))
         return state.replace(set=self._fit(Zp)).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:

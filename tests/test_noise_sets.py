@@ -1,0 +1,133 @@
+"""Noise sets used as given (issue 13 part 1): a zonotope or ellipsoidal W is not replaced by
+its interval hull.
+
+References: a numpy implementation of Alamo et al. 2005 (zonotope prediction with the noise
+generators, F-radius strip intersection, no reduction) on a linear system, and containment of
+true states under worst-case noise drawn from the vertices / boundary of W itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import diffsmf as ds
+
+F64 = torch.float64
+A = np.array([[0.9, 0.2], [-0.1, 0.95]])
+C = np.array([[1.0, 0.5]])
+GW = np.array([[-0.12], [0.02]])  # one-generator zonotope noise (the issue's example)
+SIGMA = 0.05
+
+
+def _linear_system(W: ds.sets.base.ConvexSet) -> ds.System:
+    At, Ct = torch.tensor(A, dtype=F64), torch.tensor(C, dtype=F64)
+
+    def f(x, u=None, theta=None):
+        return x @ At.T
+
+    def h(x):
+        return x @ Ct.T
+
+    x0 = ds.Interval(torch.tensor([0.5, -0.3], dtype=F64) - 0.2,
+                     torch.tensor([0.5, -0.3], dtype=F64) + 0.2)
+    V = ds.Interval(torch.tensor([-SIGMA], dtype=F64), torch.tensor([SIGMA], dtype=F64))
+    return ds.System(f, h, x0, W, V, name="linear")
+
+
+def _zono_W() -> ds.Zonotope:
+    return ds.Zonotope(torch.zeros(2, dtype=F64), torch.tensor(GW, dtype=F64))
+
+
+def _alamo_numpy(y: np.ndarray, c0: np.ndarray, r0: np.ndarray) -> np.ndarray:
+    """Alamo 2005 on one trajectory ``y [T, 1]`` -> interval hull half-widths ``[T+1, 2]``
+    and centres, without reduction: ``c+ = A c``, ``G+ = [A G, G_W]``; strip ``|p x - y| <=
+    sigma``: ``lam = G G' p / (p' G G' p + sigma^2)``, ``c += lam (y - p c)``,
+    ``G = [(I - lam p') G, sigma lam]``."""
+    c, G = c0.copy(), np.diag(r0)
+    out = [np.concatenate([c, np.abs(G).sum(1)])]
+    for k in range(y.shape[0]):
+        c, G = A @ c, np.hstack([A @ G, GW])
+        p = C[0]
+        Gp = G.T @ p
+        lam = G @ Gp / (Gp @ Gp + SIGMA**2)
+        c = c + lam * (y[k, 0] - p @ c)
+        G = np.hstack([G - np.outer(lam, Gp), SIGMA * lam[:, None]])
+        out.append(np.concatenate([c, np.abs(G).sum(1)]))
+    return np.stack(out)
+
+
+def test_box_noise_set_is_the_box():
+    s = ds.systems.get("spring_damper")
+    filt = ds.filters.HSNSMF(s)
+    W, B = filt.process_noise_set(), filt.process_noise_box()
+    assert isinstance(W, ds.Interval)
+    assert torch.equal(W.lower, B.lower) and torch.equal(W.upper, B.upper)
+
+
+def test_mszm_equals_alamo_2005_with_zonotope_noise():
+    s = _linear_system(_zono_W())
+    tr = s.simulate(steps=20, batch=3, seed=0, noise="vertex")
+    filt = ds.filters.MSZM(s, order=60, strip_method="fradius")  # room for every generator
+    with torch.no_grad():
+        res = filt(tr.y)
+    for b in range(3):
+        ref = _alamo_numpy(tr.y[b].numpy(), np.array([0.5, -0.3]), np.array([0.2, 0.2]))
+        lo, hi = ref[:, :2] - ref[:, 2:], ref[:, :2] + ref[:, 2:]
+        np.testing.assert_allclose(res.lower[b].numpy(), lo, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(res.upper[b].numpy(), hi, rtol=1e-9, atol=1e-9)
+    # the hull of W (the old behaviour) is strictly looser
+    boxW = _linear_system(_zono_W().interval_hull())
+    with torch.no_grad():
+        old = ds.filters.MSZM(boxW, order=60, strip_method="fradius")(tr.y)
+    w_new = (res.upper - res.lower)[:, -1].mean()
+    w_old = (old.upper - old.lower)[:, -1].mean()
+    assert w_new < w_old
+
+
+@pytest.mark.parametrize("name", ["hsnsmf", "mszm", "cdsmf", "esmf"])
+@pytest.mark.parametrize("kind", ["zonotope", "ellipsoid"])
+def test_containment_with_non_box_noise(name, kind):
+    if kind == "zonotope":
+        W = _zono_W()
+    else:
+        W = ds.Ellipsoid(torch.zeros(2, dtype=F64), torch.tensor([[0.01, 0.004], [0.004, 0.003]],
+                                                                 dtype=F64))
+    s = _linear_system(W)
+    tr = s.simulate(steps=15, batch=200, seed=3, noise="vertex")
+    filt = ds.filters.by_name(name)(s)
+    with torch.no_grad():
+        res = filt(tr.y)
+        hull = ds.filters.by_name(name)(_linear_system(W.interval_hull()))(tr.y)
+    assert res.sets.contains(tr.x).all()
+    assert res.consistent.all()
+    v, vh = res.volume[:, 5:].mean(), hull.volume[:, 5:].mean()
+    if kind == "ellipsoid" and name in ("hsnsmf", "mszm"):
+        assert v <= vh * (1 + 1e-12)  # a zonotope cannot hold an ellipsoid: its hull is used
+    else:
+        assert v < vh  # W as given is tighter than its hull box
+
+
+def test_process_noise_set_scales_and_differentiates():
+    s = _linear_system(_zono_W())
+    filt = ds.filters.MSZM(s)
+    W = filt.process_noise_set()
+    assert torch.allclose(W.generators, torch.tensor(GW, dtype=F64))
+    filt.process_noise = torch.tensor([0.06, 0.02], dtype=F64)  # half the hull in x1
+    assert torch.allclose(filt.process_noise_set().generators,
+                          torch.tensor([[-0.06], [0.02]], dtype=F64))
+
+    def g(raw):
+        filt.raw_process_noise.data.copy_(raw.detach())
+        sc = filt.process_noise_scale * torch.nn.functional.softplus(raw)
+        r0 = filt.process_noise_hull_radius
+        return (sc / r0).unsqueeze(-1) * torch.tensor(GW, dtype=F64)
+
+    raw = filt.raw_process_noise.detach().clone().requires_grad_()
+    assert torch.autograd.gradcheck(g, (raw,))
+    tr = s.simulate(steps=3, batch=2, seed=0)
+    filt.process_noise = torch.tensor([0.12, 0.02], dtype=F64)
+    filt(tr.y).volume[:, 1:].log().mean().backward()
+    assert filt.raw_process_noise.grad is not None
+    assert torch.isfinite(filt.raw_process_noise.grad).all()
