@@ -106,7 +106,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         fc = fn(c)
         rad = R.radius + (W.radius if W is not None else 0.0)
         rad = rad + C.rounding_margin(fc, R.center, rad)
-        wc = self.process_noise_center
+        wc = W.center if W is not None else 0.0
         shift = fc - (F @ c.unsqueeze(-1)).squeeze(-1) + R.center + (wc if Well is None else 0.0)
         lin = E.linear_map(F, shift)
         box = Interval(-rad, rad)
