@@ -187,8 +187,9 @@ def main() -> None:
     ap.add_argument("--compiled-filters", nargs="+", default=["hsnsmf"])
     ap.add_argument("--scaling", action="store_true", help="time per step vs n instead")
     ap.add_argument("--dims", type=int, nargs="+", default=[2, 4, 8, 16, 32])
+    ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     args = ap.parse_args()
-    torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
+    torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} intra-op thread(s)")
     if args.scaling:
         scaling(args.dims, [f for f in args.filters if f != "ekf"], 10, max(2, args.steps // 2))

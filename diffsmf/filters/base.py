@@ -356,8 +356,11 @@ class SetFilter(nn.Module):
             b = state.bounded
             if b is None:
                 b = torch.ones_like(state.consistent)
+            # contiguous inputs: the expanded initial set would otherwise be a second graph
             fields, consistent, bounded, extras = flat(
-                S._tensors(), state.consistent, b, dict(state.extras), u, y, type(S)
+                tuple(t.contiguous() for t in S._tensors()), state.consistent.contiguous(),
+                b.contiguous(), {k: v.contiguous() for k, v in state.extras.items()}, u, y,
+                type(S),
             )
             return FilterState(_rebuild_as(self._out_type, fields), consistent, extras, bounded)
 
