@@ -47,7 +47,7 @@ def dual_bound(g: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
 
     ``g [..., m]``, ``A [..., k, m]``, ``b [..., k]``, ``lam [..., k]`` (broadcast).
     """
-    s = g - (A * lam.unsqueeze(-1)).sum(-2)
+    s = g - (lam.unsqueeze(-2) @ A).squeeze(-2)
     return (lam * b).sum(-1) + s.abs().sum(-1)
 
 
@@ -130,7 +130,7 @@ def box_lp(
     keep = S > 1e-11 * S.amax(-1, keepdim=True)
     Sinv = torch.where(keep, 1 / torch.where(keep, S, torch.ones_like(S)), torch.zeros_like(S))
     r = S.shape[-1]
-    As = (Vh * keep.unsqueeze(-1)).expand(*batch, r, m)
+    As = (Vh * keep.unsqueeze(-1)).expand(*batch, r, m).contiguous()  # one copy, no per-bmm copies
     bs = (Sinv * (U.mT @ b0.unsqueeze(-1)).squeeze(-1)).expand(*batch, r)
     T = U * Sinv.unsqueeze(-2)  # [..., k, r]: multipliers of the rows of A from those of Vh_r
     sg = gabs.amax(-1, keepdim=True)
@@ -141,8 +141,9 @@ def box_lp(
     z = torch.ones_like(g)
     w = torch.ones_like(g)
     y = torch.zeros_like(bs)
+    Ac = A.contiguous()  # raw data for the certificates (one copy)
     best_lam = torch.zeros_like(b)
-    best = dual_bound(g, A, b, best_lam)
+    best = dual_bound(g, Ac, b, best_lam)
     for _ in range(iters):
         ixl, ixu = 1 / (x + 1), 1 / (1 - x)
         zl, wu = z * ixl, w * ixu
@@ -168,7 +169,7 @@ def box_lp(
         x = (x + ap * dx).clamp(-1 + 1e-15, 1 - 1e-15)
         y, z, w = y + ad * dy, z + ad * dz, w + ad * dw
         lam = -(T @ y.unsqueeze(-1)).squeeze(-1) * sg  # dual of the raw problem: a candidate
-        val = dual_bound(g, A, b, lam)
+        val = dual_bound(g, Ac, b, lam)
         better = val < best  # False for NaN
         best = torch.where(better, val, best)
         best_lam = torch.where(better.unsqueeze(-1), lam, best_lam)
