@@ -35,8 +35,9 @@ from torch import Tensor
 __all__ = ["LP_ITERS", "box_lp", "dual_bound", "support_value"]
 
 #: Interior-point iterations per LP (fixed: no convergence test, no host sync). With the
-#: purified vertex dual, Mehrotra's method reaches ~1e-12 relative error on the small LPs of the
-#: filters in 8-12 iterations (measured against HiGHS, tests/test_constrained_zonotope.py).
+#: purified vertex dual, Mehrotra's method reaches <= 4e-11 relative error (median 5e-13) on
+#: random LPs up to 20 x 62 in 12 iterations (measured against HiGHS; tests in
+#: tests/test_constrained_zonotope.py).
 LP_ITERS = 15
 _EPS = torch.finfo(torch.float64).eps
 _TAU = 0.995  # fraction to the boundary
