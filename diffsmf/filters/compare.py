@@ -105,33 +105,12 @@ def format_table(rows: list[dict]) -> str:
 
 
 def demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
-    """Seed 000 comparison on ``spring_damper``: table text + figure ``filters_demo.png``.
+    """Seed 000 comparison on ``spring_damper`` (the ``diffsmf demo`` part): table text and
+    ``filters_demo.png``; see :func:`diffsmf.demo.filters_demo` (one implementation)."""
+    from diffsmf.demo import filters_demo
 
-    Runs HSNSMF, MSZM, CDSMF (guaranteed) and the EKF on ``trials`` worst-case (vertex-noise)
-    trajectories; writes areas over time and the x1/x2 bounds of trajectory 0.
-    """
-    from diffsmf import systems
-
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    system = systems.get("spring_damper")
-    names = ["HSNSMF", "MSZM", "CDSMF", "EKF"]
-    traj, results, seconds = run_filters(system, names, trials, steps, "vertex", seed)
-    rows = _rows(traj, results, seconds)
-    fig_path = outdir / "filters_demo.png"
-    _figure(traj, results, fig_path)
-    text = [
-        f"Seed 000 comparison on spring_damper: {trials} trajectories x {steps} steps, "
-        "worst-case (vertex) noise.",
-        "Each filter bounds the state by a set; smaller area = tighter bound. 'outside' counts",
-        "(trajectory, step) pairs whose true state left the set (0 is required of a guaranteed",
-        "filter); the EKF's set is its 3-sigma ellipsoid, shown for reference only.",
-        "",
-        format_table(rows),
-        "",
-        f"Figure (set area over time; x1, x2 bounds of trajectory 0): {fig_path}",
-    ]
-    return "\n".join(text)
+    Path(outdir).mkdir(parents=True, exist_ok=True)
+    return filters_demo(Path(outdir), trials=trials, steps=steps, seed=seed)
 
 
 def _figure(traj: Trajectory, results: dict[str, FilterResult], path: Path) -> None:
