@@ -23,6 +23,7 @@ from diffsmf.observers.pipeline import (
     certified_error,
     design_observer_pipeline,
     fit_nonlinearity,
+    interval_hess_bound,
     plot_pipeline,
     vdp_model,
 )
@@ -44,6 +45,7 @@ __all__ = [
     "error_envelope",
     "fit_nonlinearity",
     "intermittent_fault_example",
+    "interval_hess_bound",
     "lmi_matrix",
     "plot_pipeline",
     "rk4_step",
