@@ -22,15 +22,15 @@ from __future__ import annotations
 
 import argparse
 import csv
-import importlib.util
 import json
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from diffsmf.utils import load_object  # the shared FILE.py:FUNC loader (re-exported)
 
 __all__ = [
     "FilterRun",
@@ -45,46 +45,6 @@ __all__ = [
 ]
 
 # ------------------------------------------------------------------ model
-def load_object(spec: str, what: str = "--model") -> object:
-    """``"path/to/file.py:FUNCTION"`` -> whatever ``FUNCTION()`` returns (no arguments).
-
-    Raises ``ValueError`` / ``FileNotFoundError`` naming ``what`` for a malformed spec, a missing
-    file, an import failure, a missing function, or an exception raised by the function. Shared
-    by the commands that take a user's model file (``diffsmf filter --model``).
-    """
-    path_s, sep, func = spec.rpartition(":")
-    if not sep or not path_s or not func or not func.isidentifier():
-        raise ValueError(f"{what}: expected FILE.py:FUNCTION (e.g. my_model.py:make_system), "
-                         f"got {spec!r}")
-    path = Path(path_s)
-    if not path.is_file():
-        raise FileNotFoundError(2, f"{what}: no such model file", str(path))
-    if path.suffix != ".py":
-        raise ValueError(f"{what}: {str(path)!r} is not a Python file (.py)")
-    mod_name = f"_diffsmf_user_model_{abs(hash(str(path.resolve())))}"
-    loader_spec = importlib.util.spec_from_file_location(mod_name, path)
-    if loader_spec is None or loader_spec.loader is None:  # pragma: no cover
-        raise ValueError(f"{what}: cannot import {str(path)!r}")
-    module = importlib.util.module_from_spec(loader_spec)
-    sys.modules[mod_name] = module
-    try:
-        loader_spec.loader.exec_module(module)
-    except Exception as exc:  # the user's file: report where, keep it one line
-        raise ValueError(f"{what}: importing {str(path)!r} failed: {type(exc).__name__}: {exc}"
-                         ) from exc
-    factory = getattr(module, func, None)
-    if factory is None or not callable(factory):
-        found = sorted(k for k, v in vars(module).items()
-                       if callable(v) and not k.startswith("_") and
-                       getattr(v, "__module__", None) == mod_name)
-        raise ValueError(f"{what}: {str(path)!r} has no function {func!r} (functions there: "
-                         f"{found})")
-    try:
-        return factory()
-    except Exception as exc:
-        raise ValueError(f"{what}: {func}() failed: {type(exc).__name__}: {exc}") from exc
-
-
 def load_model(spec: str, what: str = "--model"):
     """``"path/to/file.py:FUNCTION"`` -> the :class:`~diffsmf.System` that ``FUNCTION()`` returns.
 

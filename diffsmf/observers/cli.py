@@ -23,11 +23,9 @@ Exit status: 0 if the structured design is verified, 1 if not (infeasible / unve
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -70,40 +68,11 @@ def load_observer_model(spec: str, what: str = "--model"):
     naming ``what`` and the problem in one line.
     """
     from diffsmf.observers.pipeline import ContinuousModel
+    from diffsmf.utils import load_object
 
-    path_s, sep, func = str(spec).rpartition(":")
-    if not sep or not path_s or not func or not func.isidentifier():
-        raise ValueError(f"{what}: expected FILE.py:FUNC (e.g. my_model.py:make_model), got "
-                         f"{spec!r}")
-    path = Path(path_s)
-    if not path.is_file():
-        raise FileNotFoundError(2, f"{what}: no such model file", str(path))
-    if path.suffix != ".py":
-        raise ValueError(f"{what}: {str(path)!r} is not a Python file (.py)")
-    mod_name = f"_diffsmf_observer_model_{abs(hash(str(path.resolve())))}"
-    loader_spec = importlib.util.spec_from_file_location(mod_name, path)
-    if loader_spec is None or loader_spec.loader is None:  # pragma: no cover
-        raise ValueError(f"{what}: cannot import {str(path)!r}")
-    module = importlib.util.module_from_spec(loader_spec)
-    sys.modules[mod_name] = module
-    try:
-        loader_spec.loader.exec_module(module)
-    except Exception as exc:  # the user's file: say where, in one line
-        raise ValueError(f"{what}: importing {str(path)!r} failed: {type(exc).__name__}: {exc}"
-                         ) from exc
-    factory = getattr(module, func, None)
-    if factory is None or not callable(factory):
-        found = sorted(k for k, v in vars(module).items() if callable(v) and not
-                       k.startswith("_") and getattr(v, "__module__", None) == mod_name)
-        raise ValueError(f"{what}: {str(path)!r} has no function {func!r} (functions there: "
-                         f"{found})")
-    try:
-        model = factory()
-    except ValueError as exc:  # e.g. ContinuousModel's own checks: keep the message
-        raise ValueError(f"{what}: {func}(): {exc}") from exc
-    except Exception as exc:
-        raise ValueError(f"{what}: {func}() failed: {type(exc).__name__}: {exc}") from exc
+    model = load_object(str(spec), what)
     if not isinstance(model, ContinuousModel):
+        func = str(spec).rpartition(":")[2]
         raise ValueError(f"{what}: {func}() must return a diffsmf.observers.ContinuousModel, "
                          f"got {type(model).__name__}")
     return model
