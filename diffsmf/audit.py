@@ -84,7 +84,9 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
     """Scale factor about the centre at which ``S`` reaches ``x`` -> ``[...]`` (detached).
 
     Exact for Interval, Parallelotope, Ellipsoid. For a Zonotope, points that ``contains``
-    accepts (with ``atol = tol * scale``) get gauge 0 (not computed) and the others an LP.
+    accepts (with ``atol = tol * scale``) get gauge 0 (not computed) and the others an LP. For
+    a ConstrainedZonotope (whose centre may lie outside it) certified points get 0 and the
+    others ``1 + distance / scale`` (HiGHS distance; > 1 means outside).
     """
     from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
 
@@ -110,6 +112,19 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
         for idx in bad.tolist():
             i = tuple(idx)
             g[i] = _zonotope_gauge_lp(cb[i].numpy(), Gb[i].numpy(), xb[i].numpy())
+        return g
+    from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
+
+    if isinstance(S, ConstrainedZonotope):
+        # the centre need not lie in a constrained zonotope: points that ``contains``
+        # certifies get gauge 0, the others 1 + (HiGHS distance to the set) / scale, so a
+        # violation (gauge > 1 + tol) is exactly a point farther than tol * scale
+        scale = 1.0 + x.abs().amax(-1) + S.generators.abs().sum(-1).amax(-1)
+        inside = S.contains(x, atol=tol * float(scale.max()))
+        g = torch.zeros(inside.shape, dtype=x.dtype)
+        if bool((~inside).any()):
+            d = distance_lp(S, x).to(x.dtype)
+            g = torch.where(inside, g, 1.0 + d / scale.expand(inside.shape))
         return g
     raise ValueError(f"S: no gauge for set type {type(S).__name__}")
 

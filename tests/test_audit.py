@@ -65,3 +65,22 @@ def test_compare_rows_and_demo(tmp_path):
     assert "not guaranteed" in text and "hsnsmf" in text
     out = demo(tmp_path, trials=2, steps=6)
     assert "HSNSMF" in out and "CDSMF" in out and (tmp_path / "filters_demo.png").exists()
+
+
+def test_gauge_of_constrained_zonotope_vs_highs():
+    """Certified points have gauge 0; a point at HiGHS distance d outside has 1 + d / scale."""
+    import diffsmf as ds
+    from diffsmf.audit import gauge
+    from diffsmf.sets.constrained_zonotope import distance_lp
+
+    F = torch.float64
+    Z = ds.ConstrainedZonotope(torch.zeros(2, dtype=F), torch.eye(2, dtype=F),
+                               torch.tensor([[1.0, 1.0]], dtype=F), torch.tensor([0.5], dtype=F))
+    x = torch.tensor([[0.25, 0.25], [0.9, 0.9], [-0.25, 0.75], [-0.5, 1.0]], dtype=F)
+    g = gauge(Z, x)  # inside, outside, inside, on the boundary
+    assert g[0] == 0 and g[2] == 0
+    assert g[3] <= 1 + 1e-9  # a boundary point is never a violation
+    d = distance_lp(Z, x[1:2])[0]
+    assert d > 0.1 and g[1] > 1 + 1e-3
+    scale = 1.0 + x[1].abs().max() + 1.0
+    assert torch.isclose(g[1], 1 + d / scale)
