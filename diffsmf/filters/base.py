@@ -118,6 +118,12 @@ def _check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> T
     return v.expand(dim).clone()
 
 
+def _contiguous(v: Any) -> Any:
+    """A tensor made contiguous (one compiled graph for expanded and dense inputs); other
+    extras (e.g. the ellipsoidal filters' initial box, an Interval) as they are."""
+    return v.contiguous() if isinstance(v, Tensor) else v
+
+
 def _rebuild_as(cls: type, fields: tuple[Tensor, ...]) -> ConvexSet:
     """A set of type ``cls`` from its field tensors (no validation)."""
     obj = object.__new__(cls)
@@ -359,7 +365,7 @@ class SetFilter(nn.Module):
             # contiguous inputs: the expanded initial set would otherwise be a second graph
             fields, consistent, bounded, extras = flat(
                 tuple(t.contiguous() for t in S._tensors()), state.consistent.contiguous(),
-                b.contiguous(), {k: v.contiguous() for k, v in state.extras.items()}, u, y,
+                b.contiguous(), {k: _contiguous(v) for k, v in state.extras.items()}, u, y,
                 type(S),
             )
             return FilterState(_rebuild_as(self._out_type, fields), consistent, extras, bounded)
