@@ -26,10 +26,11 @@ Tolerance: 1e-9 relative + 1e-9 absolute on the interval hulls (``res.lower``/``
 at every step. The filters add documented outward margins (float padding): rounding margins
 of 1e-12 (absolute, scaled by 1 + magnitudes) on remainders and strip half-widths, and for the
 ellipsoids relative inflations of the shape matrix (``INFLATE = 1e-10`` per Minkowski sum and
-per strip update, ``SHAPE_MARGIN = 1e-10`` per prediction). Over 16 steps the ellipsoid
-inflations compound to ~5e-9 relative in the shape, i.e. above 1e-9 in the radii, so the
-ellipsoid reference applies the same three documented factors (and only those); the
-parallelotope and zonotope references apply none. Each test also checks that it can fail:
+per strip update, ``SHAPE_MARGIN = 1e-10`` per prediction). Without them the ellipsoid
+reference differs by 1.1e-10 absolute (~1e-9 relative to the hull half-widths of ~0.1), at
+the edge of the tolerance, so it applies the same documented factors (and only those); with
+them the largest difference is 1.6e-11. The parallelotope and zonotope references apply no
+margin (largest differences 2.3e-11 and 3.3e-12). Each test also checks that it can fail:
 the reference perturbed by 1e-6 must fail the same comparison.
 """
 
