@@ -28,6 +28,7 @@ from diffsmf.utils import (
 __all__ = [
     "MAX_SET_RADIUS",
     "FilterResult",
+    "bounded_result",
     "FilterState",
     "SetFilter",
     "StrictlyPositive",
@@ -116,6 +117,37 @@ def _check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> T
     if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
         raise ValueError(f"{name}: half-widths must be finite and >= 0, got {v.tolist()}")
     return v.expand(dim).clone()
+
+
+def bounded_result(
+    cls: type,
+    states: list[FilterState],
+    sets: ConvexSet,
+    center: Tensor,
+    lower: Tensor,
+    upper: Tensor,
+    volume: Tensor,
+    extras: dict[str, Tensor],
+) -> FilterResult:
+    """A ``cls`` (:class:`FilterResult` or a subclass) from stacked per-step quantities, with
+    the ``bounded [B, T+1]`` flags of ``states`` applied: where a set stopped being finite,
+    ``lower = -inf``, ``upper = +inf``, ``volume = inf`` and ``center`` is NaN (one home for
+    that rule, used by every filter's ``collect``)."""
+    bounded = torch.stack(
+        [torch.ones_like(s.consistent) if s.bounded is None else s.bounded for s in states], 1
+    )
+    b = bounded.unsqueeze(-1)
+    inf = torch.full_like(lower, torch.inf)
+    return cls(
+        sets=sets,
+        center=torch.where(b, center, torch.full_like(center, torch.nan)),
+        lower=torch.where(b, lower, -inf),
+        upper=torch.where(b, upper, inf),
+        volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
+        consistent=torch.stack([s.consistent for s in states], 1),
+        extras=extras,
+        bounded=bounded,
+    )
 
 
 def _contiguous(v: Any) -> Any:
@@ -399,23 +431,8 @@ class SetFilter(nn.Module):
             for k in states[-1].extras
             if all(k in s.extras for s in states)
         }
-        consistent = torch.stack([s.consistent for s in states], 1)
-        bounded = torch.stack(
-            [torch.ones_like(s.consistent) if s.bounded is None else s.bounded for s in states],
-            1,
-        )
-        lower, upper, center, volume = hull.lower, hull.upper, sets.center, sets.volume()
-        b = bounded.unsqueeze(-1)
-        inf = torch.full_like(lower, torch.inf)
-        return FilterResult(
-            sets=sets,
-            center=torch.where(b, center, torch.full_like(center, torch.nan)),
-            lower=torch.where(b, lower, -inf),
-            upper=torch.where(b, upper, inf),
-            volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
-            consistent=consistent,
-            extras=extras,
-            bounded=bounded,
+        return bounded_result(
+            FilterResult, states, sets, sets.center, hull.lower, hull.upper, sets.volume(), extras
         )
 
     def _check_y(self, y: Tensor) -> Tensor:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from diffsmf.filters.base import FilterResult, FilterState, SetFilter
+from diffsmf.filters.base import FilterResult, FilterState, SetFilter, bounded_result
 from diffsmf.linearize.statistical import _check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
 from diffsmf.sets.ellipsoid import Ellipsoid, outer_sum_shape, unit_ball_volume
@@ -316,21 +316,10 @@ class CombinedFilter(SetFilter):
         hull = sets.interval_hull()
         lam = torch.linalg.eigvalsh(sets.shape).clamp_min(0)
         volume = unit_ball_volume(sets.dim) * lam.prod(-1).sqrt()
-        bounded = torch.stack(
-            [torch.ones_like(s.consistent) if s.bounded is None else s.bounded for s in states],
-            1,
-        )
-        b = bounded.unsqueeze(-1)
-        inf = torch.full_like(hull.lower, torch.inf)
-        return CombinedResult(
-            sets=sets,
-            center=torch.where(b, sets.center, torch.full_like(sets.center, torch.nan)),
-            lower=torch.where(b, hull.lower, -inf),
-            upper=torch.where(b, hull.upper, inf),
-            volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
-            consistent=torch.stack([s.consistent for s in states], 1),
-            extras={"covariance": torch.stack([s.extras["covariance"] for s in states], 1)},
-            bounded=bounded,
+        cov = torch.stack([s.extras["covariance"] for s in states], 1)
+        return bounded_result(
+            CombinedResult, states, sets, sets.center, hull.lower, hull.upper, volume,
+            {"covariance": cov},
         )
 
 

@@ -37,7 +37,13 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters import _common as C
-from diffsmf.filters.base import MAX_SET_RADIUS, FilterResult, FilterState, SetFilter
+from diffsmf.filters.base import (
+    MAX_SET_RADIUS,
+    FilterResult,
+    FilterState,
+    SetFilter,
+    bounded_result,
+)
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
@@ -270,21 +276,9 @@ class CZSMF(SetFilter):
         sets = stack([s.set.pad(mg, mc) for s in states], dim=1)
         lower = torch.stack([s.extras["lower"] for s in states], 1)
         upper = torch.stack([s.extras["upper"] for s in states], 1)
-        bounded = torch.stack(
-            [torch.ones_like(s.consistent) if s.bounded is None else s.bounded for s in states],
-            1,
-        )
-        b = bounded.unsqueeze(-1)
-        inf = torch.full_like(lower, torch.inf)
         center = 0.5 * (lower + upper)
         volume = (upper - lower).clamp_min(0).prod(-1)
-        return FilterResult(
-            sets=sets,
-            center=torch.where(b, center, torch.full_like(center, torch.nan)),
-            lower=torch.where(b, lower, -inf),
-            upper=torch.where(b, upper, inf),
-            volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
-            consistent=torch.stack([s.consistent for s in states], 1),
-            extras={"lower": lower, "upper": upper},
-            bounded=bounded,
+        return bounded_result(
+            FilterResult, states, sets, center, lower, upper, volume,
+            {"lower": lower, "upper": upper},
         )
