@@ -9,8 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffsmf.sets import Interval
 from diffsmf.systems import register
+from diffsmf.systems.library import _box, _positive, _sym_box
 from diffsmf.systems.system import System
 
 __all__ = ["oscillator_chain"]
@@ -63,11 +63,7 @@ def oscillator_chain(
         raise ValueError(f"n: must be an even integer >= 2, got {n!r}")
     for name, val in (("dt", dt), ("stiffness", stiffness), ("coupling", coupling),
                       ("cubic", cubic), ("damping", damping), ("x0_radius", x0_radius)):
-        if not val > 0:
-            raise ValueError(f"{name}: must be positive, got {val}")
-    for name, val in (("w", w), ("v", v)):
-        if not val >= 0:
-            raise ValueError(f"{name}: noise bound must be >= 0, got {val}")
+        _positive(name, val)
     N = n // 2
     K = (stiffness * torch.eye(N, dtype=torch.float64) + coupling * _laplacian(N))
     # p+ = p + dt v ; v+ = -dt K p + (1 - dt damping) v - dt cubic p^3  (linear part as one map)
@@ -90,11 +86,8 @@ def oscillator_chain(
 
     sign = torch.tensor([(-1.0) ** i for i in range(N)], dtype=torch.float64)
     c0 = torch.cat([0.2 * sign, torch.zeros(N, dtype=torch.float64)])
-    W = Interval(torch.full((n,), -w, dtype=torch.float64), torch.full((n,), w,
-                                                                       dtype=torch.float64))
-    V = Interval(torch.full((N,), -v, dtype=torch.float64), torch.full((N,), v,
-                                                                       dtype=torch.float64))
-    s = System(f, h, Interval(c0 - x0_radius, c0 + x0_radius), W, V,
+    W, V = _sym_box(n, w, "w"), _sym_box(N, v, "v")
+    s = System(f, h, _box(c0, x0_radius), W, V,
                name=f"oscillator_chain(n={n})")
     s.horizon, s.paper_x0 = horizon, None
     return s
