@@ -390,6 +390,10 @@ class SetFilter(nn.Module):
         flat = torch.compile(self._flat_step, **kw)
 
         def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
+            if not all(isinstance(v, Tensor) for v in state.extras.values()):
+                # a one-off state (the ellipsoidal filters' first step carries the initial
+                # box): run it eagerly rather than compile a second graph for it
+                return self.step(state, u, y)
             S = state.set
             b = state.bounded
             if b is None:
