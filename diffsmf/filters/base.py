@@ -263,10 +263,10 @@ class SetFilter(nn.Module):
         scale = torch.where(pos, self.process_noise / torch.where(pos, r0, 1.0), 0.0)
         c = self.process_noise_center
         if isinstance(W, (Zonotope, Parallelotope)):
-            G = W.generators.to(c.dtype)
+            G = W.generators.to(dtype=c.dtype, device=c.device)  # follows filt.to(device)
             return Zonotope(c, scale.unsqueeze(-1) * G)
         if isinstance(W, Ellipsoid):
-            S = W.shape.to(c.dtype)
+            S = W.shape.to(dtype=c.dtype, device=c.device)
             return Ellipsoid._make(c, scale.unsqueeze(-1) * S * scale.unsqueeze(-2))
         return self.process_noise_box()
 
