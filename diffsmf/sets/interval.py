@@ -59,25 +59,16 @@ def _step(x: Tensor, k: int, direction: float, absolute: bool = True) -> Tensor:
     """
     if k <= 0:
         return x
-    if tracing():  # branch-free: clamp the overflowed side first, then pad (never inf - inf)
+    # Overflowed bounds are clamped first (inf - inf = nan); after the clamp the offset of the
+    # other infinity is inf, which keeps it infinite. On the CPU a host check is cheaper than
+    # an autograd node on every call; on accelerators it would synchronise and while tracing
+    # for torch.compile it would break the graph, so the clamp is always applied there.
+    if tracing() or x.device.type != "cpu" or bool(torch.isinf(x.detach()).any()):
         big = torch.finfo(x.dtype).max
         x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
-        pad = x.detach().abs() * (2.0 * k * _eps(x))
-        if absolute:
-            pad = pad + _subnormal(x)
-        return x + pad if direction > 0 else x - pad
     pad = x.detach().abs() * (2.0 * k * _eps(x))
     if absolute:
         pad = pad + _subnormal(x)
-    # Overflowed bounds must be clamped first (inf - inf = nan). On the CPU a host check is
-    # cheaper than an autograd node on every call; on accelerators it would synchronise, so
-    # the clamp is always applied there.
-    if x.device.type != "cpu" or bool(torch.isinf(pad).any()):
-        big = torch.finfo(x.dtype).max
-        x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
-        pad = torch.nan_to_num(x.detach().abs() * (2.0 * k * _eps(x)), posinf=0.0)
-        if absolute:
-            pad = pad + _subnormal(x)
     return x + pad if direction > 0 else x - pad
 
 
