@@ -311,8 +311,9 @@ def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
     and set ``module.remainder`` (the resolved name) and ``module.remainder_fn``.
 
     ``"auto"``: the seed 000 vertex method (``"dc-vertices"``) up to
-    :data:`~diffsmf.linearize.AUTO_VERTEX_MAX_N` states, the vertex-free ``"lagrange"`` bound
-    above (2^n vertices are out of reach at n = 16, 32). Every choice is guaranteed.
+    :data:`~diffsmf.linearize.AUTO_VERTEX_MAX_N` states, then the vertex-free bounds
+    (``"lagrange"`` up to :data:`~diffsmf.linearize.AUTO_LAGRANGE_MAX_N`, ``"mean-value"``
+    above; 2^n vertices are out of reach at n = 16, 32). Every choice is guaranteed.
     """
     from diffsmf.linearize import resolve_remainder
 

@@ -156,14 +156,6 @@ def _contiguous(v: Any) -> Any:
     return v.contiguous() if isinstance(v, Tensor) else v
 
 
-def _rebuild_as(cls: type, fields: tuple[Tensor, ...]) -> ConvexSet:
-    """A set of type ``cls`` from its field tensors (no validation)."""
-    obj = object.__new__(cls)
-    for name, t in zip(cls._fields, fields):
-        object.__setattr__(obj, name, t)
-    return obj
-
-
 def _pad_and_stack(sets: list[ConvexSet]) -> ConvexSet:
     """Stack along a new dim 1; zonotopes with differing generator counts are zero-padded."""
     return stack(align(sets), dim=1)
@@ -229,11 +221,11 @@ class SetFilter(nn.Module):
                 r = _check_half_widths(name, override, dim, dt)
             register_positive(self, name, r, learnable=learn_noise)
             self.register_buffer(f"{name}_center", c.clone())
-            # the system's own set, scaled per component by half-width / hull half-width
-            # (process_noise_set): scale 1 is the system's set, for any set type
-            r0 = hull.radius.detach().clone() if s is not None else torch.zeros_like(r)
-            self.register_buffer(f"{name}_hull_radius", r0, persistent=False)
-        self._W_given = system.process_noise
+        # the hull half-widths of the system's W: process_noise_set scales W per component by
+        # process_noise / these (scale 1 is the system's set, for any set type)
+        W = system.process_noise
+        r0 = torch.zeros(n, dtype=dt) if W is None else W.interval_hull().radius.detach()
+        self.register_buffer("process_noise_hull_radius", r0.clone(), persistent=False)
 
     # ------------------------------------------------------------------ noise sets
     def process_noise_box(self) -> Interval:
@@ -255,7 +247,7 @@ class SetFilter(nn.Module):
         from diffsmf.sets.parallelotope import Parallelotope
         from diffsmf.sets.zonotope import Zonotope
 
-        W = self._W_given
+        W = self.system.process_noise
         if W is None or isinstance(W, Interval):
             return self.process_noise_box()
         r0 = self.process_noise_hull_radius
@@ -296,15 +288,14 @@ class SetFilter(nn.Module):
         """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) are skipped.
 
         Ends with the boundedness guard (:meth:`guard`)."""
+        bad = torch.isnan(y).any(-1)
         if not tracing():
-            bad = torch.isnan(y).any(-1)
             if not bad.any():
                 return self.guard(self._update(state, y))
             if not self.skip_nan:
                 raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
         elif not self.skip_nan:
             return self.guard(self._update(state, y))
-        bad = torch.isnan(y).any(-1)
         new = self._update(state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y))
         keep = ~bad
         extras = {
@@ -404,7 +395,7 @@ class SetFilter(nn.Module):
                 b.contiguous(), {k: _contiguous(v) for k, v in state.extras.items()}, u, y,
                 type(S),
             )
-            return FilterState(_rebuild_as(self._out_type, fields), consistent, extras, bounded)
+            return FilterState(self._out_type._from_tensors(fields), consistent, extras, bounded)
 
         self._out_type = type(self.initial_state(batch=1).set)
         self._compiled_step = compiled
@@ -421,7 +412,7 @@ class SetFilter(nn.Module):
         set_type: type,
     ) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
         """:meth:`step` on flat tensors (the function that ``compile`` traces)."""
-        S = _rebuild_as(set_type, fields)
+        S = set_type._from_tensors(fields)
         new = self.step(FilterState(S, consistent, extras, bounded), u, y)
         nb = torch.ones_like(new.consistent) if new.bounded is None else new.bounded
         return new.set._tensors(), new.consistent, nb, dict(new.extras)

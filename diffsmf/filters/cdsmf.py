@@ -49,7 +49,8 @@ class CDSMF(C.EllipsoidalSetFilter):
         remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (seed 000 eq. 14-18,
             2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
-            n = 8, ``"lagrange"`` above; :func:`~diffsmf.linearize.resolve_remainder`).
+            n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
+            :func:`~diffsmf.linearize.resolve_remainder`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of the prediction's
             Minkowski sum (seed 001 eq. 14-17; seed 003 eq. 34-36): ``p = s * p_rule`` in
             ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_rule`` the ``sum_method`` rule of the
@@ -106,8 +107,8 @@ class CDSMF(C.EllipsoidalSetFilter):
         fc = fn(c)
         rad = R.radius + (W.radius if W is not None else 0.0)
         rad = rad + C.rounding_margin(fc, R.center, rad)
-        wc = W.center if W is not None else 0.0
-        shift = fc - (F @ c.unsqueeze(-1)).squeeze(-1) + R.center + (wc if Well is None else 0.0)
+        wc = W.center if W is not None else 0.0  # an ellipsoidal Well carries its own centre
+        shift = fc - (F @ c.unsqueeze(-1)).squeeze(-1) + R.center + wc
         lin = E.linear_map(F, shift)
         box = Interval(-rad, rad)
         # p = minkowski_scale * rule p (any p > 0 is an outer bound; 1 = the rule exactly)

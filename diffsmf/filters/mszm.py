@@ -45,7 +45,8 @@ class MSZM(SetFilter):
         remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (seed 000 eq. 14-18,
             2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
-            n = 8, ``"lagrange"`` above; :func:`~diffsmf.linearize.resolve_remainder`).
+            n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
+            :func:`~diffsmf.linearize.resolve_remainder`).
 
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
     """

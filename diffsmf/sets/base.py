@@ -108,12 +108,17 @@ class ConvexSet:
     def _tensors(self) -> tuple[Tensor, ...]:
         return tuple(getattr(self, f) for f in self._fields)
 
-    def _rebuild(self, tensors: Sequence[Tensor]) -> ConvexSet:
-        """New set of the same type from field tensors (no re-validation)."""
-        obj = object.__new__(type(self))
-        for name, t in zip(self._fields, tensors):
+    @classmethod
+    def _from_tensors(cls, tensors: Sequence[Tensor]) -> ConvexSet:
+        """A set of type ``cls`` from its field tensors (no re-validation)."""
+        obj = object.__new__(cls)
+        for name, t in zip(cls._fields, tensors):
             object.__setattr__(obj, name, t)
         return obj
+
+    def _rebuild(self, tensors: Sequence[Tensor]) -> ConvexSet:
+        """New set of the same type from field tensors (no re-validation)."""
+        return type(self)._from_tensors(tensors)
 
     def __setattr__(self, name: str, value: Any) -> None:
         raise AttributeError(f"{type(self).__name__} is immutable")
