@@ -86,9 +86,10 @@ def test_margin_enlarges_the_remainder_box_exactly():
     from diffsmf.linearize import dc_remainder, stirling_jacobian
 
     J = stirling_jacobian(fn, c, torch.full((sys_.n,), 0.1))
-    R0 = C.prediction_remainder(sys_, dc_remainder, fn, box, c, J, None)
+    R0, ok0 = C.prediction_remainder(sys_, dc_remainder, fn, box, c, J, None)
     m = torch.tensor([0.01, 0.3])
-    R1 = C.prediction_remainder(sys_, dc_remainder, fn, box, c, J, None, m)
+    R1, ok1 = C.prediction_remainder(sys_, dc_remainder, fn, box, c, J, None, m)
+    assert ok0.all() and ok1.all()
     assert torch.equal(R1.lower, R0.lower - m) and torch.equal(R1.upper, R0.upper + m)
     assert C.add_remainder_margin(R0, None) is R0
 

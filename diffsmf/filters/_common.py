@@ -19,7 +19,6 @@ from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
-from diffsmf.utils import tracing
 
 # Relative outward margin for float64 rounding in the affine parts (centres f(c), F T products,
 # strip offsets). Rounding errors are ~1e-16 relative; 1e-12 covers accumulation with room.
@@ -51,20 +50,6 @@ def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:
     keep = ok.unsqueeze(-1)
     z = torch.zeros_like(R.lower)
     return Interval._make(torch.where(keep, R.lower, z), torch.where(keep, R.upper, z)), ok
-
-
-def finite_remainder(R: Interval, what: str) -> Interval:
-    """Raise a clear ``ValueError`` when a remainder bound is unbounded (NaN/inf).
-
-    Kept for callers outside the filters; the filters flag such elements instead
-    (:func:`sanitize_remainder`, ``FilterResult.bounded``).
-    """
-    if not tracing() and not bool(sanitize_remainder(R)[1].all()):
-        raise ValueError(
-            f"{what}: the remainder bound is unbounded over the current set (the set reaches a "
-            "singularity of the model); use a smaller initial set or tighter bounds"
-        )
-    return R
 
 
 def rounding_margin(*terms: Tensor) -> Tensor:
@@ -104,6 +89,26 @@ def noise_ellipsoid(filt: SetFilter) -> ConvexSet | None:
     return W if isinstance(W, Ellipsoid) else Ellipsoid.from_zonotope(W)
 
 
+def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) -> ConvexSet:
+    """The predicted zonotope of HSNSMF and MSZM: ``f(c) + F G (+) E (+) W`` (seed 000 eq.
+    20-21, Theorem 2; Alamo 2005) -> Zonotope ``[B]``.
+
+    ``fc [B, n]`` the model at the centre, ``FG [B, n, q]`` the mapped generators, ``E`` the
+    remainder box. A box W joins the remainder box (one diagonal block), a zonotope W adds
+    its own generators (:func:`noise_generators`); the diagonal is padded by the float64
+    rounding margin of the affine part.
+    """
+    from diffsmf.sets.zonotope import Zonotope
+
+    wc, wr, Gw = noise_generators(filt)
+    rad = E.radius + wr  # Theorem 2: sum of two boxes
+    rad = rad + rounding_margin(fc, E.center, FG.abs().sum(-1), rad)
+    parts = [FG, torch.diag_embed(rad)]
+    if Gw is not None:
+        parts.append(Gw.expand(*FG.shape[:-1], Gw.shape[-1]))
+    return Zonotope(fc + E.center + wc, torch.cat(parts, -1))
+
+
 def widen(box: Interval, margin: Tensor) -> Interval:
     """``box`` enlarged by ``margin`` on both sides."""
     return Interval(box.lower - margin, box.upper + margin)
@@ -118,8 +123,9 @@ def prediction_remainder(
     J: Tensor,
     u: Tensor | None,
     margin: Tensor | None = None,
-) -> Interval:
-    """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``.
+) -> tuple[Interval, Tensor]:
+    """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``,
+    and ``ok [B]``: False where no finite box exists (:func:`sanitize_remainder`).
 
     ``remainder`` is a :mod:`diffsmf.linearize` remainder bound (``dc_remainder`` for seed 000,
     ``lagrange_remainder`` for seed 001); when the system has mismatched parameters the
@@ -128,6 +134,8 @@ def prediction_remainder(
     only at the centre as in the paper) is added. ``margin [n]`` (>= 0, the filters'
     ``remainder_margin``) then enlarges the computed box to ``[lo - m, hi + m]``
     (:func:`add_remainder_margin`); it can only add to the guaranteed box, never replace it.
+    Where the box is not finite (a singularity of the model over ``S``) it is returned as 0
+    with ``ok`` False, and the caller flags those elements (``FilterState.and_bounded(ok)``).
     """
     from diffsmf.linearize import parameter_deviation
 
@@ -135,7 +143,7 @@ def prediction_remainder(
     if system.parameters is not None:
         D = parameter_deviation(system.f, S, system.parameters, system.theta_nominal, u)
         R = Interval(R.lower + D.lower, R.upper + D.upper)
-    return add_remainder_margin(R, margin)
+    return sanitize_remainder(add_remainder_margin(R, margin))
 
 
 def add_remainder_margin(R: Interval, margin: Tensor | None) -> Interval:
@@ -390,6 +398,7 @@ __all__ = [
     "noise_generators",
     "rounding_margin",
     "sanitize_remainder",
+    "zonotope_prediction",
     "sequential_strip_update",
     "step_function",
     "stirling_strip_update",

@@ -98,10 +98,9 @@ class CDSMF(C.EllipsoidalSetFilter):
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, c, self.stirling_step)  # seed 000 eq. 12
         box = C.remainder_box(E, state.extras)
-        R = C.prediction_remainder(
+        R, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
             self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin
         )
-        R, bounded = C.sanitize_remainder(R)  # flag, never NaN
         Well = C.noise_ellipsoid(self)  # None: a box W, summed with the remainder box
         W = self.process_noise_box() if Well is None else None
         fc = fn(c)

@@ -198,10 +198,9 @@ class CZSMF(SetFilter):
         p = 0.5 * (lo + hi)  # expansion point: the hull midpoint
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, p, self.stirling_step)  # seed 000 eq. 12
-        E = C.prediction_remainder(
+        E, finite = C.prediction_remainder(  # not finite: flagged unbounded (placeholder set)
             self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin
         )  # remainder over the interval hull of Z (+ margin)
-        E, finite = C.sanitize_remainder(E)  # not finite: flagged unbounded (placeholder set)
         W = self.process_noise_box()
         fp = fn(p)
         Fp = (F @ p.unsqueeze(-1)).squeeze(-1)

@@ -75,26 +75,15 @@ class HSNSMF(SetFilter):
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Theorem 1-2 (eq. 20-22): zonotope ``[F T, T_e + T_w]`` -> outer parallelotope."""
         from diffsmf.linearize import stirling_jacobian
-        from diffsmf.sets.zonotope import Zonotope
 
         P = state.set
         c, T = P.center, P.T
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, c, self.stirling_step)  # eq. 12
-        E = C.prediction_remainder(
+        E, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin
         )  # eq. 14-18 (+ margin)
-        E, bounded = C.sanitize_remainder(E)  # flag, never NaN
-        wc, wr, Gw = C.noise_generators(self)  # a box W: (c, r, None); a zonotope W: its G
-        fc, FT = fn(c), F @ T
-        ctr = fc + E.center + wc  # eq. 20
-        rad = E.radius + wr  # Theorem 2: sum of two boxes
-        rad = rad + C.rounding_margin(fc, E.center, FT.abs().sum(-1), rad)
-        parts = [FT, torch.diag_embed(rad)]  # eq. 21
-        if Gw is not None:
-            parts.append(Gw.expand(*FT.shape[:-1], Gw.shape[-1]))
-        G = torch.cat(parts, -1)
-        Z = Zonotope(ctr, G)
+        Z = C.zonotope_prediction(self, fn(c), F @ T, E)  # eq. 20-21
         return state.replace(set=Z.to_parallelotope()).and_bounded(bounded)  # eq. 22 (Chisci)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:

@@ -112,7 +112,6 @@ class MSZM(SetFilter):
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (Z - c) (+) E (+) W`` then reduction (Alamo 2005 sec. 4)."""
         from diffsmf.linearize import stirling_jacobian
-        from diffsmf.sets.zonotope import Zonotope
 
         Z = state.set
         c, G = Z.center, Z.generators
@@ -120,18 +119,10 @@ class MSZM(SetFilter):
         F = stirling_jacobian(fn, c, self.stirling_step)  # seed 000 eq. 12
         # remainder over the interval hull (Alamo 2005; seed 000 sec. 4.1: the baselines bound
         # the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
-        E = C.prediction_remainder(
+        E, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
             self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin
         )
-        E, bounded = C.sanitize_remainder(E)  # flag, never NaN
-        wc, wr, Gw = C.noise_generators(self)  # a box W: (c, r, None); a zonotope W: its G
-        fc, FG = fn(c), F @ G
-        rad = E.radius + wr
-        rad = rad + C.rounding_margin(fc, E.center, FG.abs().sum(-1), rad)
-        parts = [FG, torch.diag_embed(rad)]
-        if Gw is not None:  # Alamo 2005: the noise zonotope's generators, not its hull
-            parts.append(Gw.expand(*FG.shape[:-1], Gw.shape[-1]))
-        Zp = Zonotope(fc + E.center + wc, torch.cat(parts, -1))
+        Zp = C.zonotope_prediction(self, fn(c), F @ G, E)  # W's own generators (Alamo 2005)
         return state.replace(set=self._fit(Zp)).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
