@@ -8,9 +8,11 @@ the other filters (seed 000):
   ``F`` the Stirling slopes of ``f`` at ``p`` (seed 000 eq. 12) and ``E`` the guaranteed
   remainder box of ``f(x) - f(p) - F (x - p)`` over the hull (``dc_remainder`` or
   ``lagrange_remainder`` through :func:`~diffsmf.filters._common.prediction_remainder`),
-  ``Z+ = F Z + (f(p) - F p + mid E + mid W) (+) box(rad E + rad W)`` -- the linear map and the
-  Minkowski sum with a box are exact (Scott 2016 eq. 11-12); the box is merged into the axis
-  generators of the generator reduction (Scott 2016 sec. 5) once the generator cap is reached;
+  ``Z+ = F Z + (f(p) - F p + mid E + c_W) (+) box(rad E + r_W) (+) W0`` with W as given
+  (:meth:`CZSMF._noise`: a box W is ``c_W + box(r_W)``, a zonotope W adds its own generators
+  ``W0``, an ellipsoid W its constrained-zonotope cover) -- the linear map and the Minkowski
+  sums are exact (Scott 2016 eq. 11-12); the box is merged into the axis generators of the
+  generator reduction (Scott 2016 sec. 5) once the generator cap is reached;
 * update: the seed 000 Theorem 3 strips (eq. 23-29, :func:`~diffsmf.filters._common.
   measurement_strips`, Stirling slopes of ``h`` at the predicted hull midpoint, remainder over
   the predicted hull) are intersected exactly (Scott 2016 eq. 13: one generator and one
@@ -154,6 +156,35 @@ class CZSMF(SetFilter):
     def _remainder_fn(self):
         return self.remainder_fn
 
+    def _noise(self) -> tuple[Tensor, Tensor, ConstrainedZonotope | None]:
+        """The process noise W as given (issue 13 item 1) -> ``(center [n], box half-widths
+        [n], W0)``, ``W = center + box(half-widths) (+) W0``.
+
+        * box W (every built-in): ``(c, r, None)``, added as the diagonal box generators, bit
+          for bit as before (:func:`~diffsmf.filters._common.noise_generators`);
+        * Zonotope / Parallelotope W: ``(c, 0, {G xi})``, its generators added as they are
+          (Scott 2016 eq. 12, exact);
+        * Ellipsoid W: ``(c, 0, W0)`` with ``W0`` the guaranteed constrained-zonotope cover of
+          :meth:`ConstrainedZonotope.from_set` (the parallelotope ``Q^(1/2) [-1, 1]^n``
+          intersected with the interval hull of W, ``2 n`` generators and ``n`` constraints,
+          inflated by 1e-9 relative): contained in both the interval hull and the
+          parallelotope cover, so never looser than either.
+
+        ``W`` is :meth:`SetFilter.process_noise_set` (the system's set scaled per component by
+        the learnable ``process_noise``; differentiable).
+        """
+        from diffsmf.sets.ellipsoid import Ellipsoid
+
+        W = self.process_noise_set()
+        if isinstance(W, Ellipsoid):
+            c = W.center
+            W0 = ConstrainedZonotope.from_set(W).translate(-c)
+            return c, torch.zeros_like(c), W0
+        wc, wr, Gw = C.noise_generators(self)
+        if Gw is None:
+            return wc, wr, None
+        return wc, wr, ConstrainedZonotope._from_generators(torch.zeros_like(wc), Gw)
+
     def _hull(self, Z: ConstrainedZonotope) -> tuple[Tensor, Tensor]:
         H = Z.interval_hull(iters=self.lp_iters)
         return H.lower, H.upper
@@ -201,14 +232,16 @@ class CZSMF(SetFilter):
         E, finite = C.prediction_remainder(  # not finite: flagged unbounded (placeholder set)
             self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin
         )  # remainder over the interval hull of Z (+ margin)
-        W = self.process_noise_box()
+        wc, wr, Wz = self._noise()
         fp = fn(p)
         Fp = (F @ p.unsqueeze(-1)).squeeze(-1)
         FZ = Z.linear_map(F)
-        shift = fp - Fp + E.center + W.center
-        rad = E.radius + W.radius
+        shift = fp - Fp + E.center + wc
+        rad = E.radius + wr
         rad = rad + C.rounding_margin(fp, Fp, E.center, (F.abs() @ Z.generators.abs()).sum(-1), rad)
         Zp = FZ.translate(shift)
+        if Wz is not None:  # a non-box W: its own generators (and constraints), exact
+            Zp = Zp.minkowski_sum(Wz)
         Zp = self._cap(Zp, rad) if self.reduces else Zp._append_box(rad)
         return self._state(Zp, state.consistent).replace(bounded=state.bounded).and_bounded(finite)
 
