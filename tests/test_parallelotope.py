@@ -193,3 +193,65 @@ def test_empty_strip_intersection_has_finite_gradients():
         assert torch.isfinite(gc).all() and torch.isfinite(gT).all()
         assert not bool(P.intersects_strip(strip))
         assert torch.equal(R.T, P.T)
+
+
+# ---------------------------------------------------------------- eq. 38-39 tie rule
+def _ulp_variants(a: torch.Tensor) -> torch.Tensor:
+    """``a`` and every copy of it with one component moved by +-1 ulp: ``[1 + 2 n, n]``."""
+    out = [a]
+    for i in range(a.shape[-1]):
+        for to in (2.0 * a[i] + 1.0, torch.zeros(())):
+            b = a.clone()
+            b[i] = torch.nextafter(a[i], torch.as_tensor(to, dtype=a.dtype))
+            out.append(b)
+    return torch.stack(out)
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_intersect_strip_exact_tie_takes_lowest_index_whatever_the_ulp(n):
+    """Unit box, strip ``|1'x| <= 0.5``: by symmetry every ``p_bar t_bar_j = 2`` (eq. 38-39 tie
+    n ways, all with volume ``2^n / 2``). The tie rule replaces the lowest index, so the result
+    is the hand-computed Chisci parallelotope (eq. 41 with i* = 1: column 1 -> ``e_1 / 2``,
+    column j -> ``e_j - e_1``) for the exact strip and for every 1-ulp perturbation of its
+    normal. (Before the rule, ``torch.max`` took whichever value rounded highest.)"""
+    a = _ulp_variants(torch.ones(n, dtype=torch.float64))
+    B = a.shape[0]
+    P = Parallelotope(torch.zeros(B, n), torch.eye(n).expand(B, n, n))
+    Q = P.intersect_strip(ds.Strip(a, torch.zeros(B), torch.full((B,), 0.5)))
+    want = torch.eye(n)
+    want[0, 0], want[0, 1:] = 0.5, -1.0
+    assert torch.allclose(Q.T, want.expand(B, n, n), rtol=0, atol=1e-12)
+    assert torch.allclose(Q.center, torch.zeros(B, n), rtol=0, atol=1e-12)
+    assert torch.allclose(Q.volume(), torch.full((B,), 2.0**n / 2), rtol=1e-12)
+    for i in range(B):  # still an outer bound of P cap S
+        Vc = torch.as_tensor(cut_vertices(P[i], a[i].numpy(), 0.0, 0.5))
+        assert Q[i].contains(Vc).all()
+
+
+def test_intersect_strip_tie_with_keeping_keeps_the_parallelotope():
+    """``|x1 + x2| <= 1`` on the unit box: ``p_bar t_bar_j = 1`` for both j, the value of
+    keeping P_bar (eq. 40), so all three candidates have the same volume and P_bar is kept,
+    also when the normal is moved by 1 ulp or the strip is 1e-13 (relative) narrower."""
+    a = _ulp_variants(torch.ones(2, dtype=torch.float64))
+    h = torch.ones(a.shape[0])
+    h[0] = 1 - 1e-13
+    P = Parallelotope(torch.zeros(a.shape[0], 2), torch.eye(2).expand(a.shape[0], 2, 2))
+    Q = P.intersect_strip(ds.Strip(a, torch.zeros(a.shape[0]), h))
+    assert torch.allclose(Q.T, P.T, rtol=0, atol=1e-12)
+    # a clear winner (1e-9 relative, far above the tie tolerance) is still taken
+    R = P[0].intersect_strip(ds.Strip(torch.tensor([1.0, 1.0]), 0.0, 1 - 1e-9))
+    assert not torch.allclose(R.T, P[0].T, rtol=0, atol=1e-3)
+
+
+def test_intersect_strip_tie_is_differentiable_along_the_symmetry():
+    """On the symmetric tie (a = 1, T = I) any offset and half-width keep the tie exact, so
+    the chosen branch (lowest index) is smooth in them: gradcheck in float64."""
+    c = torch.zeros(2, requires_grad=True)
+    y = torch.tensor(0.3, requires_grad=True)
+    h = torch.tensor(0.5, requires_grad=True)
+
+    def f(c, y, h):
+        Q = Parallelotope(c, torch.eye(2)).intersect_strip(ds.Strip(torch.ones(2), y, h))
+        return Q.center, Q.T, Q.volume()
+
+    assert torch.autograd.gradcheck(f, (c, y, h))

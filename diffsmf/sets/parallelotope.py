@@ -24,6 +24,9 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = ["Parallelotope"]
 
 _EPS = torch.finfo(torch.float64).eps
+TIE_RTOL = 1e-12
+"""Relative volume tolerance of the tie rule of :meth:`Parallelotope.intersect_strip`
+(seed 000 eq. 38-39): candidates within it of the least volume are tied."""
 
 
 class Parallelotope(ConvexSet):
@@ -205,7 +208,18 @@ class Parallelotope(ConvexSet):
         3. eq. 38-41: of the n + 1 tightened strips keep the n whose parallelotope has the
            least volume: replacing strip i by the measurement strip scales the volume by
            ``1 / (p_bar t_bar_i)``, so ``i* = argmax_j p_bar t_bar_j`` with
-           ``p_bar t_bar_{n+1} = 1`` (keep P_bar); ties keep P_bar.
+           ``p_bar t_bar_{n+1} = 1`` (keep P_bar).
+
+        Tie rule (eq. 38-39 are often exact ties: a column clipped on one side only by eq. 37
+        gives the same ``p_bar t_bar_j`` whatever j, a column clipped on both sides gives 1,
+        the value of keeping P_bar; a symmetric P and strip tie by construction). Every
+        candidate whose volume is within ``TIE_RTOL = 1e-12`` relative of the least volume
+        counts as tied, i.e. ``p_bar t_bar_j (1 + TIE_RTOL) >= max(1, max_i p_bar t_bar_i)``;
+        among the tied ones P_bar is kept (no replacement) when it is tied, otherwise the
+        *lowest* tied index j is replaced. So the choice does not depend on float rounding
+        of values equal up to a few ulps (it is the same on every platform and under a
+        1-ulp perturbation of the inputs), and all tied choices have the same volume to
+        1e-12 relative. Branch-free (masks and ``where``, no host sync): compile-ready.
 
         Guarantee fixes (not in the paper): the tightened bounds get an outward margin of
         16 eps relative to the magnitudes involved, and a tightened edge never shrinks below
@@ -256,9 +270,12 @@ class Parallelotope(ConvexSet):
         xc_bar = xc + (T * ((rip - rim) / 2).unsqueeze(-2)).sum(-1)
         # step 3, eq. 38-39: i* = argmax_j p_bar t_bar_j over j = 1..n+1 (p_bar t_bar_{n+1} = 1)
         pbt = (p_bar.unsqueeze(-1) * T_bar).sum(-2)  # [..., n]
-        with torch.no_grad():
-            best, istar = pbt.max(-1)
-            replace = (best > 1 + 1e-12) & ~empty
+        with torch.no_grad():  # discrete choice, no gradient; tie rule in the docstring
+            top = pbt.amax(-1)
+            replace = (top > 1 + TIE_RTOL) & ~empty  # P_bar (value 1) not tied: replace
+            tied = pbt * (1 + TIE_RTOL) >= top.unsqueeze(-1)  # volume within TIE_RTOL
+            idx = torch.arange(n, device=pbt.device).expand_as(pbt)
+            istar = torch.where(tied, idx, n).amin(-1).clamp_max(n - 1)  # lowest tied index
         # eq. 41: replace strip i* by the measurement strip
         t_star = torch.gather(T_bar, -1, istar.reshape(*batch, 1, 1).expand(*batch, n, 1))
         d = torch.gather(pbt, -1, istar.reshape(*batch, 1))  # p_bar t_bar_i*  [..., 1]
