@@ -208,16 +208,26 @@ class CZSMF(SetFilter):
     def _cap(self, Z: ConstrainedZonotope, box: Tensor | None = None) -> ConstrainedZonotope:
         """Constraint elimination then lifted generator reduction to the caps (``box``: the
         box radius ``[B, n]`` to add exactly, merged into the reduction's axis generators)."""
+        return self._cap_hull(Z, box)[0]
+
+    def _cap_hull(
+        self, Z: ConstrainedZonotope, box: Tensor | None = None
+    ) -> tuple[ConstrainedZonotope, tuple[Tensor, Tensor] | None]:
+        """:meth:`_cap` -> ``(Z, duals)``: ``duals`` are the hull LP solutions of the result
+        when its last operation was a ``"hull"`` elimination (the ranking solved them), else
+        ``None``."""
+        duals = None
         if Z.num_constraints > self.max_constraints:
             if self.rescale:
                 Z = Z.rescale()
-            Z = Z.reduce_constraints(self.max_constraints, self.elimination)
+            Z, duals = Z._reduce_constraints(self.max_constraints, self.elimination)
         extra = 0 if box is None else Z.dim
         if Z.num_generators + extra > self.max_generators:
             if self.rescale and Z.num_constraints:
                 Z = Z.rescale()
-            return Z.reduce_generators(self.max_generators, self.reduce_method, box_radius=box)
-        return Z if box is None else Z._append_box(box)
+            Z = Z.reduce_generators(self.max_generators, self.reduce_method, box_radius=box)
+            return Z, None
+        return (Z, duals) if box is None else (Z._append_box(box), None)
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``F Z + f(p) - F p + E + W`` (Scott 2016 eq. 11-12, seed 000 eq. 12-21)."""
@@ -280,9 +290,14 @@ class CZSMF(SetFilter):
         d = torch.where(o1, pm, d)
         w = torch.where(o1, pr, w)
         Zu = Z.intersect_strips(a, d, w)  # Scott 2016 eq. 13, exact
+        duals = None
         if self.reduces:
-            Zu = self._cap(Zu)
-        ulo, uhi = self._hull(Zu)
+            Zu, duals = self._cap_hull(Zu)
+        if duals is None:
+            ulo, uhi = self._hull(Zu)
+        else:  # certified from the elimination ranking's LP solutions: no second solve
+            H = Zu._hull_from_duals(*duals)
+            ulo, uhi = H.lower, H.upper
         empty = (ulo > uhi).any(-1)  # certified: crossed dual bounds
         ok = ~miss & ~empty
         if skip is not None:
