@@ -62,3 +62,18 @@ def test_compiled_step_differentiable():
     ref = ds.filters.HSNSMF(s)
     ref(tr.y).volume[:, 1:].log().mean().backward()
     torch.testing.assert_close(g, ref.raw_process_noise.grad, rtol=1e-8, atol=1e-12)
+
+
+def test_compiled_forward_across_batch_sizes_and_grad_modes():
+    """``forward`` skips Dynamo's guard checks after its first compiled steps; switching the
+    batch size or the grad mode between calls must still pick (or build) the right graph."""
+    s = ds.systems.get("spring_damper")
+    eager = ds.filters.HSNSMF(s)
+    comp = ds.filters.HSNSMF(s).compile(backend="eager")
+    for batch, grad in ((2, False), (3, False), (2, True), (3, False), (2, False)):
+        tr = s.simulate(steps=5, batch=batch, seed=batch)
+        with torch.set_grad_enabled(grad):
+            rc, re = comp(tr.y), eager(tr.y)
+        assert rc.volume.requires_grad == grad
+        torch.testing.assert_close(rc.lower, re.lower, rtol=1e-10, atol=1e-13)
+        torch.testing.assert_close(rc.upper, re.upper, rtol=1e-10, atol=1e-13)

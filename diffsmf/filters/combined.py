@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter, bounded_result
 from diffsmf.linearize.statistical import _check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
@@ -279,7 +280,7 @@ class CombinedFilter(SetFilter):
         nu = y - h(a) - self.measurement_noise_center  # innovation of eq. 57
         G = P if self.gain == "kalman" else S
         W = R if self.gain == "kalman" else E
-        K = torch.linalg.solve(_sym(H @ G @ H.mT + W), H @ G).mT  # eq. 44: G H' (H G H' + W)^-1
+        K = linalg.solve(_sym(H @ G @ H.mT + W), H @ G).mT  # eq. 44: G H' (H G H' + W)^-1
         a_new = a + (K @ nu.unsqueeze(-1)).squeeze(-1)  # eq. 57 (= eq. 45 for linear h)
         I_KH = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device) - K @ H
         S_new = outer_sum_shape(
@@ -302,7 +303,7 @@ class CombinedFilter(SetFilter):
         if self._gaussian_meas:
             return torch.ones(nu.shape[:-1], dtype=torch.bool, device=nu.device)
         Sy = outer_sum_shape(_sym(H @ S @ H.mT), E, "trace")
-        d2 = (nu.unsqueeze(-2) @ torch.linalg.solve(Sy, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
+        d2 = (nu.unsqueeze(-2) @ linalg.solve(Sy, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
         return d2 <= 1.0 + 1e-9
 
     def collect(self, states: list[FilterState]) -> CombinedResult:

@@ -14,10 +14,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.filters import _common as C
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet
 from diffsmf.systems.system import System
+from diffsmf.utils import tracing
 
 __all__ = ["EKF"]
 
@@ -90,9 +92,13 @@ class EKF(SetFilter):
         R = self.measurement_covariance()
         nu = y - h(x) - self.measurement_noise_center
         S = _sym(H @ P @ H.mT + R)
-        L = torch.linalg.cholesky(S)
-        K = torch.cholesky_solve(H @ P, L).mT  # P H' S^-1
+        if not tracing() and bool((torch.linalg.cholesky_ex(S.detach())[1] != 0).any()):
+            raise ValueError(
+                "measurement_noise: the innovation covariance H P H' + R is not positive "
+                "definite (zero measurement noise on a degenerate covariance?)"
+            )
+        K = linalg.solve(S, H @ P).mT  # P H' S^-1 (closed form for m <= 2)
         xn = x + (K @ nu.unsqueeze(-1)).squeeze(-1)
-        I_KH = torch.eye(x.shape[-1], dtype=x.dtype) - K @ H
+        I_KH = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device) - K @ H
         Pn = I_KH @ P @ I_KH.mT + K @ R @ K.mT
         return self._state(xn, Pn, torch.ones_like(state.consistent))

@@ -21,6 +21,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.linearize.jacobians import jacobian
 from diffsmf.linearize.jets import Jet, interval_jacobian, jet_eval
 from diffsmf.sets.base import ConvexSet
@@ -214,7 +215,7 @@ def hessian_eig_lower_bound(H: Interval) -> Tensor:
     Hr = 0.5 * (hi - lo)
     Hc = 0.5 * (Hc + Hc.mT)
     Hr = 0.5 * (Hr + Hr.mT)
-    weyl = torch.linalg.eigvalsh(Hc)[..., 0] - torch.linalg.eigvalsh(Hr)[..., -1]
+    weyl = linalg.eigvalsh(Hc)[..., 0] - linalg.eigvalsh(Hr)[..., -1]
     norm = (Hc.abs() + Hr.abs()).sum((-2, -1)).detach()
     lam = torch.maximum(gersh, weyl) - (8 * n + 16) * _eps(lo) * norm
     return torch.where(ok, lam, torch.full_like(lam, -torch.inf))

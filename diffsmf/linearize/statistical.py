@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.utils import tracing
 
 __all__ = ["axis_points", "statistical_linearization"]
@@ -149,6 +150,15 @@ def _weight_vector(weights: Tensor | Sequence[float] | None, K: int, nlev: int, 
     return w
 
 
+def _symmetric_weights(weights: Tensor | Sequence[float] | None, K: int, nlev: int) -> bool:
+    """True when each pair ``c +- t a_i`` carries one weight (None or ``[1 + len(levels)]``
+    weights): then the normal matrix of the fit is diagonal. Decided from shapes only."""
+    if weights is None:
+        return True
+    size = weights.shape[0] if isinstance(weights, Tensor) and weights.dim() == 1 else len(weights)
+    return size == 1 + nlev
+
+
 def statistical_linearization(
     fn: Callable[[Tensor], Tensor],
     center: Tensor,
@@ -186,8 +196,13 @@ def statistical_linearization(
     if Y.dim() != points.dim() or Y.shape[0] != K:
         raise ValueError(f"fn: expected output [{K}, ..., k], got {tuple(Y.shape)}")
     rhs = torch.tensordot(w.unsqueeze(-1) * Z1, Y, dims=([0], [0])).movedim(0, -2)  # F L beta'
-    theta = torch.linalg.solve(normal, rhs)  # eq. 54: [..., n+1, k]
+    if _symmetric_weights(weights, K, len(tuple(levels))):
+        # +-t point pairs with equal weights: the normal matrix is diagonal (exactly, up to
+        # the rounding of its zero entries), so the fit is a division (no LAPACK call)
+        theta = rhs / torch.diagonal(normal).unsqueeze(-1)  # eq. 54: [..., n+1, k]
+    else:
+        theta = torch.linalg.solve(normal, rhs)  # eq. 54: [..., n+1, k]
     G, g0 = theta[..., :n, :].mT, theta[..., n, :]  # fn(c + M z) ~ G z + g0
-    A = torch.linalg.solve(M.mT, G.mT).mT  # A = G M^-1
+    A = linalg.solve(M.mT, G.mT).mT  # A = G M^-1 (closed form for n <= 2)
     b = g0 - (A @ center.unsqueeze(-1)).squeeze(-1)
     return A, b

@@ -589,7 +589,7 @@ class _MeasFamily:
         def phi(rho: Tensor) -> Tensor:
             return 1.0 - self._xi_r(rho, self._Di(rho))
 
-        best = _golden(phi, self.batch, self.P, maximize=True)
+        best = _zoom(phi, self.batch, self.P, maximize=True)
         return phi(best.unsqueeze(-1)).squeeze(-1) > 1.0
 
     # ---------------------------------------------------------------- full (differentiable)
@@ -642,44 +642,46 @@ class _MeasFamily:
         return xi / (1 - rho) * (trP - rho * (self.PH * W.mT).sum((-2, -1)))
 
 
-_GR = (math.sqrt(5.0) - 1.0) / 2.0
+#: Points per stage and stages of the bracketing search :func:`_zoom`: each stage keeps 2 of
+#: ZOOM_POINTS - 1 intervals (a factor 1/4), 13 stages narrow the bracket to 4^-13 = 1.5e-8 of
+#: its width, below the 36-step golden-section search it replaced (0.618^36 = 2.9e-8), in 13
+#: vectorised evaluations instead of 36 sequential ones (a third of the graph under
+#: torch.compile; issue 11).
+ZOOM_POINTS = 9
+ZOOM_STAGES = 13
 
 
-def _golden(
+def _zoom(
     fun: Any,
     batch: torch.Size,
     like: Tensor,
     maximize: bool = False,
     lo: Tensor | None = None,
     hi: Tensor | None = None,
-    iters: int = 36,
     top: float = 1.0 - 1e-9,
+    points: int = ZOOM_POINTS,
+    stages: int = ZOOM_STAGES,
 ) -> Tensor:
-    """Batched golden-section search of a unimodal ``fun(rho [..., K]) -> [..., K]`` on
-    ``[lo, hi]`` (default ``[0, 1)``); one new evaluation per iteration (no gradient)."""
+    """Batched bracketing search of a unimodal ``fun(rho [..., K]) -> [..., K]`` on ``[lo, hi]``
+    (default ``[0, top]``) -> the midpoint of the final bracket ``[...]`` (no gradient).
+
+    Each stage evaluates ``points`` equispaced points of the bracket at once and keeps the two
+    intervals around the best one, which contain the optimum of a unimodal function. Branch-free
+    (compile-ready); the same result in eager mode and under ``torch.compile``.
+    """
     with torch.no_grad():
         a = torch.zeros(batch, dtype=like.dtype, device=like.device) if lo is None else lo
-        b = torch.full(batch, top, dtype=like.dtype, device=like.device)
-        b = b if hi is None else hi
+        b = torch.full(batch, top, dtype=like.dtype, device=like.device) if hi is None else hi
+        a, b = a.expand(batch), b.expand(batch)
         sign = -1.0 if maximize else 1.0
-
-        def f(x: Tensor) -> Tensor:
-            return sign * fun(x.unsqueeze(-1)).squeeze(-1)
-
-        x1, x2 = b - _GR * (b - a), a + _GR * (b - a)
-        f1, f2 = f(x1), f(x2)
-        for _ in range(iters):
-            left = f1 <= f2  # minimum in [a, x2]
-            b = torch.where(left, x2, b)
-            a = torch.where(left, a, x1)
-            xn = torch.where(left, b - _GR * (b - a), a + _GR * (b - a))
-            fn = f(xn)
-            x2, f2, x1, f1 = (
-                torch.where(left, x1, xn),
-                torch.where(left, f1, fn),
-                torch.where(left, xn, x2),
-                torch.where(left, fn, f2),
-            )
+        t = torch.linspace(0.0, 1.0, points, dtype=like.dtype, device=like.device)
+        last = points - 1
+        for _ in range(stages):
+            x = a.unsqueeze(-1) + (b - a).unsqueeze(-1) * t  # [..., K]
+            i = (sign * fun(x)).argmin(-1, keepdim=True)
+            a_new = torch.gather(x, -1, (i - 1).clamp(min=0)).squeeze(-1)
+            b = torch.gather(x, -1, (i + 1).clamp(max=last)).squeeze(-1)
+            a = a_new
         return 0.5 * (a + b)
 
 
@@ -692,7 +694,7 @@ def _minimize_rho(
     top: float = 1.0 - 1e-9,
     grid: int = 33,
 ) -> Tensor:
-    """Minimise the family objective over ``rho in [0, 1)``: coarse grid and golden refinement
+    """Minimise the family objective over ``rho in [0, 1)``: coarse grid and bracketing refinement
     on the reduced (scalar) objective without gradient, then one differentiable Newton step on
     the full objective (autograd derivatives; implicit function theorem)."""
     with torch.no_grad():
@@ -701,7 +703,7 @@ def _minimize_rho(
         i = vals.argmin(-1)
         lo = pts[(i - 1).clamp(min=0)]
         hi = pts[(i + 1).clamp(max=grid - 1)]
-        rho0 = _golden(red_obj, batch, like, lo=lo, hi=hi, top=top).clamp(0.0, top)
+        rho0 = _zoom(red_obj, batch, like, lo=lo, hi=hi, top=top).clamp(0.0, top)
         at_edge = (rho0 <= 1e-7) | (rho0 >= top - 1e-7)
         rho0 = torch.where(rho0 <= 1e-7, torch.zeros_like(rho0), rho0)
     if not (torch.is_grad_enabled() and needs_grad):

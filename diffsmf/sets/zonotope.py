@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
 from diffsmf.utils import tracing
 
@@ -41,6 +42,9 @@ MAX_VOLUME_SUBSETS = 20_000
 MAX_BASES = 5_000
 #: Elements processed per chunk (batch x subsets x n x m) in the subset enumerations.
 _CHUNK_ELEMS = 4_000_000
+#: Bases whose |det T| is within this relative distance of the least one tie; the first in
+#: lexicographic order wins (a deterministic choice, independent of rounding).
+BASIS_TIE_RTOL = 1e-9
 _EPS = torch.finfo(torch.float64).eps
 
 
@@ -78,7 +82,7 @@ def _sum_abs_det(G: Tensor, idx: Tensor) -> Tensor:
     total = G.new_zeros(G.shape[:-2])
     for s in starts:
         sub = G[..., idx[s : s + step]]  # [..., n, k, n]
-        total = total + torch.linalg.det(sub.movedim(-2, -3)).abs().sum(-1)
+        total = total + linalg.det(sub.movedim(-2, -3)).abs().sum(-1)
     return total
 
 
@@ -504,9 +508,9 @@ def _basis_T(G: Tensor, basis: Tensor) -> Tensor:
     """
     n = G.shape[-2]
     B = torch.gather(G, -1, basis.unsqueeze(-2).expand(*G.shape[:-1], n))
-    X = torch.linalg.solve(B, G)
+    X = linalg.solve(B, G)
     R = G - B @ X
-    X2 = torch.linalg.solve(B, R)
+    X2 = linalg.solve(B, R)
     s = (X + X2).abs().sum(-1) + X2.abs().sum(-1)
     s = s * (1 + 8 * n * _EPS)
     return B * s.unsqueeze(-2)
@@ -547,7 +551,8 @@ def _candidate_columns(G: Tensor, L: int) -> Tensor:
 
 
 def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
-    """Index ``[..., n]`` of the basis with least |det T| and a validity flag ``[...]``."""
+    """Index ``[..., n]`` of the basis with least |det T| (ties within :data:`BASIS_TIE_RTOL`:
+    the first in lexicographic order) and a validity flag ``[...]``."""
     n, m = G.shape[-2], G.shape[-1]
     batch = G.shape[:-2]
     if m < n:
@@ -573,15 +578,20 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
     for s in starts:
         sub = idx[s : s + step]
         B = Gc[..., sub].movedim(-2, -3)  # [..., k, n, n]
-        detB = torch.linalg.det(B).abs()
+        detB = linalg.det(B).abs()
         regular = detB > 1e-12 * colnorm[..., sub].prod(-1)  # vs the Hadamard bound
         Bs = torch.where(regular.unsqueeze(-1).unsqueeze(-1), B, eye)
         # |det T| = |det B| prod_i sum_j |(B^-1 G)_ij| over ALL m generators
-        X = torch.linalg.solve(Bs, G.unsqueeze(-3).expand(*batch, sub.shape[0], n, m))
+        X = linalg.solve(Bs, G.unsqueeze(-3).expand(*batch, sub.shape[0], n, m))
         val = detB * X.abs().sum(-1).prod(-1)
         val = torch.where(regular, val, torch.full_like(val, float("inf")))
-        v, k = val.min(-1)
-        better = v < best_val
+        # tie rule: the first basis (lexicographic) within BASIS_TIE_RTOL of the least volume,
+        # so that rounding (e.g. LAPACK vs closed-form determinants) cannot flip the choice
+        v = val.amin(-1, keepdim=True)
+        near = val <= v * (1 + BASIS_TIE_RTOL)
+        k = near.to(torch.int8).argmax(-1)  # first True
+        v = v.squeeze(-1)
+        better = v < best_val * (1 - BASIS_TIE_RTOL)
         best_val = torch.where(better, v, best_val)
         best_k = torch.where(better, k + s, best_k)
     basis = idx[best_k]  # [..., n] indices into the candidate columns
@@ -678,11 +688,11 @@ def _l1_vertex(
     A = torch.cat([Qa, pe.expand(*Qa.shape[:-2], 1, n)], -2)  # [..., V, n, n]
     with torch.no_grad():
         Ad = A.detach()
-        ok = torch.linalg.det(Ad).abs() > 1e-12 * Ad.norm(dim=-1).prod(-1)
+        ok = linalg.det(Ad).abs() > 1e-12 * Ad.norm(dim=-1).prod(-1)
     A = torch.where(ok.unsqueeze(-1).unsqueeze(-1), A, torch.eye(n, dtype=G.dtype, device=G.device))
     e = torch.zeros(n, 1, dtype=G.dtype, device=G.device)
     e[-1] = 1.0
-    verts = torch.linalg.solve(A, e).squeeze(-1)
+    verts = linalg.solve(A, e.expand(*A.shape[:-1], 1)).squeeze(-1)
     ok = torch.cat([torch.ones_like(ok[..., :1]), ok], -1)
     return torch.cat([best.unsqueeze(-2), verts], -2), ok
 
