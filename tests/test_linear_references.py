@@ -118,8 +118,8 @@ def _par_strip(xc, T, p, cs, tie=1e-9, rule=False):
     clipped on both sides gives exactly 1 (= keeping P_bar). Every tied choice has the same
     volume (eq. 38) but a different shape, so the method is not unique; all choices within
     ``tie`` (relative) are returned. With ``rule=True`` only the choice of the filter's
-    documented tie rule (``Parallelotope.intersect_strip``: keep P_bar when it is tied, else
-    the lowest tied index) is returned.
+    documented tie rule (``Parallelotope.intersect_strip``: of the tied ones, the least sum of
+    hull half-widths ``sum |T|``, then P_bar, then the lowest index) is returned.
     """
     pt = p @ T
     e_p = p @ xc - cs + np.abs(pt).sum()  # eq. 31
@@ -140,10 +140,7 @@ def _par_strip(xc, T, p, cs, tie=1e-9, rule=False):
     pbt = pb @ Tb
     vals = np.append(pbt, 1.0)
     out = []
-    tied = np.nonzero(vals >= vals.max() * (1 - tie))[0]  # eq. 38-39 (all ties)
-    if rule:  # the documented tie rule: keep P_bar if tied, else the lowest tied index
-        tied = tied[-1:] if tied[-1] == T.shape[1] else tied[:1]
-    for i_star in tied:
+    for i_star in np.nonzero(vals >= vals.max() * (1 - tie))[0]:  # eq. 38-39 (all ties)
         if i_star == T.shape[1]:
             out.append((xb, Tb))  # eq. 40
             continue
@@ -151,6 +148,10 @@ def _par_strip(xc, T, p, cs, tie=1e-9, rule=False):
         Ts[:, i_star] = Tb[:, i_star] / pbt[i_star]
         xs = xb + Tb[:, i_star] * (cb - pb @ xb) / pbt[i_star]
         out.append((xs, Ts))
+    if rule:  # the documented tie rule: least sum |T| (1e-12), then P_bar, then lowest index
+        h = np.array([np.abs(b[1]).sum() for b in out])
+        least = [b for b, hb in zip(out, h) if hb <= h.min() * (1 + tie)]
+        out = [b for b in least if b[1] is Tb] or least[:1]
     return out
 
 
@@ -207,9 +208,10 @@ def test_hsnsmf_equals_chisci_parallelotopes(data):
 
 
 def test_hsnsmf_tie_rule_equals_deterministic_chisci(data):
-    """With the documented tie rule of eq. 38-39 (keep P_bar if tied, else the lowest tied
-    index; 1e-12 relative) the Chisci reference is one deterministic recursion, and the filter
-    equals it to 1e-9 at every step without following the filter's branch."""
+    """With the documented tie rule of eq. 38-39 (of the candidates within 1e-12 of the least
+    volume, the least ``sum |T|`` within 1e-12, then P_bar, then the lowest index) the Chisci
+    reference is one deterministic recursion, and the filter equals it to 1e-9 at every step
+    without following the filter's branch."""
     s, tr = data
     with torch.no_grad():
         res = ds.filters.HSNSMF(s)(tr.y)
