@@ -11,6 +11,28 @@ zonotope with m generators would also be far too many); the set is a zonotope:
 * update: each measurement strip is intersected with ``Zonotope.intersect_strip`` (Alamo 2005
   Property 2, weight by ``strip_method``), then the result is reduced to the same
   ``order * n`` generators (zero-padded), so every step has the same generator count.
+
+Default ``order=12`` (issue 13, chosen from ``benchmarks/mszm_order_bench.py``: Girard
+reduction, F-radius strips, 25 vertex-noise steps, tightness relative to order 60, which never
+reduces there; ms per filter step, B = 10, 1 thread, shared 2-core machine, +-20 %):
+
+==================  =====  ===========  ============  ==========
+system              order  width/full   volume/full   ms / step
+==================  =====  ===========  ============  ==========
+spring_damper       5      1.040        1.019         12.9
+spring_damper       8      1.019        1.019         11.9
+spring_damper       12     1.007        1.008         12.8
+spring_damper       20     1.001        1.002         12.5
+oscillator_chain    5      1.120        1.100         553
+oscillator_chain    12     1.022        0.992         882
+==================  =====  ===========  ============  ==========
+
+(bilinear, fermenter and the linear system of ``tests/test_linear_references.py`` hardly
+depend on the order: within 0.3 % of order 60 from order 5 on, or below 1 because the
+F-radius weight is a heuristic.) Order 12 is the smallest order within 1 % of no reduction on
+``spring_damper`` (2.2 % at n = 8); it costs no measurable extra time at B = 10 and n = 2,
+about 1.25x the per-step time of order 5 at B = 100 (43 vs 35 ms) and 1.6x at n = 8. Pass
+``order=5`` for the earlier, cheaper default. Full table in ``docs/filters.md``.
 """
 
 from __future__ import annotations
@@ -33,7 +55,8 @@ class MSZM(SetFilter):
 
     Args:
         system: the system to filter.
-        order: reduction order q (at most ``q * n`` generators after each step), >= 1.
+        order: reduction order q (at most ``q * n`` generators after each step), >= 1;
+            default 12 (measured table in the module docstring).
         reduce_method: ``Zonotope.reduce`` method (``"girard"``, ``"combastel"``, ...).
         strip_method: ``Zonotope.intersect_strip`` method (``"fradius"`` | ``"volume"``).
         stirling_step: Stirling step h (learnable).
@@ -58,7 +81,7 @@ class MSZM(SetFilter):
         self,
         system: System,
         *,
-        order: int = 5,
+        order: int = 12,
         reduce_method: str = "girard",
         strip_method: str = "fradius",
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
