@@ -131,3 +131,93 @@ def test_process_noise_set_scales_and_differentiates():
     filt(tr.y).volume[:, 1:].log().mean().backward()
     assert filt.raw_process_noise.grad is not None
     assert torch.isfinite(filt.raw_process_noise.grad).all()
+
+
+# ---------------------------------------------------------------------------- V as given (ESMF)
+C2 = np.array([[1.0, 0.5], [0.0, 1.0]])
+SV = np.array([[0.004, 0.0018], [0.0018, 0.0012]])  # correlated ellipsoidal measurement noise
+
+
+def _two_output_system(V: ds.sets.base.ConvexSet) -> ds.System:
+    At, Ct = torch.tensor(A, dtype=F64), torch.tensor(C2, dtype=F64)
+    x0 = ds.Interval(torch.tensor([0.3, -0.2], dtype=F64), torch.tensor([0.7, 0.2], dtype=F64))
+    W = ds.Interval(torch.full((2,), -0.01, dtype=F64), torch.full((2,), 0.01, dtype=F64))
+    return ds.System(lambda x, u=None, theta=None: x @ At.T, lambda x: x @ Ct.T, x0, W, V,
+                     name="linear2")
+
+
+def _ell_V() -> ds.Ellipsoid:
+    return ds.Ellipsoid(torch.zeros(2, dtype=F64), torch.tensor(SV, dtype=F64))
+
+
+def test_measurement_noise_set_scales_like_the_process_set():
+    filt = ds.filters.ESMF(_two_output_system(_ell_V()))
+    V = filt.measurement_noise_set()
+    assert isinstance(V, ds.Ellipsoid)
+    torch.testing.assert_close(V.shape, torch.tensor(SV, dtype=F64))
+    filt.measurement_noise = filt.measurement_noise * torch.tensor([0.5, 1.0], dtype=F64)
+    S = filt.measurement_noise_set().shape
+    torch.testing.assert_close(S[0, 0], torch.tensor(SV[0, 0] / 4, dtype=F64))
+    torch.testing.assert_close(S[0, 1], torch.tensor(SV[0, 1] / 2, dtype=F64))
+
+
+def _numpy_update(c: np.ndarray, P: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Seed 001 eq. 36-39 with R = SV (the ellipsoidal V itself), volume-minimal rho found by a
+    dense grid + golden search in numpy (independent of diffsmf)."""
+    from scipy.optimize import minimize_scalar
+
+    e = y - C2 @ c
+    G = C2 @ P @ C2.T
+
+    def parts(rho):
+        D = rho * G + (1 - rho) * SV
+        K = rho * P @ C2.T @ np.linalg.inv(D)
+        xi = 1 - rho * (1 - rho) * e @ np.linalg.solve(D, e)
+        return xi / (1 - rho) * (P - K @ C2 @ P), c + K @ e
+
+    def logdet(rho):
+        return np.linalg.slogdet(parts(rho)[0])[1]
+
+    grid = np.linspace(1e-6, 1 - 1e-6, 2001)
+    i = int(np.argmin([logdet(r) for r in grid]))
+    res = minimize_scalar(logdet, bounds=(grid[max(i - 1, 0)], grid[min(i + 1, 2000)]),
+                          method="bounded", options={"xatol": 1e-12})
+    P2, c2 = parts(res.x)
+    assert 0.05 < res.x < 0.97  # an interior optimum (else the test would check an edge case)
+    return c2, P2
+
+
+def test_esmf_update_uses_the_ellipsoidal_V_exactly():
+    """One update from a known prior: ESMF with an ellipsoidal V (linear h, so the remainder is
+    only the rounding floor) equals the seed 001 intersection with V itself, not with the
+    covering ellipsoid of V's box."""
+    s = _two_output_system(_ell_V())
+    filt = ds.filters.ESMF(s)
+    c = torch.tensor([[0.5, 0.0]], dtype=F64)
+    P = torch.tensor([[[2e-3, 5e-4], [5e-4, 1.5e-3]]], dtype=F64)
+    y = torch.tensor([[0.52, 0.01]], dtype=F64)
+    st = ds.filters.FilterState(set=ds.Ellipsoid(c, P), consistent=torch.ones(1, dtype=bool))
+    with torch.no_grad():
+        new = filt.update(st, y).set
+    c_ref, P_ref = _numpy_update(c[0].numpy(), P[0].numpy(), y[0].numpy())
+    np.testing.assert_allclose(new.center[0].numpy(), c_ref, rtol=1e-6, atol=1e-8)
+    ld, ld_ref = np.linalg.slogdet(new.shape[0].numpy())[1], np.linalg.slogdet(P_ref)[1]
+    assert abs(ld - ld_ref) < 1e-6  # the same volume (up to the outward rounding margins)
+    assert ld >= ld_ref - 1e-9  # and never inside the exact family optimum
+
+
+@pytest.mark.parametrize("kind", ["ellipsoid", "zonotope"])
+def test_esmf_contains_and_beats_the_hull_with_non_box_V(kind):
+    if kind == "ellipsoid":
+        V = _ell_V()
+    else:
+        V = ds.Zonotope(torch.zeros(2, dtype=F64), torch.tensor([[0.06, 0.01], [0.03, -0.02]],
+                                                                  dtype=F64))
+    s = _two_output_system(V)
+    tr = s.simulate(steps=15, batch=200, seed=5, noise="vertex")
+    with torch.no_grad():
+        res = ds.filters.ESMF(s)(tr.y)
+        hull = ds.filters.ESMF(_two_output_system(V.interval_hull()))(tr.y)
+    assert res.sets.contains(tr.x).all()
+    assert res.consistent.all()
+    assert res.volume[:, 5:].mean() < hull.volume[:, 5:].mean()

@@ -236,11 +236,15 @@ class SetFilter(nn.Module):
                 r = _check_half_widths(name, override, dim, dt)
             register_positive(self, name, r, learnable=learn_noise)
             self.register_buffer(f"{name}_center", c.clone())
-        # the hull half-widths of the system's W: process_noise_set scales W per component by
-        # process_noise / these (scale 1 is the system's set, for any set type)
-        W = system.process_noise
-        r0 = torch.zeros(n, dtype=dt) if W is None else W.interval_hull().radius.detach()
-        self.register_buffer("process_noise_hull_radius", r0.clone(), persistent=False)
+        # the hull half-widths of the system's W and V: process_noise_set / measurement_noise_set
+        # scale the set per component by the half-width / these (scale 1 is the system's set,
+        # for any set type)
+        for name, S, dim in (
+            ("process_noise", system.process_noise, n),
+            ("measurement_noise", system.measurement_noise, m),
+        ):
+            r0 = torch.zeros(dim, dtype=dt) if S is None else S.interval_hull().radius.detach()
+            self.register_buffer(f"{name}_hull_radius", r0.clone(), persistent=False)
 
     # ------------------------------------------------------------------ noise sets
     def process_noise_box(self) -> Interval:
@@ -258,24 +262,39 @@ class SetFilter(nn.Module):
         (issue 13). ``s = 1`` (the default) is the system's set. Differentiable in
         ``process_noise``. A component with a zero hull half-width stays zero.
         """
+        return self._scaled_noise_set(
+            self.system.process_noise, self.process_noise_box(), self.process_noise,
+            self.process_noise_hull_radius, self.process_noise_center,
+        )
+
+    def measurement_noise_set(self) -> ConvexSet:
+        """The measurement-noise set V as given by the system, scaled per component, ``[m]``
+        (as :meth:`process_noise_set`; a box V is exactly :meth:`measurement_noise_box`)."""
+        return self._scaled_noise_set(
+            self.system.measurement_noise, self.measurement_noise_box(), self.measurement_noise,
+            self.measurement_noise_hull_radius, self.measurement_noise_center,
+        )
+
+    @staticmethod
+    def _scaled_noise_set(
+        S: ConvexSet | None, box: Interval, r: Tensor, r0: Tensor, c: Tensor
+    ) -> ConvexSet:
+        """``c + diag(r / r0) (S - c)``: ``S`` keeps its type (``box`` for a box or no set)."""
         from diffsmf.sets.ellipsoid import Ellipsoid
         from diffsmf.sets.parallelotope import Parallelotope
         from diffsmf.sets.zonotope import Zonotope
 
-        W = self.system.process_noise
-        if W is None or isinstance(W, Interval):
-            return self.process_noise_box()
-        r0 = self.process_noise_hull_radius
+        if S is None or isinstance(S, Interval):
+            return box
         pos = r0 > 0
-        scale = torch.where(pos, self.process_noise / torch.where(pos, r0, 1.0), 0.0)
-        c = self.process_noise_center
-        if isinstance(W, (Zonotope, Parallelotope)):
-            G = W.generators.to(dtype=c.dtype, device=c.device)  # follows filt.to(device)
+        scale = torch.where(pos, r / torch.where(pos, r0, 1.0), 0.0)
+        if isinstance(S, (Zonotope, Parallelotope)):
+            G = S.generators.to(dtype=c.dtype, device=c.device)  # follows filt.to(device)
             return Zonotope(c, scale.unsqueeze(-1) * G)
-        if isinstance(W, Ellipsoid):
-            S = W.shape.to(dtype=c.dtype, device=c.device)
-            return Ellipsoid._make(c, scale.unsqueeze(-1) * S * scale.unsqueeze(-2))
-        return self.process_noise_box()
+        if isinstance(S, Ellipsoid):
+            M = S.shape.to(dtype=c.dtype, device=c.device)
+            return Ellipsoid._make(c, scale.unsqueeze(-1) * M * scale.unsqueeze(-2))
+        return box
 
     def measurement_noise_box(self) -> Interval:
         """Current measurement-noise box V ``[m]`` (differentiable in ``measurement_noise``)."""

@@ -10,7 +10,8 @@ Minkowski sum (eq. 30-35 = eq. 15-17) with the trace-minimal weight times the le
 
 Update (sec. 4.3, eq. 36-40): intersection of the prior with the linearised observation set
 ``{x : (y - h(c) - H (x - c))' Rhat^-1 (...) <= 1}``, ``Rhat`` the covering ellipsoid of the
-measurement-noise box plus the Lagrange remainder of ``h``.
+measurement-noise box plus the Lagrange remainder of ``h`` (an ellipsoidal or zonotope V is
+used as given, summed with the remainder's ellipsoid: issue 13).
 
 Deviations (guarantee fixes, also in docs/filters.md): the parameter deviation is bounded over
 the whole current box, not only at the centre (eq. 20 evaluates it at ``x_hat`` only, which does
@@ -32,6 +33,7 @@ from diffsmf.filters.base import (
     scaled_minkowski_sum,
 )
 from diffsmf.sets.base import ConvexSet, where
+from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive
@@ -139,6 +141,25 @@ class ESMF(C.EllipsoidalSetFilter):
         new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
         return state.replace(set=new, extras={}).and_bounded(bounded)
 
+    def _observation_noise(self, y: Tensor, hc: Tensor, Rh: Interval) -> Ellipsoid:
+        """Ellipsoid ``E(v', Rhat) [B, m]`` containing measurement noise + remainder of ``h``.
+
+        A box V (the paper's case): the covering ellipsoid ``diag(m r^2)`` of the box
+        ``V + Rh`` (eq. 23 with the n-D erratum). An ellipsoidal V is used as given and a
+        zonotope V through its covering ellipsoid (issue 13: not via its interval hull), each
+        summed with the covering ellipsoid of the remainder box by the trace-minimal outer
+        Minkowski sum (seed 001 eq. 14-17). Widened for rounding.
+        """
+        V = self.measurement_noise_set()
+        if isinstance(V, Interval):
+            noise = Interval(V.lower + Rh.lower, V.upper + Rh.upper)
+            noise = C.widen(noise, C.rounding_margin(y, hc, noise.center, noise.radius))
+            return noise.to_ellipsoid()  # diag(m r^2): covering ellipsoid of the box
+        Vell = V if isinstance(V, Ellipsoid) else Ellipsoid.from_zonotope(V)
+        vr = Vell.interval_hull().radius
+        Rb = C.widen(Rh, C.rounding_margin(y, hc, Rh.center, Rh.radius, vr))
+        return Rb.to_ellipsoid().minkowski_sum(Vell, method="trace")
+
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Eq. 36-40: prior ∩ linearised observation set (``Ellipsoid.intersect_measurement``)."""
         from diffsmf.linearize import jacobian
@@ -148,12 +169,10 @@ class ESMF(C.EllipsoidalSetFilter):
         h = self.system.h
         H = jacobian(h, c)
         hc = h(c)
-        V = self.measurement_noise_box()
         # unbounded remainder of h: the measurement cannot shrink the set (update skipped)
         Rh, ok_h = C.sanitize_remainder(self.remainder_fn(h, E.interval_hull(), c, H))
-        noise = Interval(V.lower + Rh.lower, V.upper + Rh.upper)
-        noise = C.widen(noise, C.rounding_margin(y, hc, noise.center, noise.radius))
-        Rhat = noise.to_ellipsoid().shape  # diag(m r^2): covering ellipsoid of the box
+        noise = self._observation_noise(y, hc, Rh)
+        Rhat = noise.shape
         nu = y - hc - noise.center  # innovation
         HPH = _sym(H @ P @ H.mT)
         ylin = nu + (H @ c.unsqueeze(-1)).squeeze(-1)  # y' = H x + v', v' in E(0, Rhat)
