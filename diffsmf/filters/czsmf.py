@@ -51,7 +51,7 @@ from diffsmf.sets.base import ConvexSet, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive
+from diffsmf.utils import Positive, tracing
 
 __all__ = ["CZSMF"]
 
@@ -259,7 +259,7 @@ class CZSMF(SetFilter):
         """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) leave the set
         unchanged (replaced by strips that contain it, so the shapes stay equal)."""
         bad = torch.isnan(y).any(-1)
-        if bool(bad.any()) and not self.skip_nan:
+        if not tracing() and not self.skip_nan and bool(bad.any()):  # forward checked y
             raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
         return self._update(state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y), skip=bad)
 
@@ -289,7 +289,7 @@ class CZSMF(SetFilter):
         o1 = off.unsqueeze(-1)
         d = torch.where(o1, pm, d)
         w = torch.where(o1, pr, w)
-        Zu = Z.intersect_strips(a, d, w)  # Scott 2016 eq. 13, exact
+        Zu = Z._intersect_strips(a, d, w)  # Scott 2016 eq. 13, exact (w >= 0 by eq. 23-29)
         duals = None
         if self.reduces:
             Zu, duals = self._cap_hull(Zu)
@@ -303,9 +303,10 @@ class CZSMF(SetFilter):
         if skip is not None:
             ok = torch.where(skip, state.consistent, ok)
         # certified-empty elements carry on with the predicted set, intersected with strips
-        # that contain it (same set, same shape); a rare fault path (one host sync per step)
-        if bool(empty.any()):
-            Zf = Z.intersect_strips(a, pm, pr)
+        # that contain it (same set, same shape); a rare fault path (one host sync per step;
+        # while tracing it is always taken, branch-free)
+        if tracing() or bool(empty.any()):
+            Zf = Z._intersect_strips(a, pm, pr)
             if self.reduces:
                 Zf = self._cap(Zf)
             Zu = where(empty, Zf, Zu)
@@ -315,6 +316,30 @@ class CZSMF(SetFilter):
         bounded = bounded & ((uhi - ulo) <= 2 * MAX_SET_RADIUS).all(-1)
         new = FilterState(set=Zu, consistent=ok, extras={"lower": ulo, "upper": uhi})
         return new.replace(bounded=state.bounded).and_bounded(bounded)
+
+    def compile(self, **compile_kwargs) -> CZSMF:  # type: ignore[override]
+        """:meth:`SetFilter.compile` for the fixed-size phase: a step whose state set is not
+        yet at the caps (the first steps, while generators and constraints grow; every step
+        with ``max_generators=None``) runs eagerly, so that one graph (static shapes) serves
+        every later step. While tracing, the LPs run their fixed iteration count
+        (:func:`~diffsmf.sets.czono_lp.box_lp`) and the fault path is taken branch-free."""
+        super().compile(**compile_kwargs)
+        inner = self._compiled_step
+
+        def step(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
+            S = state.set
+            at_caps = self.reduces and (S.num_generators, S.num_constraints) == (
+                self.max_generators, self.max_constraints
+            )
+            if not at_caps:
+                return self.step(state, u, y)
+            # full guard checks: the first step at the caps may come after ``forward`` has
+            # switched guard evaluation off (the shapes of the growing phase differ)
+            with torch.compiler.set_stance("default", skip_guard_eval_unsafe=False):
+                return inner(state, u, y)
+
+        self._compiled_step = step
+        return self
 
     def collect(self, states: list[FilterState]) -> FilterResult:
         """Results from the cached hulls (no LP re-solve); sets padded to a common size."""
