@@ -25,6 +25,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.filters import _common as C
 from diffsmf.filters.base import (
     FilterState,
@@ -49,7 +50,7 @@ def _sym(P: Tensor) -> Tensor:
 
 def _max_sv(M: Tensor) -> Tensor:
     """Largest singular value of symmetric PSD ``M [..., k, k]`` -> ``[...]``."""
-    return torch.linalg.eigvalsh(_sym(M))[..., -1].clamp_min(0.0)
+    return linalg.eigvalsh(_sym(M))[..., -1].clamp_min(0.0)
 
 
 class ESMF(C.EllipsoidalSetFilter):
@@ -182,7 +183,7 @@ class ESMF(C.EllipsoidalSetFilter):
             grid = torch.linspace(0.02, 0.98, 49, dtype=c.dtype)
             r = grid.reshape(-1, *([1] * (nu.dim() - 1)))  # [G, 1..]
             D = _sym(r[..., None, None] * HPH + (1 - r)[..., None, None] * Rhat)
-            Dnu = torch.linalg.solve(D, nu.expand(grid.shape[0], *nu.shape).unsqueeze(-1))
+            Dnu = linalg.solve(D, nu.expand(grid.shape[0], *nu.shape).unsqueeze(-1))
             xi = (1 - r * (1 - r) * (nu * Dnu.squeeze(-1)).sum(-1)).amin(0)
             ok = (xi > 0) | ~ok_h
             new = E.intersect_measurement(H, ylin, Rhat, method="volume")
@@ -192,7 +193,7 @@ class ESMF(C.EllipsoidalSetFilter):
             d1, d2 = d2, d1
         rho = (d1.sqrt() / (d1.sqrt() + d2.sqrt())).clamp(1e-12, 1 - 1e-12)  # eq. 40
         D = _sym(rho[..., None, None] * HPH + (1 - rho)[..., None, None] * Rhat)
-        Dnu = torch.linalg.solve(D, nu.unsqueeze(-1)).squeeze(-1)
+        Dnu = linalg.solve(D, nu.unsqueeze(-1)).squeeze(-1)
         xi = 1 - rho * (1 - rho) * (nu * Dnu).sum(-1)  # eq. 36 (times rho (1 - rho))
         ok = (xi > 0) | ~ok_h  # seed 001: xi <= 0 means the bounds are violated (a fault)
         new = E.intersect_measurement(H, ylin, Rhat, rho=torch.where(ok, rho, 0.5 * rho))

@@ -1,0 +1,73 @@
+"""Full-horizon tuning cost: one epoch of HSNSMF on spring_damper, eager vs ``filt.compile()``.
+
+An epoch is one forward over ``--batch`` trajectories x ``--steps`` steps and (for the
+"forward + backward" column) the back-propagation of the mean log-volume through the whole
+horizon to the learnable noise half-widths (issue 11 item 5: 200 epochs of 64 x 100 in under
+2 minutes, forward + backward at most 2x forward). Median of ``--repeats`` epochs after a
+warm-up epoch (which includes the one-off compile, printed separately). One torch thread.
+
+    python benchmarks/tuning_bench.py [--batch 64] [--steps 100] [--repeats 5] [--epochs 200]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from diffsmf import filters, systems
+
+
+def _epoch(filt, y: torch.Tensor, backward: bool) -> float:
+    t0 = time.perf_counter()
+    if backward:
+        filt.zero_grad(set_to_none=True)
+        filt(y).volume[:, 1:].log().mean().backward()
+    else:
+        with torch.no_grad():
+            filt(y)
+    return time.perf_counter() - t0
+
+
+def measure(compiled: bool, y: torch.Tensor, repeats: int) -> tuple[float, float, float]:
+    """(median forward s, median forward + backward s, one-off compile s) for one mode."""
+    system = systems.get("spring_damper")
+    filt = filters.HSNSMF(system)
+    if compiled:
+        filt.compile()
+    t0 = time.perf_counter()
+    _epoch(filt, y, False)
+    _epoch(filt, y, True)  # warm-up: compiles the no-grad and the grad graphs
+    t_compile = time.perf_counter() - t0 if compiled else 0.0
+    fwd = float(np.median([_epoch(filt, y, False) for _ in range(repeats)]))
+    both = float(np.median([_epoch(filt, y, True) for _ in range(repeats)]))
+    return fwd, both, t_compile
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--epochs", type=int, default=200)
+    ap.add_argument("--no-eager", action="store_true", help="only the compiled rows")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    system = systems.get("spring_damper")
+    y = system.simulate(steps=args.steps, batch=args.batch, seed=0, noise="vertex").y
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread; HSNSMF, spring_damper, "
+          f"{args.batch} x {args.steps}, full-horizon back-propagation\n")
+    print(f"| mode | forward s | forward + backward s | ratio | {args.epochs} epochs s | "
+          "one-off compile s |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for compiled in ([True] if args.no_eager else [False, True]):
+        fwd, both, tc = measure(compiled, y, args.repeats)
+        name = "compiled" if compiled else "eager"
+        print(f"| {name} | {fwd:.3f} | {both:.3f} | {both / fwd:.2f} | {args.epochs * both:.0f} | "
+              f"{tc:.0f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
