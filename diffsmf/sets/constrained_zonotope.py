@@ -559,7 +559,12 @@ class ConstrainedZonotope(ConvexSet):
         ``P = (G'G + I)^-1``, i.e. the 2-norm of ``[G d; d]`` for the least-norm ``d`` with
         ``A d = 0``, ``d_j = r_j`` (eq. A.7, 2-norm of the stacked vector instead of the sum of
         the two norms); the row i is the one of largest ``|a_ij|``. Columns without a pivot
-        (``|a_ij| <= 1e-10 max|A_i|`` in every row) are never chosen. Choices are detached.
+        (``|a_ij| <= 1e-10 max|A_i|`` in every row) are never chosen. ``heuristic``: where
+        ``R_j`` comes from (``"propagation"``: interval propagation, as published; ``"lp"``:
+        exact LP ranges), or ``"hull"``: the :data:`HULL_CANDIDATES` best estimates (with
+        propagated ``R_j``) are each eliminated and the one whose result has the smallest
+        interval hull (sum over axes of width / zonotope width, ``2 n`` LPs per candidate,
+        one batched solve) wins. Choices are detached.
         """
         if not isinstance(k, int) or k < 0:
             raise ValueError(f"k: must be an integer >= 0, got {k!r}")

@@ -45,6 +45,7 @@ LP_ITERS = 15
 LP_TOL = 1e-9
 _EPS = torch.finfo(torch.float64).eps
 _TAU = 0.995  # fraction to the boundary
+_FIRST_CHECK = 6  # first iteration that tests convergence (none converged earlier, measured)
 
 
 def dual_bound(g: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
@@ -159,7 +160,7 @@ def box_lp(
         zl, wu = z * ixl, w * ixu
         rd = c - (At @ y.unsqueeze(-1)).squeeze(-1) - z + w
         rp = bs - (As @ x.unsqueeze(-1)).squeeze(-1)
-        if check and it >= 2 and _converged(c, bs, x, y, z, w, rd, rp, tol):
+        if check and it >= _FIRST_CHECK and _converged(c, bs, x, y, z, w, rd, rp, tol):
             break  # the current iterate's certificate is already in ``best``
         mu = (z / ixl + w / ixu).sum(-1, keepdim=True) / (2 * m)
         D = 1 / (zl + wu)
