@@ -157,12 +157,13 @@ def _contiguous(v: Any) -> Any:
     return v.contiguous() if isinstance(v, Tensor) else v
 
 
-#: Compiled steps of a ``forward`` call that run Dynamo's full guard check. From then on the
-#: step's inputs are the previous step's outputs and same-shaped slices of ``y`` / ``u`` (the
-#: same tensor metadata as the step before, and the module does not change inside the loop),
-#: so the guards are known to pass and only those that tell cached graphs apart are run
-#: (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``; about a third of a compiled
-#: B = 1 step was guard evaluation).
+#: Compiled steps of a ``forward`` call that run Dynamo's full guard check (counted per call of
+#: the compiled function, so eager steps such as the ellipsoidal filters' first one do not
+#: count). From then on the step's inputs are the previous compiled step's outputs and
+#: same-shaped slices of ``y`` / ``u`` (the same tensor metadata as the step before, and the
+#: module does not change inside the loop), so the guards are known to pass and only those that
+#: tell cached graphs apart are run (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``;
+#: about a third of a compiled B = 1 step was guard evaluation). ``forward`` resets the count.
 _GUARDED_STEPS = 2
 
 
@@ -389,12 +390,10 @@ class SetFilter(nn.Module):
         states = [state]
         compiled = getattr(self, "_compiled_step", None) is not None and not tracing()
         step = self._compiled_step if compiled else self.step
-        with contextlib.ExitStack() as stack:
-            for k in range(T):
-                if compiled and k == _GUARDED_STEPS:
-                    stack.enter_context(_skip_guards())
-                state = step(state, None if u is None else u[:, k], y[:, k])
-                states.append(state)
+        self._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
+        for k in range(T):
+            state = step(state, None if u is None else u[:, k], y[:, k])
+            states.append(state)
         return self.collect(states)
 
     def step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
@@ -428,11 +427,18 @@ class SetFilter(nn.Module):
             if b is None:
                 b = torch.ones_like(state.consistent)
             # contiguous inputs: the expanded initial set would otherwise be a second graph
-            fields, consistent, bounded, extras = flat(
+            args = (
                 tuple(t.contiguous() for t in S._tensors()), state.consistent.contiguous(),
                 b.contiguous(), {k: _contiguous(v) for k, v in state.extras.items()}, u, y,
                 type(S),
             )
+            checked = getattr(self, "_guarded_calls", 0)
+            if checked < _GUARDED_STEPS:
+                self._guarded_calls = checked + 1
+                fields, consistent, bounded, extras = flat(*args)
+            else:
+                with _skip_guards():
+                    fields, consistent, bounded, extras = flat(*args)
             return FilterState(self._out_type._from_tensors(fields), consistent, extras, bounded)
 
         self._out_type = type(self.initial_state(batch=1).set)
