@@ -453,3 +453,12 @@ def test_box_lp_early_stop_valid_and_accurate():
         up = box_lp(g, Z.A, Z.b, 15, tol)[0].numpy() + Z.center[:, 0].numpy()
         assert (up >= hi[:, 0] - 1e-12 * scale).all()
         assert np.abs(up - hi[:, 0]).max() <= (1e-8 if tol != 1e-6 else 1e-5) * scale
+
+
+def test_contains_boundary_points_certified():
+    """Boundary points (``sample_extreme``) are certified by ``contains`` at 1e-9: the
+    feasibility LP runs all its iterations (no early stop on a residual of ~tol)."""
+    Z = random_cz(10, 2, 30, 6, seed=23)
+    x = Z.sample_extreme(20, generator=torch.Generator().manual_seed(3)).transpose(0, 1)
+    assert float(distance_lp(Z, x).max()) <= 1e-9
+    assert bool(Z.contains(x, atol=1e-9).all())

@@ -255,7 +255,7 @@ class ConstrainedZonotope(ConvexSet):
             if self.num_constraints == 0:
                 return torch.zeros(self.batch_shape, dtype=torch.bool, device=self.device)
             g = self.A.new_zeros(*self.batch_shape, self.num_generators)
-            bound, _, _, _ = box_lp(g, self.A, self.b, iters)
+            bound, _, _, _ = box_lp(g, self.A, self.b, iters, None)  # all iterations
             return bound < 0
 
     def contains(self, x: Tensor, atol: float = 1e-9, iters: int = LP_ITERS) -> Tensor:
@@ -272,7 +272,9 @@ class ConstrainedZonotope(ConvexSet):
             raise ValueError(f"x: expected [..., {self.dim}], got {tuple(x.shape)}")
         with torch.no_grad():
             L, r = self._membership_lp(x.detach())
-            _, _, _, xi = box_lp(torch.zeros_like(L[..., 0, :]), L, r, iters)
+            # all iterations: the iterate's residual must meet ``atol`` (a feasibility LP has
+            # no gap to stop on, and an early stop would leave boundary points uncertified)
+            _, _, _, xi = box_lp(torch.zeros_like(L[..., 0, :]), L, r, iters, None)
             res = ((L * xi.unsqueeze(-2)).sum(-1) - r).abs()
             return (res <= atol).all(-1)
 
@@ -282,7 +284,7 @@ class ConstrainedZonotope(ConvexSet):
         x = as_tensor("x", x, like=self._c, min_dim=1)
         with torch.no_grad():
             L, r = self._membership_lp(x.detach())
-            bound, _, _, _ = box_lp(torch.zeros_like(L[..., 0, :]), L, r, iters)
+            bound, _, _, _ = box_lp(torch.zeros_like(L[..., 0, :]), L, r, iters, None)
             return bound < 0
 
     def _membership_lp(self, x: Tensor) -> tuple[Tensor, Tensor]:
@@ -453,7 +455,7 @@ class ConstrainedZonotope(ConvexSet):
         (interior-point iterate with zero objective, then projected onto ``A xi = b``)."""
         A, b = self.A.detach(), self.b.detach()
         g = A.new_zeros(*self.batch_shape, self.num_generators)
-        _, _, _, xi = box_lp(g, A, b, iters)
+        _, _, _, xi = box_lp(g, A, b, iters, None)
         if self.num_constraints:
             r = b - (A * xi.unsqueeze(-2)).sum(-1)
             xi = xi + (torch.linalg.pinv(A) @ r.unsqueeze(-1)).squeeze(-1)
