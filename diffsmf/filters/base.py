@@ -391,9 +391,16 @@ class SetFilter(nn.Module):
         compiled = getattr(self, "_compiled_step", None) is not None and not tracing()
         step = self._compiled_step if compiled else self.step
         self._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
-        for k in range(T):
-            state = step(state, None if u is None else u[:, k], y[:, k])
-            states.append(state)
+        ys = y.unbind(1)
+        us = [None] * T if u is None else u.unbind(1)
+        with contextlib.ExitStack() as stack:
+            skipping = False
+            for k in range(T):
+                state = step(state, us[k], ys[k])
+                states.append(state)
+                if compiled and not skipping and self._guarded_calls >= _GUARDED_STEPS:
+                    stack.enter_context(_skip_guards())  # once, for the rest of the loop
+                    skipping = True
         return self.collect(states)
 
     def step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
@@ -432,13 +439,8 @@ class SetFilter(nn.Module):
                 b.contiguous(), {k: _contiguous(v) for k, v in state.extras.items()}, u, y,
                 type(S),
             )
-            checked = getattr(self, "_guarded_calls", 0)
-            if checked < _GUARDED_STEPS:
-                self._guarded_calls = checked + 1
-                fields, consistent, bounded, extras = flat(*args)
-            else:
-                with _skip_guards():
-                    fields, consistent, bounded, extras = flat(*args)
+            self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1  # see forward
+            fields, consistent, bounded, extras = flat(*args)
             return FilterState(self._out_type._from_tensors(fields), consistent, extras, bounded)
 
         self._out_type = type(self.initial_state(batch=1).set)
