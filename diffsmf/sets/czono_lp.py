@@ -45,7 +45,7 @@ LP_ITERS = 15
 LP_TOL = 1e-9
 _EPS = torch.finfo(torch.float64).eps
 _TAU = 0.995  # fraction to the boundary
-_FIRST_CHECK = 6  # first iteration that tests convergence (none converged earlier, measured)
+_FIRST_CHECK = 6  # first convergence test (no spring_damper filter LP met 1e-9 earlier, measured)
 
 
 def dual_bound(g: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
