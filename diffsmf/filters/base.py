@@ -168,8 +168,15 @@ _GUARDED_STEPS = 2
 
 
 def _skip_guards() -> contextlib.AbstractContextManager:
-    """Context that skips Dynamo's guard evaluation (see :data:`_GUARDED_STEPS`)."""
-    return torch.compiler.set_stance("default", skip_guard_eval_unsafe=True)
+    """Context that skips Dynamo's guard evaluation (see :data:`_GUARDED_STEPS`); a no-op on
+    torch versions without ``set_stance(skip_guard_eval_unsafe=...)`` (before 2.6)."""
+    set_stance = getattr(torch.compiler, "set_stance", None)
+    if set_stance is None:
+        return contextlib.nullcontext()
+    try:
+        return set_stance("default", skip_guard_eval_unsafe=True)
+    except TypeError:  # a set_stance without the keyword
+        return contextlib.nullcontext()
 
 
 def _pad_and_stack(sets: list[ConvexSet]) -> ConvexSet:
