@@ -221,3 +221,17 @@ def test_esmf_contains_and_beats_the_hull_with_non_box_V(kind):
     assert res.sets.contains(tr.x).all()
     assert res.consistent.all()
     assert res.volume[:, 5:].mean() < hull.volume[:, 5:].mean()
+
+
+def test_esmf_gradcheck_in_the_ellipsoidal_V_scale():
+    """The ESMF set is differentiable in the measurement-noise scale of an ellipsoidal V."""
+    s = _two_output_system(_ell_V())
+    tr = s.simulate(steps=2, batch=1, seed=1, noise="vertex")
+    filt = ds.filters.ESMF(s)
+
+    def vol(raw):
+        res = torch.func.functional_call(filt, {"raw_measurement_noise": raw}, (tr.y,))
+        return res.volume[:, -1]
+
+    raw = filt.raw_measurement_noise.detach().clone().requires_grad_()
+    assert torch.autograd.gradcheck(vol, (raw,), eps=1e-6, atol=1e-8, rtol=1e-4)
