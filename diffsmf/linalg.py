@@ -27,10 +27,24 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["CLOSED_FORM_MAX_N", "det", "eigvalsh", "solve"]
+__all__ = ["CLOSED_FORM_MAX_N", "SMALL_MATMUL_MAX", "det", "eigvalsh", "matmul", "solve"]
 
 #: Largest size with a closed form: ``det`` up to 3, ``solve`` and ``eigvalsh`` up to 2.
 CLOSED_FORM_MAX_N = {"det": 3, "solve": 2, "eigvalsh": 2}
+
+
+#: ``matmul`` uses a broadcast multiply-and-sum when every dimension of the product is at most
+#: this (Inductor fuses it; a BLAS call per 2 x 2 product costs a few microseconds).
+SMALL_MATMUL_MAX = 4
+
+
+def matmul(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B`` for ``A [..., p, q]``, ``B [..., q, r]`` (broadcast batch) -> ``[..., p, r]``:
+    an elementwise multiply-and-sum when p, q, r <= :data:`SMALL_MATMUL_MAX`, else ``@``."""
+    p, q, r = A.shape[-2], A.shape[-1], B.shape[-1]
+    if max(p, q, r) <= SMALL_MATMUL_MAX and B.shape[-2] == q:
+        return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+    return A @ B
 
 
 def _check_square(name: str, M: Tensor) -> int:

@@ -94,3 +94,12 @@ def test_basis_tie_rule_is_deterministic() -> None:
         noise = 1 + eps * torch.randint(-2, 3, G.shape, generator=g).to(torch.float64)
         pert, _ = _best_basis(G * noise)
         assert pert.tolist() == base.tolist()
+
+
+@pytest.mark.parametrize("shape_a,shape_b", [((5, 2, 3), (5, 3, 1)), ((3, 3), (4, 3, 2)),
+                                             ((2, 4, 4), (4, 4)), ((6, 5), (5, 2))])
+def test_matmul_matches_operator(shape_a, shape_b) -> None:
+    g = torch.Generator().manual_seed(1)
+    A = torch.randn(*shape_a, generator=g, dtype=torch.float64)
+    B = torch.randn(*shape_b, generator=g, dtype=torch.float64)
+    torch.testing.assert_close(linalg.matmul(A, B), A @ B, rtol=1e-14, atol=1e-14)

@@ -263,8 +263,10 @@ class CombinedFilter(SetFilter):
 
         A = self._linearize(fn, a, S, P)  # eq. 54
         a_new = fn(a) + self.process_noise_center  # eq. 56 (= eq. 40 for linear f)
-        S_new = outer_sum_shape(_sym(A @ S @ A.mT), self.process_bound(), self.weight)  # eq. 41
-        P_new = _sym(A @ P @ A.mT + self.process_covariance())  # eq. 42
+        mm = linalg.matmul  # multiply-and-sum for small matrices (fused when compiled)
+        S_lin = _sym(mm(mm(A, S), A.mT))
+        S_new = outer_sum_shape(S_lin, self.process_bound(), self.weight)  # eq. 41
+        P_new = _sym(mm(mm(A, P), A.mT) + self.process_covariance())  # eq. 42
         return FilterState(
             set=Ellipsoid._make(a_new, S_new),
             consistent=state.consistent,
@@ -280,13 +282,15 @@ class CombinedFilter(SetFilter):
         nu = y - h(a) - self.measurement_noise_center  # innovation of eq. 57
         G = P if self.gain == "kalman" else S
         W = R if self.gain == "kalman" else E
-        K = linalg.solve(_sym(H @ G @ H.mT + W), H @ G).mT  # eq. 44: G H' (H G H' + W)^-1
-        a_new = a + (K @ nu.unsqueeze(-1)).squeeze(-1)  # eq. 57 (= eq. 45 for linear h)
-        I_KH = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device) - K @ H
+        mm = linalg.matmul
+        HG = mm(H, G)
+        K = linalg.solve(_sym(mm(HG, H.mT) + W), HG).mT  # eq. 44: G H' (H G H' + W)^-1
+        a_new = a + mm(K, nu.unsqueeze(-1)).squeeze(-1)  # eq. 57 (= eq. 45 for linear h)
+        I_KH = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device) - mm(K, H)
         S_new = outer_sum_shape(
-            _sym(I_KH @ S @ I_KH.mT), _sym(K @ E @ K.mT), self.weight
+            _sym(mm(mm(I_KH, S), I_KH.mT)), _sym(mm(mm(K, E), K.mT)), self.weight
         )  # eq. 46
-        P_new = _sym(I_KH @ P @ I_KH.mT + K @ R @ K.mT)  # eq. 47 in Joseph form
+        P_new = _sym(mm(mm(I_KH, P), I_KH.mT) + mm(mm(K, R), K.mT))  # eq. 47 in Joseph form
         return FilterState(
             set=Ellipsoid._make(a_new, S_new),
             consistent=self._consistent(nu, H, S, E),

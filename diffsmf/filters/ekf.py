@@ -79,7 +79,7 @@ class EKF(SetFilter):
         fn = C.step_function(self.system, u)
         A = jacobian(fn, x)
         xn = fn(x) + self.process_noise_center
-        Pn = A @ P @ A.mT + self.process_covariance()
+        Pn = linalg.matmul(linalg.matmul(A, P), A.mT) + self.process_covariance()
         return self._state(xn, Pn, state.consistent)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
@@ -91,14 +91,16 @@ class EKF(SetFilter):
         H = jacobian(h, x)
         R = self.measurement_covariance()
         nu = y - h(x) - self.measurement_noise_center
-        S = _sym(H @ P @ H.mT + R)
+        mm = linalg.matmul  # multiply-and-sum for small matrices (fused when compiled)
+        HP = mm(H, P)
+        S = _sym(mm(HP, H.mT) + R)
         if not tracing() and bool((torch.linalg.cholesky_ex(S.detach())[1] != 0).any()):
             raise ValueError(
                 "measurement_noise: the innovation covariance H P H' + R is not positive "
                 "definite (zero measurement noise on a degenerate covariance?)"
             )
-        K = linalg.solve(S, H @ P).mT  # P H' S^-1 (closed form for m <= 2)
-        xn = x + (K @ nu.unsqueeze(-1)).squeeze(-1)
-        I_KH = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device) - K @ H
-        Pn = I_KH @ P @ I_KH.mT + K @ R @ K.mT
+        K = linalg.solve(S, HP).mT  # P H' S^-1 (closed form for m <= 2)
+        xn = x + mm(K, nu.unsqueeze(-1)).squeeze(-1)
+        I_KH = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device) - mm(K, H)
+        Pn = mm(mm(I_KH, P), I_KH.mT) + mm(mm(K, R), K.mT)
         return self._state(xn, Pn, torch.ones_like(state.consistent))
