@@ -99,3 +99,18 @@ def test_czsmf_compiled_step_is_one_graph():
     torch.testing.assert_close(rc.upper, re.upper, rtol=1e-10, atol=1e-13)
     assert torch.equal(rc.consistent, re.consistent)
     assert torch.equal(rc.bounded, re.bounded)
+
+
+@pytest.mark.parametrize("name,system", CASES)
+def test_whole_module_compiles_with_fullgraph(name, system):
+    """``torch.compile(filt, fullgraph=True)`` (the whole unrolled forward, collect included)
+    traces without a graph break and gives the eager result."""
+    s = ds.systems.get(system)
+    tr = s.simulate(steps=2, batch=2, seed=0, noise="vertex")
+    filt = ds.filters.by_name(name)(s)
+    whole = torch.compile(filt, fullgraph=True, backend="eager")
+    with torch.no_grad():
+        rc, re = whole(tr.y, u=tr.u), filt(tr.y, u=tr.u)
+    rtol = 1e-6 if name == "esmf" else 1e-10
+    torch.testing.assert_close(rc.lower, re.lower, rtol=rtol, atol=1e-13)
+    torch.testing.assert_close(rc.upper, re.upper, rtol=rtol, atol=1e-13)

@@ -395,17 +395,20 @@ class SetFilter(nn.Module):
             u = self.system.check_input(u, (B, T))
         state = self.initial_state(batch=B)
         states = [state]
-        compiled = getattr(self, "_compiled_step", None) is not None and not tracing()
-        step = self._compiled_step if compiled else self.step
-        self._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
         ys = y.unbind(1)
         us = [None] * T if u is None else u.unbind(1)
+        if getattr(self, "_compiled_step", None) is None or tracing():
+            for k in range(T):
+                state = self.step(state, us[k], ys[k])
+                states.append(state)
+            return self.collect(states)
+        self._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
         with contextlib.ExitStack() as stack:
             skipping = False
             for k in range(T):
-                state = step(state, us[k], ys[k])
+                state = self._compiled_step(state, us[k], ys[k])
                 states.append(state)
-                if compiled and not skipping and self._guarded_calls >= _GUARDED_STEPS:
+                if not skipping and self._guarded_calls >= _GUARDED_STEPS:
                     stack.enter_context(_skip_guards())  # once, for the rest of the loop
                     skipping = True
         return self.collect(states)
@@ -490,6 +493,8 @@ class SetFilter(nn.Module):
             y = y.unsqueeze(0)
         if y.dim() != 3 or y.shape[-1] != self.system.m:
             raise ValueError(f"y: expected shape [B, T, {self.system.m}], got {tuple(y.shape)}")
+        if tracing():  # value checks would sync with the host (torch.compile of forward)
+            return y
         if torch.isinf(y).any():
             raise ValueError("y: contains inf")
         if torch.isnan(y).any() and not self.skip_nan:
