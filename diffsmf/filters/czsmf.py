@@ -333,10 +333,9 @@ class CZSMF(SetFilter):
             )
             if not at_caps:
                 return self.step(state, u, y)
-            # full guard checks: the first step at the caps may come after ``forward`` has
-            # switched guard evaluation off (the shapes of the growing phase differ)
-            with torch.compiler.set_stance("default", skip_guard_eval_unsafe=False):
-                return inner(state, u, y)
+            # eager steps do not count towards forward's guard skip: the first compiled calls
+            # at the caps run Dynamo's full guard check (base._GUARDED_STEPS)
+            return inner(state, u, y)
 
         self._compiled_step = step
         return self
