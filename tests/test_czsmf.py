@@ -77,13 +77,17 @@ def exact_hulls(system: ds.System, y: np.ndarray, C: np.ndarray) -> tuple[np.nda
     return lo, hi
 
 
-@pytest.fixture(scope="module")
-def linear_run():
+def _linear_run(steps: int, seed: int, noise: str):
+    """The linear system, 3 simulated trajectories and their exact hulls (HiGHS)."""
     system = linear_system()
-    T = 15
-    traj = system.simulate(steps=T, batch=3, seed=3, noise="vertex")
+    traj = system.simulate(steps=steps, batch=3, seed=seed, noise=noise)
     exact = [exact_hulls(system, traj.y[i].numpy(), C_LIN.numpy()) for i in range(3)]
     return system, traj, exact
+
+
+@pytest.fixture(scope="module")
+def linear_run():
+    return _linear_run(15, 3, "vertex")
 
 
 def test_exact_on_linear_system(linear_run):
@@ -104,11 +108,7 @@ def test_exact_on_linear_system(linear_run):
 
 @pytest.fixture(scope="module")
 def linear_run_uniform():
-    system = linear_system()
-    T = 20
-    traj = system.simulate(steps=T, batch=3, seed=4, noise="uniform")
-    exact = [exact_hulls(system, traj.y[i].numpy(), C_LIN.numpy()) for i in range(3)]
-    return system, traj, exact
+    return _linear_run(20, 4, "uniform")
 
 
 @pytest.mark.parametrize("caps,bound", [(None, 1.01), ((16, 3), 1.3)])
