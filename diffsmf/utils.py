@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import math
 import sys
@@ -53,7 +54,20 @@ def register_positive(module: nn.Module, name: str, value: Any, learnable: bool 
         module.register_parameter(f"raw_{name}", nn.Parameter(raw))
     else:
         module.register_buffer(f"raw_{name}", raw)
-    module.register_buffer(f"{name}_scale", v.clone())
+    # a scalar's scale is stored with shape [1]: torch.compile reads a 0-d buffer of a module
+    # as a Python float, then restarts its trace to specialise it (ESMF: 16 s of a 66 s compile)
+    module.register_buffer(f"{name}_scale", v.clone().reshape(v.shape or (1,)))
+    if v.dim() == 0:
+        module._register_load_state_dict_pre_hook(
+            functools.partial(_scalar_scale_hook, key=f"{name}_scale")
+        )
+
+
+def _scalar_scale_hook(state_dict: dict, prefix: str, *args: Any, key: str) -> None:
+    """Load a scalar hyperparameter's 0-d scale (saved before it was stored as ``[1]``)."""
+    v = state_dict.get(prefix + key)
+    if isinstance(v, Tensor) and v.dim() == 0:
+        state_dict[prefix + key] = v.reshape(1)
 
 
 class Positive:
@@ -70,7 +84,7 @@ class Positive:
         if obj is None:
             return self
         raw = getattr(obj, f"raw_{self.name}")
-        return getattr(obj, f"{self.name}_scale") * F.softplus(raw)
+        return getattr(obj, f"{self.name}_scale").reshape(raw.shape) * F.softplus(raw)
 
     def __set__(self, obj: Any, value: Any) -> None:
         scale = getattr(obj, f"{self.name}_scale")

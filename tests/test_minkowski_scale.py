@@ -150,3 +150,25 @@ def test_tune_moves_minkowski_scale():
     # filters without the scale skip the name, like the other optional parameters
     chosen, skipped = resolve_params(ds.filters.HSNSMF(sys_), ("stirling_step", "minkowski_scale"))
     assert skipped == ["minkowski_scale"] and list(chosen) == ["stirling_step"]
+
+
+@pytest.mark.parametrize("filter_name", NAMES)
+def test_scalar_scale_state_dict(filter_name):
+    """A scalar hyperparameter's scale is stored as ``[1]`` (a 0-d module buffer makes
+    torch.compile restart its trace) and reads back as a scalar; a state dict saved with the
+    old 0-d scale still loads, with its value."""
+    sys_ = systems.get("spring_damper")
+    filt = filters.by_name(filter_name)(sys_, minkowski_scale=0.5)
+    assert filt.minkowski_scale.shape == ()
+    assert filt.minkowski_scale_scale.shape == (1,)
+    sd = filt.state_dict()
+    sd["minkowski_scale_scale"] = torch.tensor(2.0, dtype=torch.float64)  # old format
+    fresh = filters.by_name(filter_name)(sys_)
+    fresh.load_state_dict(sd)
+    assert fresh.minkowski_scale.shape == ()
+    assert float(fresh.minkowski_scale) == pytest.approx(2.0, rel=1e-15)
+    fresh.minkowski_scale = 3.0
+    assert float(fresh.minkowski_scale) == pytest.approx(3.0, rel=1e-15)
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        sd["minkowski_scale_scale"] = torch.ones(2, dtype=torch.float64)
+        fresh.load_state_dict(sd)
