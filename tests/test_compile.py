@@ -20,6 +20,7 @@ CASES = [
     ("mszm", "spring_damper"),
     ("cdsmf", "spring_damper"),
     ("esmf", "spring_damper"),
+    ("esmf", "mismatch_quadratic"),  # square H: the two-sided update, traced branch-free
     ("ekf", "spring_damper"),
     ("combined", "radar"),
 ]

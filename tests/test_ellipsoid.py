@@ -337,3 +337,25 @@ def test_validation_names_argument():
         _ell(2).minkowski_sum(_ell(2), method="foo")
     with pytest.raises(ValueError, match="R"):
         _ell(2).intersect_measurement(torch.eye(2), torch.zeros(2), -torch.eye(2))
+
+
+def test_intersect_measurement_square_h_element_by_element():
+    """Square ``H``: the two-sided update wherever ``H`` is invertible, the one-sided family
+    where it is singular, decided per batch element (so a singular element does not change
+    its neighbours' sets, and eager equals the branch-free traced code)."""
+    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    E = ds.Ellipsoid(t([[0.0, 0.0], [0.1, 0.0]]), t([[[1.0, 0.2], [0.2, 0.5]]] * 2))
+    H = t([[[1.0, 0.3], [0.0, 1.0]], [[1.0, 1.0], [1.0, 1.0]]])  # second one singular
+    y = t([[0.5, 0.2], [0.3, 0.3]])
+    R = t([[[0.04, 0.0], [0.0, 0.09]]] * 2)
+    both = E.intersect_measurement(H, y, R)
+    for i in range(2):
+        Ei = ds.Ellipsoid(E.center[i], E.shape[i])
+        one = Ei.intersect_measurement(H[i], y[i], R[i])
+        torch.testing.assert_close(both.center[i], one.center, rtol=1e-12, atol=1e-15)
+        torch.testing.assert_close(both.shape[i], one.shape, rtol=1e-12, atol=1e-15)
+    # the invertible element took the two-sided form: the intersection with E(H^-1 y, ...)
+    Hi = torch.linalg.inv(H[0])
+    E2 = ds.Ellipsoid(Hi @ y[0], Hi @ R[0] @ Hi.mT)
+    ref = ds.Ellipsoid(E.center[0], E.shape[0]).intersect_ellipsoid(E2)
+    torch.testing.assert_close(both.shape[0], ref.shape, rtol=1e-9, atol=1e-14)

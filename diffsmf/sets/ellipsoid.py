@@ -297,23 +297,45 @@ class Ellipsoid(ConvexSet):
         P, c = self.shape, self.center_
         e = y - (H @ c.unsqueeze(-1)).squeeze(-1)
         G = _sym(H @ P @ H.mT)
-        if H.shape[-2] == self.dim and rho is None and not tracing():
-            # square H: the measurement set is the ellipsoid E(H^-1 y, H^-1 R H^-T); use the
-            # two-sided form (no cancellation as rho -> 1) when H is invertible everywhere
-            Hi_y, info = torch.linalg.solve_ex(H, y.unsqueeze(-1))
-            if bool((info == 0).all()):
-                X = torch.linalg.solve(H, R)
-                S2 = _sym(torch.linalg.solve(H, X.mT))
-                _, info2 = torch.linalg.cholesky_ex(S2.detach())
-                if bool((info2 == 0).all()):
-                    E2 = Ellipsoid._make(Hi_y.squeeze(-1), S2)
-                    return self.intersect_ellipsoid(E2, method=method)
+        square = None
+        if H.shape[-2] == self.dim and rho is None:
+            # square H: the two-sided update with the measurement ellipsoid (tighter: no
+            # cancellation as rho -> 1) wherever H is invertible, else the one-sided family
+            square = self._square_measurement(H, y, R)
+            two = self.intersect_ellipsoid(square[0], method=method)
+            if not tracing() and bool(square[1].all()):
+                return two
         fam = _MeasFamily(P, H, G, _sym(R), e)
         empty = fam.empty()
         rho_t = self._pick_rho(fam, method, rho, H, R)
         rho_t = torch.where(empty, torch.zeros_like(rho_t), rho_t)
         c2, P2 = fam.evaluate(rho_t, c)
-        return self._finish(c2, P2, rho_t, empty)
+        out = self._finish(c2, P2, rho_t, empty)
+        if square is None:
+            return out
+        ok = square[1]  # element by element, branch-free (the same in eager and traced code)
+        return Ellipsoid._make(
+            torch.where(ok[..., None], two.center_, out.center_),
+            torch.where(ok[..., None, None], two.shape, out.shape),
+        )
+
+    def _square_measurement(
+        self, H: Tensor, y: Tensor, R: Tensor
+    ) -> tuple[Ellipsoid, Tensor]:
+        """For square ``H``: the measurement set as the ellipsoid ``E(H^-1 y, H^-1 R H^-T)``
+        and ``ok [...]`` where ``H`` is invertible and that shape positive definite (elsewhere
+        the ellipsoid is a placeholder, the unit ball at 0, to be discarded). The two-sided
+        update with it has no cancellation as rho -> 1."""
+        Hi_y, info = torch.linalg.solve_ex(H, y.unsqueeze(-1))
+        X, info_x = torch.linalg.solve_ex(H, R)
+        Xt, info_t = torch.linalg.solve_ex(H, X.mT)
+        S2 = _sym(Xt)
+        _, info2 = torch.linalg.cholesky_ex(S2.detach())
+        ok = (info == 0) & (info_x == 0) & (info_t == 0) & (info2 == 0)
+        ok = ok & torch.isfinite(S2).all(-1).all(-1) & torch.isfinite(Hi_y).all(-2).all(-1)
+        eye = torch.eye(self.dim, dtype=S2.dtype, device=S2.device)
+        c2 = torch.where(ok[..., None], Hi_y.squeeze(-1), torch.zeros_like(Hi_y.squeeze(-1)))
+        return Ellipsoid._make(c2, torch.where(ok[..., None, None], S2, eye)), ok
 
     def _finish(self, c2: Tensor, P2: Tensor, rho: Tensor, keep: Tensor) -> Ellipsoid:
         """Inflate for rounding (``INFLATE + 64 n eps / (1 - rho)``: the update cancels as
