@@ -115,3 +115,15 @@ def test_whole_module_compiles_with_fullgraph(name, system):
     rtol = 1e-6 if name == "esmf" else 1e-10
     torch.testing.assert_close(rc.lower, re.lower, rtol=rtol, atol=1e-13)
     torch.testing.assert_close(rc.upper, re.upper, rtol=rtol, atol=1e-13)
+
+
+def test_many_compiled_filters_in_one_process():
+    """Dynamo keeps at most 8 graphs per code object; each ``compile()`` traces its own copy
+    of the step, so nine compiled filters in one process do not hit that limit (with
+    the shared method the ninth raised ``FailOnRecompileLimitHit``)."""
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=2, batch=9, seed=0)
+    with torch.no_grad():
+        for b in range(1, 10):  # nine filters, each with its own batch size (the EKF: fast)
+            res = ds.filters.EKF(s).compile(backend="eager")(tr.y[:b])
+            assert res.lower.shape == (b, 3, 2)

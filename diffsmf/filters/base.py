@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import types
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -175,6 +176,19 @@ _GUARDED_STEPS = 2
 #: trajectory-steps/s); the B = 64 gradient graphs 145 -> 78 s, run time 18k -> 33k
 #: trajectory-steps/s. The sets are the same (the same operations in scalar code).
 COMPILE_OPTIONS: dict[str, Any] = {"cpp.vec_isa_ok": False}
+
+
+def _own_code(fn: Any) -> Any:
+    """A copy of the function ``fn`` with a code object of its own.
+
+    Dynamo keeps its compiled graphs on the code object, at most ``recompile_limit`` (8) per
+    code object, and with ``fullgraph=True`` one more is a hard error. Every filter's step is
+    the same method, so without a copy each (filter, batch size, grad mode) compiled in one
+    process would use up that one budget: the ninth, e.g. five filters at two batch sizes in a
+    benchmark, raised ``FailOnRecompileLimitHit``. With the copy the budget is per ``compile()``.
+    """
+    code = fn.__code__.replace()  # an equal, distinct code object
+    return types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
 
 
 def _skip_guards() -> contextlib.AbstractContextManager:
@@ -447,7 +461,7 @@ class SetFilter(nn.Module):
         kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
         if kw.get("backend", "inductor") == "inductor" and "mode" not in kw:
             kw["options"] = {**COMPILE_OPTIONS, **(kw.get("options") or {})}
-        flat = torch.compile(self._flat_step, **kw)
+        flat = torch.compile(_own_code(type(self)._flat_step).__get__(self), **kw)
 
         def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
             if not all(isinstance(v, Tensor) for v in state.extras.values()):
