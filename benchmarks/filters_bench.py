@@ -169,15 +169,21 @@ def scaling(dims: list[int], names: list[str], batch: int, steps: int) -> None:
           "exponent: slope of log(ms) on log(n).")
 
 
-def _time_numpy(system, batch: int, steps: int, max_traj: int) -> tuple[float, bool]:
+def _time_numpy(
+    system, batch: int, steps: int, max_traj: int, repeats: int = 5
+) -> tuple[float, bool]:
+    """(median trajectory-steps/s of the numpy loop over ``repeats`` passes, extrapolated?)."""
     b = min(batch, max_traj)
     traj = system.simulate(steps=steps, batch=b, seed=0, noise="uniform")
     y = traj.y.numpy()
     numpy_hsnsmf(y[0, :1], [0.2, 0.3], [0.15, 0.15], 2e-3, 1e-3)  # warm-up (first-call costs)
-    t0 = time.perf_counter()
-    for i in range(b):
-        numpy_hsnsmf(y[i], [0.2, 0.3], [0.15, 0.15], 2e-3, 1e-3)
-    return b * steps / (time.perf_counter() - t0), b < batch
+    rates = []
+    for _ in range(repeats):  # median: one pass over 100 short trajectories is a fraction of
+        t0 = time.perf_counter()  # a second, and its rate drifted 2x between runs here
+        for i in range(b):
+            numpy_hsnsmf(y[i], [0.2, 0.3], [0.15, 0.15], 2e-3, 1e-3)
+        rates.append(b * steps / (time.perf_counter() - t0))
+    return float(np.median(rates)), b < batch
 
 
 def main() -> None:

@@ -5,7 +5,8 @@ One trajectory of ``spring_damper`` (2 states, 1 output). The peer is filterpy's
 (``predict`` then ``update``); ours run ``forward`` over the horizon, eager and compiled
 (``filt.compile()``, the one-off compile time printed separately). The CombinedFilter does a
 Kalman step plus the outer Minkowski sums of its mean set, so filterpy's EKF step is the
-natural lower reference for it. Median of ``--repeats`` timings; one torch thread.
+natural lower reference for it. Median of ``--repeats`` timings; filterpy is timed again
+right after each row (its time drifts by up to 1.7x between runs here); one torch thread.
 
     python benchmarks/kalman_bench.py [--steps 200] [--repeats 5] [--no-compile]
 """
@@ -76,8 +77,11 @@ def main() -> None:
     P0 = st.extras["covariance"][0].numpy()
     Q = np.diag(ekf.process_noise.detach().numpy() ** 2 / 3)  # uniform-noise variances
     R = np.diag(ekf.measurement_noise.detach().numpy() ** 2 / 3)
-    ref = float(np.median([filterpy_seconds(y[0].numpy(), x0, P0, Q, R)
-                           for _ in range(args.repeats)])) / args.steps
+
+    def reference() -> float:  # filterpy s/step, median of --repeats (timed next to each row)
+        runs = [filterpy_seconds(y[0].numpy(), x0, P0, Q, R) for _ in range(args.repeats)]
+        return float(np.median(runs)) / args.steps
+
     print(f"torch {torch.__version__}, 1 thread; spring_damper, B = 1, {args.steps} steps")
     print("\n| filter | mode | ms per step | filterpy EKF ms per step | ratio (ours / filterpy) "
           "| compile s |")
@@ -94,6 +98,7 @@ def main() -> None:
                     filt(y[:, :2])
                 tc = time.perf_counter() - t0
             t = torch_seconds(filt, y, args.repeats) / args.steps
+            ref = reference()
             print(f"| {name} | {mode} | {1e3 * t:.3f} | {1e3 * ref:.3f} | {t / ref:.1f} | "
                   f"{tc:.0f} |", flush=True)
 
