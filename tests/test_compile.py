@@ -127,3 +127,24 @@ def test_many_compiled_filters_in_one_process():
         for b in range(1, 10):  # nine filters, each with its own batch size (the EKF: fast)
             res = ds.filters.EKF(s).compile(backend="eager")(tr.y[:b])
             assert res.lower.shape == (b, 3, 2)
+
+
+def test_compile_options(monkeypatch):
+    """``compile()`` passes :data:`COMPILE_OPTIONS` (no SIMD kernels) to Inductor, lets the
+    caller override them, leaves them out for another backend or a ``mode``, and drops an
+    option that this torch's Inductor does not know."""
+    from diffsmf.filters import base
+
+    seen = []
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: seen.append(kw) or fn)
+    s = ds.systems.get("spring_damper")
+    ds.filters.EKF(s).compile()
+    assert seen[-1]["options"] == {"cpp.vec_isa_ok": False} and seen[-1]["fullgraph"]
+    ds.filters.EKF(s).compile(options={"cpp.vec_isa_ok": None, "max_autotune": False})
+    assert seen[-1]["options"] == {"cpp.vec_isa_ok": None, "max_autotune": False}
+    ds.filters.EKF(s).compile(backend="eager")
+    assert "options" not in seen[-1]
+    ds.filters.EKF(s).compile(mode="default")
+    assert "options" not in seen[-1]
+    monkeypatch.setitem(base.COMPILE_OPTIONS, "cpp.no_such_option", 1)
+    assert base._compile_options() == {"cpp.vec_isa_ok": False}

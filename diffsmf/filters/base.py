@@ -178,6 +178,22 @@ _GUARDED_STEPS = 2
 COMPILE_OPTIONS: dict[str, Any] = {"cpp.vec_isa_ok": False}
 
 
+def _compile_options() -> dict[str, Any]:
+    """:data:`COMPILE_OPTIONS` that this torch's Inductor knows (older releases may lack one;
+    ``torch.compile`` rejects unknown options)."""
+    import torch._inductor.config as cfg
+
+    def known(key: str) -> bool:
+        obj: Any = cfg
+        for part in key.split("."):
+            if not hasattr(obj, part):
+                return False
+            obj = getattr(obj, part)
+        return True
+
+    return {k: v for k, v in COMPILE_OPTIONS.items() if known(k)}
+
+
 def _own_code(fn: Any) -> Any:
     """A copy of the function ``fn`` with a code object of its own.
 
@@ -460,7 +476,7 @@ class SetFilter(nn.Module):
         """
         kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
         if kw.get("backend", "inductor") == "inductor" and "mode" not in kw:
-            kw["options"] = {**COMPILE_OPTIONS, **(kw.get("options") or {})}
+            kw["options"] = {**_compile_options(), **(kw.get("options") or {})}
         flat = torch.compile(_own_code(type(self)._flat_step).__get__(self), **kw)
 
         def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
