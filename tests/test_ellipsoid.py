@@ -359,3 +359,16 @@ def test_intersect_measurement_square_h_element_by_element():
     E2 = ds.Ellipsoid(Hi @ y[0], Hi @ R[0] @ Hi.mT)
     ref = ds.Ellipsoid(E.center[0], E.shape[0]).intersect_ellipsoid(E2)
     torch.testing.assert_close(both.shape[0], ref.shape, rtol=1e-9, atol=1e-14)
+
+
+def test_intersect_measurement_square_h_singular_element_gradients():
+    """A singular ``H`` in the batch does not put NaN into the gradients (its two-sided
+    branch is computed on the identity and discarded)."""
+    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    H = t([[[1.0, 0.3], [0.0, 1.0]], [[1.0, 1.0], [1.0, 1.0]]]).requires_grad_(True)
+    R = t([[[0.04, 0.0], [0.0, 0.09]]] * 2).requires_grad_(True)
+    E = ds.Ellipsoid(t([[0.0, 0.0], [0.1, 0.0]]), t([[[1.0, 0.2], [0.2, 0.5]]] * 2))
+    out = E.intersect_measurement(H, t([[0.5, 0.2], [0.3, 0.3]]), R)
+    torch.logdet(out.shape).sum().backward()
+    assert torch.isfinite(H.grad).all() and torch.isfinite(R.grad).all()
+    assert (H.grad[0] != 0).any()  # the regular element's two-sided update depends on H

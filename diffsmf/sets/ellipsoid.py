@@ -325,16 +325,20 @@ class Ellipsoid(ConvexSet):
         """For square ``H``: the measurement set as the ellipsoid ``E(H^-1 y, H^-1 R H^-T)``
         and ``ok [...]`` where ``H`` is invertible and that shape positive definite (elsewhere
         the ellipsoid is a placeholder, the unit ball at 0, to be discarded). The two-sided
-        update with it has no cancellation as rho -> 1."""
-        Hi_y, info = torch.linalg.solve_ex(H, y.unsqueeze(-1))
-        X, info_x = torch.linalg.solve_ex(H, R)
-        Xt, info_t = torch.linalg.solve_ex(H, X.mT)
-        S2 = _sym(Xt)
+        update with it has no cancellation as rho -> 1. A singular ``H`` is replaced by the
+        identity before solving, so no inf or NaN arises, in the values or in the gradients of
+        the discarded branch."""
+        eye = torch.eye(self.dim, dtype=H.dtype, device=H.device)
+        info = torch.linalg.lu_factor_ex(H.detach()).info
+        ok = info == 0
+        Hs = torch.where(ok[..., None, None], H, eye)
+        Hi_y = torch.linalg.solve_ex(Hs, y.unsqueeze(-1))[0].squeeze(-1)
+        X = torch.linalg.solve_ex(Hs, R)[0]
+        S2 = _sym(torch.linalg.solve_ex(Hs, X.mT)[0])
         _, info2 = torch.linalg.cholesky_ex(S2.detach())
-        ok = (info == 0) & (info_x == 0) & (info_t == 0) & (info2 == 0)
-        ok = ok & torch.isfinite(S2).all(-1).all(-1) & torch.isfinite(Hi_y).all(-2).all(-1)
-        eye = torch.eye(self.dim, dtype=S2.dtype, device=S2.device)
-        c2 = torch.where(ok[..., None], Hi_y.squeeze(-1), torch.zeros_like(Hi_y.squeeze(-1)))
+        ok = ok & (info2 == 0) & torch.isfinite(S2.detach()).all(-1).all(-1)
+        ok = ok & torch.isfinite(Hi_y.detach()).all(-1)
+        c2 = torch.where(ok[..., None], Hi_y, torch.zeros_like(Hi_y))
         return Ellipsoid._make(c2, torch.where(ok[..., None, None], S2, eye)), ok
 
     def _finish(self, c2: Tensor, P2: Tensor, rho: Tensor, keep: Tensor) -> Ellipsoid:
