@@ -180,18 +180,11 @@ COMPILE_OPTIONS: dict[str, Any] = {"cpp.vec_isa_ok": False}
 
 def _compile_options() -> dict[str, Any]:
     """:data:`COMPILE_OPTIONS` that this torch's Inductor knows (older releases may lack one;
-    ``torch.compile`` rejects unknown options)."""
+    ``torch.compile`` rejects an option missing from ``get_config_copy()``, as checked here)."""
     import torch._inductor.config as cfg
 
-    def known(key: str) -> bool:
-        obj: Any = cfg
-        for part in key.split("."):
-            if not hasattr(obj, part):
-                return False
-            obj = getattr(obj, part)
-        return True
-
-    return {k: v for k, v in COMPILE_OPTIONS.items() if known(k)}
+    known = cfg.get_config_copy()
+    return {k: v for k, v in COMPILE_OPTIONS.items() if k in known}
 
 
 def _own_code(fn: Any) -> Any:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_tensor, check_finite
+from diffsmf.sets.base import ConvexSet, as_tensor, check_finite, where
 from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -313,11 +313,8 @@ class Ellipsoid(ConvexSet):
         out = self._finish(c2, P2, rho_t, empty)
         if square is None:
             return out
-        ok = square[1]  # element by element, branch-free (the same in eager and traced code)
-        return Ellipsoid._make(
-            torch.where(ok[..., None], two.center_, out.center_),
-            torch.where(ok[..., None, None], two.shape, out.shape),
-        )
+        # element by element, branch-free (the same in eager and traced code)
+        return where(square[1], two, out)
 
     def _square_measurement(
         self, H: Tensor, y: Tensor, R: Tensor
