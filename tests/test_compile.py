@@ -146,5 +146,9 @@ def test_compile_options(monkeypatch):
     assert "options" not in seen[-1]
     ds.filters.EKF(s).compile(mode="default")
     assert "options" not in seen[-1]
+    with pytest.raises(ValueError, match=r"options: unknown Inductor option\(s\) \['no_such'\]"):
+        ds.filters.EKF(s).compile(options={"no_such": 1})
+    with pytest.raises(ValueError, match="options: expected a dict"):
+        ds.filters.EKF(s).compile(options=["cpp.vec_isa_ok"])
     monkeypatch.setitem(base.COMPILE_OPTIONS, "cpp.no_such_option", 1)
     assert base._compile_options() == {"cpp.vec_isa_ok": False}

@@ -187,6 +187,23 @@ def _compile_options() -> dict[str, Any]:
     return {k: v for k, v in COMPILE_OPTIONS.items() if k in known}
 
 
+def _check_options(options: Any) -> dict[str, Any]:
+    """``options`` of :meth:`SetFilter.compile` as a dict, with a one-line ``ValueError``
+    naming an option this torch's Inductor does not know (``torch.compile`` would list all
+    of its hundreds of options in the message)."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise ValueError(f"options: expected a dict of Inductor options, got {options!r}")
+    import torch._inductor.config as cfg
+
+    known = cfg.get_config_copy()
+    bad = [k for k in options if k not in known]
+    if bad:
+        raise ValueError(f"options: unknown Inductor option(s) {bad} (see torch._inductor.config)")
+    return options
+
+
 def _own_code(fn: Any) -> Any:
     """A copy of the function ``fn`` with a code object of its own.
 
@@ -469,7 +486,7 @@ class SetFilter(nn.Module):
         """
         kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
         if kw.get("backend", "inductor") == "inductor" and "mode" not in kw:
-            kw["options"] = {**_compile_options(), **(kw.get("options") or {})}
+            kw["options"] = {**_compile_options(), **_check_options(kw.get("options"))}
         flat = torch.compile(_own_code(type(self)._flat_step).__get__(self), **kw)
 
         def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
