@@ -29,6 +29,11 @@ def main() -> int:
     ap.add_argument("--systems", nargs="*", default=None)
     ap.add_argument("--filters", nargs="*", default=["hsnsmf", "mszm", "cdsmf", "esmf"])
     ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument(
+        "--progress", action="store_true",
+        help="progress bars on stderr; filters each batch in chunks of 100 trajectories "
+        "(same trajectories; CZSMF runs faster in chunks: its LP batches then fit in cache)",
+    )
     args = ap.parse_args()
     torch.set_default_dtype(torch.float64)
     override = {k: int(v) for k, v in (s.split("=") for s in args.trials_for)}
@@ -46,7 +51,9 @@ def main() -> int:
         for fname in args.filters:
             for noise in ("vertex", "uniform"):
                 filt = filters.by_name(fname)(system)
-                rep = containment(filt, system, trials, args.steps, noise, args.seed)
+                rep = containment(
+                    filt, system, trials, args.steps, noise, args.seed, progress=args.progress
+                )
                 bad += rep.violations
                 print(
                     f"| {sname} | {rep.filter} | {noise} | {rep.trials} x {rep.steps} | "

@@ -77,6 +77,13 @@ def _dual_step(z: Tensor, w: Tensor, dz: Tensor, dw: Tensor) -> Tensor:
     return (_TAU / r).clamp(max=1.0)
 
 
+def _rowvec(y: Tensor, At: Tensor) -> Tensor:
+    """``A' y`` for ``At = A' [..., m, r]`` (``At`` a transposed view of a contiguous ``A``),
+    computed as the row vector ``y' A``: batched matrix-vector products of this size are
+    several times faster in that layout (measured: ``[1600, 9, 79]``, one thread)."""
+    return (y.unsqueeze(-2) @ At.mT).squeeze(-2)
+
+
 def _chol(M: Tensor) -> Tensor:
     """Cholesky factor of the SPD ``M [..., k, k]`` plus a 1e-13 relative ridge; a failed
     factorisation (non-finite or indefinite ``M``) gives the identity (a useless but harmless
@@ -94,9 +101,9 @@ def _newton(ctx: tuple[Tensor, ...], rz: Tensor, rw: Tensor) -> tuple[Tensor, ..
     ``A D A' dy = rp + A D rh``, ``D = 1 / (z / (x + 1) + w / (1 - x))``)."""
     rd, rp, ixl, ixu, zl, wu, D, AD, At, L = ctx
     rh = rd - rz * ixl + rw * ixu
-    rhs = rp + (AD @ rh.unsqueeze(-1)).squeeze(-1)
+    rhs = rp + (AD * rh.unsqueeze(-2)).sum(-1)
     dy = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
-    dx = D * ((At @ dy.unsqueeze(-1)).squeeze(-1) - rh)
+    dx = D * (_rowvec(dy, At) - rh)
     return dx, dy, rz * ixl - zl * dx, rw * ixu + wu * dx
 
 
@@ -158,8 +165,8 @@ def box_lp(
     for it in range(iters):
         ixl, ixu = 1 / (x + 1), 1 / (1 - x)
         zl, wu = z * ixl, w * ixu
-        rd = c - (At @ y.unsqueeze(-1)).squeeze(-1) - z + w
-        rp = bs - (As @ x.unsqueeze(-1)).squeeze(-1)
+        rd = c - _rowvec(y, At) - z + w
+        rp = bs - (As * x.unsqueeze(-2)).sum(-1)
         if check and it >= _FIRST_CHECK and _converged(c, bs, x, y, z, w, rd, rp, tol):
             break  # the current iterate's certificate is already in ``best``
         mu = (z / ixl + w / ixu).sum(-1, keepdim=True) / (2 * m)
@@ -181,7 +188,7 @@ def box_lp(
         ad = _dual_step(z, w, dz, dw)
         x = (x + ap * dx).clamp(-1 + 1e-15, 1 - 1e-15)
         y, z, w = y + ad * dy, z + ad * dz, w + ad * dw
-        lam = -(T @ y.unsqueeze(-1)).squeeze(-1) * sg  # dual of the raw problem: a candidate
+        lam = -(T * y.unsqueeze(-2)).sum(-1) * sg  # dual of the raw problem: a candidate
         val = dual_bound(g, Ac, b, lam)
         better = val < best  # False for NaN
         best = torch.where(better, val, best)
