@@ -29,6 +29,8 @@ def main() -> int:
     ap.add_argument("--systems", nargs="*", default=None)
     ap.add_argument("--filters", nargs="*", default=["hsnsmf", "mszm", "cdsmf", "esmf"])
     ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--noises", nargs="+", default=["vertex", "uniform"],
+                    choices=["vertex", "uniform"], help="noise kinds (default both)")
     ap.add_argument(
         "--progress", action="store_true",
         help="progress bars on stderr; filters each batch in chunks of 100 trajectories "
@@ -49,7 +51,7 @@ def main() -> int:
             continue
         trials = override.get(sname, args.trials)
         for fname in args.filters:
-            for noise in ("vertex", "uniform"):
+            for noise in args.noises:
                 filt = filters.by_name(fname)(system)
                 rep = containment(
                     filt, system, trials, args.steps, noise, args.seed, progress=args.progress
