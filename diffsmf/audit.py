@@ -122,9 +122,17 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
         scale = 1.0 + x.abs().amax(-1) + S.generators.abs().sum(-1).amax(-1)
         inside = S.contains(x, atol=tol * float(scale.max()))
         g = torch.zeros(inside.shape, dtype=x.dtype)
-        if bool((~inside).any()):
-            d = distance_lp(S, x).to(x.dtype)
-            g = torch.where(inside, g, 1.0 + d / scale.expand(inside.shape))
+        out = ~inside
+        if bool(out.any()):  # HiGHS on the uncertified pairs only
+            sh = inside.shape
+            sub = ConstrainedZonotope(
+                S.center.expand(*sh, S.dim)[out],
+                S.generators.expand(*sh, *S.generators.shape[-2:])[out],
+                S.A.expand(*sh, *S.A.shape[-2:])[out],
+                S.b.expand(*sh, S.b.shape[-1])[out],
+            )
+            d = distance_lp(sub, x.expand(*sh, x.shape[-1])[out]).to(x.dtype)
+            g[out] = 1.0 + d / scale.expand(sh)[out]
         return g
     raise ValueError(f"S: no gauge for set type {type(S).__name__}")
 
