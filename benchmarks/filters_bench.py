@@ -14,9 +14,11 @@ rate at larger batches being extrapolated (it is linear in the batch; stated in 
     python benchmarks/filters_bench.py --scaling [--dims 2 4 8 16 32]
 
 ``--compiled`` adds rows for ``filt.compile()`` (the fullgraph step; its one-off compile time
-is printed separately). ``--scaling`` prints time per step vs the state dimension on the
-``oscillator_chain`` system (remainder ``"auto"``: vertices up to n = 8, then vertex-free) with
-the fitted growth exponent (least squares of log time on log n).
+is printed separately) and, at batch 1, for the compiled filter used online (one
+``filt.step`` call per measurement, as the numpy loop steps). ``--scaling`` prints time per
+step vs the state dimension on the ``oscillator_chain`` system (remainder ``"auto"``: vertices
+up to n = 8, then vertex-free) with the fitted growth exponent (least squares of log time on
+log n).
 """
 
 from __future__ import annotations
@@ -128,9 +130,13 @@ def numpy_hsnsmf(y: np.ndarray, c0, r0, w: float, v: float, h: float = 0.1) -> n
 
 # ---------------------------------------------------------------------- timing
 def _time_torch(
-    name: str, system, batch: int, steps: int, compiled: bool = False, repeats: int = 3
+    name: str, system, batch: int, steps: int, compiled: bool = False, repeats: int = 3,
+    online: bool = False,
 ) -> tuple[float, float]:
-    """(median trajectory-steps/s over ``repeats`` runs, one-off compile seconds or 0)."""
+    """(median trajectory-steps/s over ``repeats`` runs, one-off compile seconds or 0).
+
+    ``online``: one ``filt.step`` call per measurement instead of ``forward`` over the
+    horizon (after ``compile()`` that is the compiled step on validated inputs)."""
     traj = system.simulate(steps=steps, batch=batch, seed=0, noise="uniform")
     filt = filters.by_name(name)(system)
     t_compile = 0.0
@@ -146,7 +152,12 @@ def _time_torch(
         rates = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            filt(traj.y, u=traj.u)
+            if online:
+                st = filt.initial_state(batch=batch)
+                for k in range(steps):
+                    st = filt.step(st, None if traj.u is None else traj.u[:, k], traj.y[:, k])
+            else:
+                filt(traj.y, u=traj.u)
             rates.append(batch * steps / (time.perf_counter() - t0))
     return float(np.median(rates)), t_compile
 
@@ -208,15 +219,17 @@ def main() -> None:
     for batch in args.batches:
         steps = args.steps if batch <= 1000 else max(2, args.steps // 5)
         ref, extrap = _time_numpy(system, batch, steps, args.max_numpy)
-        variants = [(n, False) for n in args.filters]
+        variants = [(n, False, False) for n in args.filters]
         if args.compiled:
-            variants += [(n, True) for n in args.compiled_filters]
-        for name, comp in variants:
-            rate, tc = _time_torch(name, system, batch, steps, compiled=comp)
-            label = f"{name} (compiled)" if comp else name
+            variants += [(n, True, False) for n in args.compiled_filters]
+            if batch == 1:  # the online fast path: one filt.step call per measurement
+                variants += [(n, True, True) for n in args.compiled_filters]
+        for name, comp, online in variants:
+            rate, tc = _time_torch(name, system, batch, steps, compiled=comp, online=online)
+            label = f"{name} (compiled{', online step' if online else ''})" if comp else name
             rows.append((label, batch, steps, rate, ref, extrap))
             print(
-                f"{label:<18} B={batch:<6} {rate:12.0f} traj-steps/s   numpy HSNSMF {ref:10.0f}"
+                f"{label:<30} B={batch:<6} {rate:12.0f} traj-steps/s   numpy HSNSMF {ref:10.0f}"
                 f"{' (extrapolated)' if extrap else ''}   ratio {rate / ref:8.2f}"
                 + (f"   compile {tc:.0f} s" if comp else ""),
                 flush=True,

@@ -152,3 +152,48 @@ def test_compile_options(monkeypatch):
         ds.filters.EKF(s).compile(options=["cpp.vec_isa_ok"])
     monkeypatch.setitem(base.COMPILE_OPTIONS, "cpp.no_such_option", 1)
     assert base._compile_options() == {"cpp.vec_isa_ok": False}
+
+
+@pytest.mark.parametrize("name,system", [("hsnsmf", "spring_damper"), ("cdsmf", "spring_damper")])
+def test_online_step_runs_the_compiled_step(name, system):
+    """``filt.step`` after ``compile()`` (one measurement at a time, the online fast path)
+    runs the compiled graph, not the eager step, and gives ``forward``'s eager sets; CDSMF's
+    first step (the initial box) runs eagerly and later ones compiled."""
+    s = ds.systems.get(system)
+    tr = s.simulate(steps=4, batch=2, seed=1, noise="vertex")
+    eager = ds.filters.by_name(name)(s)
+    comp = ds.filters.by_name(name)(s).compile(backend="eager")
+    calls = []
+    inner = comp._compiled_step
+    comp._compiled_step = lambda *a: calls.append(1) or inner(*a)
+    with torch.no_grad():
+        ref = eager(tr.y)
+        st = comp.initial_state(batch=2)
+        for k in range(4):
+            st = comp.step(st, None, tr.y[:, k])
+    assert len(calls) == 4
+    hull = st.set.interval_hull()
+    torch.testing.assert_close(hull.lower, ref.lower[:, -1], rtol=1e-10, atol=1e-13)
+    torch.testing.assert_close(hull.upper, ref.upper[:, -1], rtol=1e-10, atol=1e-13)
+
+
+def test_online_step_validates_y():
+    """The compiled graph skips value checks, so ``step`` checks ``y`` first: shape for the
+    state's batch, inf, NaN (unless ``skip_nan``: then the update is skipped, as eagerly)."""
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=2, batch=2, seed=0)
+    filt = ds.filters.HSNSMF(s).compile(backend="eager")
+    st = filt.initial_state(batch=2)
+    for bad, msg in ((tr.y[:1, 0], "shape"), (tr.y[:, :1], "shape"),
+                     (torch.full((2, 1), float("inf"), dtype=torch.float64), "inf"),
+                     (torch.full((2, 1), float("nan"), dtype=torch.float64), "NaN")):
+        with pytest.raises(ValueError, match=f"y: .*{msg}"):
+            filt.step(st, None, bad)
+    skip = ds.filters.HSNSMF(s, skip_nan=True).compile(backend="eager")
+    y = tr.y[:, 0].clone()
+    y[1] = float("nan")
+    with torch.no_grad():
+        new = skip.step(skip.initial_state(batch=2), None, y)
+        ref = ds.filters.HSNSMF(s, skip_nan=True).step(skip.initial_state(batch=2), None, y)
+    torch.testing.assert_close(new.set.interval_hull().lower, ref.set.interval_hull().lower,
+                               rtol=1e-10, atol=1e-13)

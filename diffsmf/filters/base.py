@@ -449,7 +449,7 @@ class SetFilter(nn.Module):
         us = [None] * T if u is None else u.unbind(1)
         if getattr(self, "_compiled_step", None) is None or tracing():
             for k in range(T):
-                state = self.step(state, us[k], ys[k])
+                state = self._eager_step(state, us[k], ys[k])
                 states.append(state)
             return self.collect(states)
         self._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
@@ -464,8 +464,35 @@ class SetFilter(nn.Module):
         return self.collect(states)
 
     def step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
-        """One step: ``update(predict(state, u), y)`` (``u [B, p]`` or None, ``y [B, m]``)."""
+        """One step: ``update(predict(state, u), y)`` (``u [B, p]`` or None, ``y [B, m]``).
+
+        The online fast path: after :meth:`compile` this runs the compiled step (the same
+        graph as ``forward``'s loop) on validated inputs, so a measurement that arrives on its
+        own costs one compiled call instead of hundreds of eager operations. ``y`` must be
+        ``[B, m]`` with the state's batch ``B`` (inf raises; NaN raises unless ``skip_nan``),
+        ``u`` as in :meth:`predict`. Without ``compile()`` (or while tracing) it is the eager
+        ``update(predict(state, u), y)``.
+        """
+        compiled = getattr(self, "_compiled_step", None)
+        if compiled is None or tracing():
+            return self._eager_step(state, u, y)
+        return compiled(state, self._check_u(u, state), self._check_step_y(y, state))
+
+    def _eager_step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
+        """``update(predict(state, u), y)``, eagerly (what :meth:`compile` traces)."""
         return self.update(self.predict(state, u), y)
+
+    def _check_step_y(self, y: Any, state: FilterState) -> Tensor:
+        """``y [B, m]`` for one compiled step: shape (B from ``state``), dtype, inf / NaN."""
+        m, batch = self.system.m, tuple(state.set.batch_shape)
+        y = torch.as_tensor(y, dtype=self.system.x0_set.dtype, device=state.set.device)
+        if tuple(y.shape) != (*batch, m):
+            raise ValueError(f"y: expected shape {[*batch, m]} for this state, got {list(y.shape)}")
+        if torch.isinf(y).any():
+            raise ValueError("y: contains inf")
+        if torch.isnan(y).any() and not self.skip_nan:
+            raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
+        return y
 
     def compile(self, **compile_kwargs: Any) -> SetFilter:  # type: ignore[override]
         """The fast path: compile one filter step with ``torch.compile(fullgraph=True)``.
@@ -493,7 +520,7 @@ class SetFilter(nn.Module):
             if not all(isinstance(v, Tensor) for v in state.extras.values()):
                 # a one-off state (the ellipsoidal filters' first step carries the initial
                 # box): run it eagerly rather than compile a second graph for it
-                return self.step(state, u, y)
+                return self._eager_step(state, u, y)
             S = state.set
             b = state.bounded
             if b is None:
@@ -524,7 +551,7 @@ class SetFilter(nn.Module):
     ) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
         """:meth:`step` on flat tensors (the function that ``compile`` traces)."""
         S = set_type._from_tensors(fields)
-        new = self.step(FilterState(S, consistent, extras, bounded), u, y)
+        new = self._eager_step(FilterState(S, consistent, extras, bounded), u, y)
         nb = torch.ones_like(new.consistent) if new.bounded is None else new.bounded
         return new.set._tensors(), new.consistent, nb, dict(new.extras)
 

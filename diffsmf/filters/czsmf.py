@@ -332,7 +332,7 @@ class CZSMF(SetFilter):
                 self.max_generators, self.max_constraints
             )
             if not at_caps:
-                return self.step(state, u, y)
+                return self._eager_step(state, u, y)
             # eager steps do not count towards forward's guard skip: the first compiled calls
             # at the caps run Dynamo's full guard check (base._GUARDED_STEPS)
             return inner(state, u, y)
