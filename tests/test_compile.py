@@ -197,3 +197,36 @@ def test_online_step_validates_y():
         ref = ds.filters.HSNSMF(s, skip_nan=True).step(skip.initial_state(batch=2), None, y)
     torch.testing.assert_close(new.set.interval_hull().lower, ref.set.interval_hull().lower,
                                rtol=1e-10, atol=1e-13)
+
+
+def test_streaming_skips_guards_only_for_a_known_structure(monkeypatch):
+    """``with filt.streaming():`` skips Dynamo's guard checks after two guarded compiled calls
+    with the same input structure, and checks fully again when the structure changes (batch
+    size, grad mode): the sets stay those of the eager filter throughout."""
+    import diffsmf.filters.base as base
+
+    skipped = []
+    real = base._skip_guards
+    monkeypatch.setattr(base, "_skip_guards", lambda: skipped.append(1) or real())
+    s = ds.systems.get("spring_damper")
+    eager = ds.filters.HSNSMF(s)
+    comp = ds.filters.HSNSMF(s).compile(backend="eager")
+    with comp.streaming():
+        for batch, grad in ((2, False), (3, False), (2, True)):
+            tr = s.simulate(steps=6, batch=batch, seed=batch)
+            n0 = len(skipped)
+            with torch.set_grad_enabled(grad):
+                st = comp.initial_state(batch=batch)
+                for k in range(6):
+                    st = comp.step(st, None, tr.y[:, k])
+                ref = eager(tr.y)
+            # the initial state (an expanded set, no bounded flag) has a structure of its own;
+            # from the second step on the structure repeats: 2 guarded calls, then skips
+            assert len(skipped) - n0 == 6 - 1 - base._GUARDED_STEPS
+            hull = st.set.interval_hull()
+            torch.testing.assert_close(hull.lower, ref.lower[:, -1], rtol=1e-10, atol=1e-13)
+            torch.testing.assert_close(hull.upper, ref.upper[:, -1], rtol=1e-10, atol=1e-13)
+    assert comp._stream is None
+    n0 = len(skipped)
+    comp.step(comp.initial_state(batch=2), None, tr.y[:2, 0])  # outside the block: guarded
+    assert len(skipped) == n0

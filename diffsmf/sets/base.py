@@ -103,7 +103,7 @@ class ConvexSet:
 
     @property
     def device(self) -> torch.device:
-        return self.center.device
+        return getattr(self, self._fields[0]).device  # no op (``center`` may compute one)
 
     def _tensors(self) -> tuple[Tensor, ...]:
         return tuple(getattr(self, f) for f in self._fields)

@@ -171,6 +171,8 @@ class System(nn.Module):
                 refused, not broadcast), the wrong batch shape, or holds NaN / inf.
         """
         p = self.n_inputs
+        if u is None and p == 0:  # the common case of systems without inputs
+            return None
         batch_shape = tuple(int(b) for b in batch_shape)
         want = "[" + ", ".join(str(b) for b in (*batch_shape, p)) + "]"
         if u is None:
