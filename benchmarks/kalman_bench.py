@@ -4,7 +4,8 @@ One trajectory of ``spring_damper`` (2 states, 1 output). The peer is filterpy's
 ``ExtendedKalmanFilter`` with the analytic Jacobian of the model (numpy), stepped online
 (``predict`` then ``update``); ours run ``forward`` over the horizon, eager and compiled
 (``filt.compile()``, the one-off compile time printed separately), and the compiled filter
-also online, one ``filt.step`` call per measurement. The CombinedFilter does a
+also online, one ``filt.step`` call per measurement (with Dynamo's guard checks, and inside
+``filt.streaming()``, which skips them once checked). The CombinedFilter does a
 Kalman step plus the outer Minkowski sums of its mean set, so filterpy's EKF step is the
 natural lower reference for it. Median of ``--repeats`` timings; filterpy is timed again
 right after each row (its time drifts by up to 1.7x between runs here); one torch thread.
@@ -15,6 +16,7 @@ right after each row (its time drifts by up to 1.7x between runs here); one torc
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 
 import numpy as np
@@ -62,16 +64,18 @@ def torch_seconds(filt, y: torch.Tensor, repeats: int) -> float:
     return float(np.median(ts))
 
 
-def online_seconds(filt, y: torch.Tensor, repeats: int) -> float:
-    """Median seconds for ``filt.step`` over ``y [1, T, m]``, one measurement at a time."""
+def online_seconds(filt, y: torch.Tensor, repeats: int, stream: bool) -> float:
+    """Median seconds for ``filt.step`` over ``y [1, T, m]``, one measurement at a time
+    (``stream``: inside ``filt.streaming()``, Dynamo's guards skipped once checked)."""
     ts = []
     with torch.no_grad():
         for _ in range(repeats):
-            st = filt.initial_state(batch=1)
-            t0 = time.perf_counter()
-            for k in range(y.shape[1]):
-                st = filt.step(st, None, y[:, k])
-            ts.append(time.perf_counter() - t0)
+            with filt.streaming() if stream else contextlib.nullcontext():
+                st = filt.initial_state(batch=1)
+                t0 = time.perf_counter()
+                for k in range(y.shape[1]):
+                    st = filt.step(st, None, y[:, k])
+                ts.append(time.perf_counter() - t0)
     return float(np.median(ts))
 
 
@@ -115,11 +119,12 @@ def main() -> None:
             ref = reference()
             print(f"| {name} | {mode} | {1e3 * t:.3f} | {1e3 * ref:.3f} | {t / ref:.1f} | "
                   f"{tc:.0f} |", flush=True)
-            if comp:  # online: one filt.step call per measurement, like filterpy's loop
-                t = online_seconds(filt, y, args.repeats) / args.steps
+            for stream in (False, True) if comp else ():  # online, like filterpy's loop
+                t = online_seconds(filt, y, args.repeats, stream) / args.steps
                 ref = reference()
-                print(f"| {name} | compiled, online `step` | {1e3 * t:.3f} | {1e3 * ref:.3f} | "
-                      f"{t / ref:.1f} | |", flush=True)
+                how = "in `streaming()`" if stream else "guarded"
+                print(f"| {name} | compiled, online `step`, {how} | {1e3 * t:.3f} | "
+                      f"{1e3 * ref:.3f} | {t / ref:.1f} | |", flush=True)
 
 
 if __name__ == "__main__":
