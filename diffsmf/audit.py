@@ -125,13 +125,7 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
         out = ~inside
         if bool(out.any()):  # HiGHS on the uncertified pairs only
             sh = inside.shape
-            sub = ConstrainedZonotope(
-                S.center.expand(*sh, S.dim)[out],
-                S.generators.expand(*sh, *S.generators.shape[-2:])[out],
-                S.A.expand(*sh, *S.A.shape[-2:])[out],
-                S.b.expand(*sh, S.b.shape[-1])[out],
-            )
-            d = distance_lp(sub, x.expand(*sh, x.shape[-1])[out]).to(x.dtype)
+            d = distance_lp(S.expand(sh)[out], x.expand(*sh, x.shape[-1])[out]).to(x.dtype)
             g[out] = 1.0 + d / scale.expand(sh)[out]
         return g
     raise ValueError(f"S: no gauge for set type {type(S).__name__}")

@@ -543,6 +543,10 @@ class SetFilter(nn.Module):
         y = torch.as_tensor(y, dtype=self.system.x0_set.dtype, device=state.consistent.device)
         if tuple(y.shape) != (*batch, m):
             raise ValueError(f"y: expected shape {[*batch, m]} for this state, got {list(y.shape)}")
+        return self._check_finite_y(y)
+
+    def _check_finite_y(self, y: Tensor) -> Tensor:
+        """``y`` unchanged; inf raises, NaN raises unless ``skip_nan`` (host syncs)."""
         if bool(torch.isfinite(y).all()):  # the common case: one check
             return y
         if torch.isinf(y).any():
@@ -634,11 +638,7 @@ class SetFilter(nn.Module):
             raise ValueError(f"y: expected shape [B, T, {self.system.m}], got {tuple(y.shape)}")
         if tracing():  # value checks would sync with the host (torch.compile of forward)
             return y
-        if torch.isinf(y).any():
-            raise ValueError("y: contains inf")
-        if torch.isnan(y).any() and not self.skip_nan:
-            raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
-        return y
+        return self._check_finite_y(y)
 
 
 # ---------------------------------------------------------------------------- Minkowski weights
