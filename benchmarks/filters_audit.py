@@ -8,17 +8,96 @@ time. ``--trials-for fermenter=100`` lowers the count for a slow system (stated 
 Output: a markdown table on stdout (pasted into docs/filters.md).
 
     python benchmarks/filters_audit.py --trials 1000 --trials-for fermenter=100
+
+A long audit can be split into runs and resumed: ``--log FILE`` appends one JSON line per
+chunk of 100 trajectories (with a fingerprint of the package's source), ``--first N`` /
+``--count M`` audit only some of the ``--trials`` trajectories (the same ones as in the whole
+audit), and ``--merge FILE`` prints the table from a log, each row the union of its chunks
+and how many of the trajectories it covers. A row only merges chunks whose filter gave
+bit-identical sets on a probe (2 trajectories x 10 steps, the ``sets`` fingerprint; the
+package's source hash is logged too): run with ``OMP_NUM_THREADS=1`` so that the probe does
+not depend on the thread count.
+
+    python benchmarks/filters_audit.py --filters czsmf --systems fermenter --noises vertex \
+        --log audit.jsonl --first 300          # resumes after 3 logged chunks
+    python benchmarks/filters_audit.py --merge audit.jsonl
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+import pathlib
 import sys
 
 import torch
 
+import diffsmf
 from diffsmf import filters, systems
-from diffsmf.audit import containment
+from diffsmf.audit import containment, paper_steps
+
+HEADER = (
+    "| system | filter | noise | trajectories x steps | outside / pairs | worst dist. "
+    "| mean volume | inconsistent | time [s] |\n|---|---|---|---|---:|---:|---:|---:|---:|"
+)
+
+
+def source_fingerprint() -> str:
+    """sha256 (first 12 hex digits) of the package's Python sources: chunks logged with the
+    same fingerprint were filtered by the same code."""
+    h = hashlib.sha256()
+    root = pathlib.Path(diffsmf.__file__).parent
+    for f in sorted(root.rglob("*.py")):
+        h.update(str(f.relative_to(root)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def sets_fingerprint(fname: str, system, noise: str, seed: int) -> str:
+    """sha256 (first 12 hex digits) of the bounds that the filter gives on a probe (2
+    trajectories x 10 steps of this noise and seed): a code change that leaves the sets bit
+    for bit the same keeps it, so chunks logged before and after such a change merge."""
+    tr = system.simulate(steps=min(10, paper_steps(system)), batch=2, seed=seed, noise=noise)
+    with torch.no_grad():
+        res = filters.by_name(fname)(system)(tr.y, u=tr.u)
+    h = hashlib.sha256(res.lower.numpy().tobytes())
+    h.update(res.upper.numpy().tobytes())
+    return h.hexdigest()[:12]
+
+
+def merge(path: str) -> int:
+    """Print the table of a ``--log`` file: one row per (system, filter, noise, trials, steps,
+    seed, sets fingerprint), the union of its chunks; a chunk logged twice (same first
+    trajectory) counts once, the later entry; overlapping chunks are an error."""
+    groups: dict[tuple, dict[int, dict]] = {}
+    for line in pathlib.Path(path).read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            key = tuple(r[k] for k in ("system", "filter", "noise", "trials", "steps", "seed",
+                                       "sets"))
+            groups.setdefault(key, {})[r["start"]] = r
+    print(HEADER)
+    bad = 0
+    for (sname, fname, noise, trials, steps, seed, fp), parts in groups.items():
+        rs = sorted(parts.values(), key=lambda r: r["start"])
+        for a, b in zip(rs, rs[1:]):
+            if b["start"] < a["stop"]:
+                print(f"{path}: overlapping chunks {a['start']}-{a['stop']} and "
+                      f"{b['start']}-{b['stop']} ({sname}, {fname}, {noise})", file=sys.stderr)
+                return 2
+        done = sum(r["stop"] - r["start"] for r in rs)
+        viol = sum(r["violations"] for r in rs)
+        bad += viol
+        print(
+            f"| {sname} | {fname} | {noise} | {done} x {steps} "
+            f"({'all' if done == trials else f'{done} of'} {trials}, seed {seed}, sets {fp}) | "
+            f"{viol} / {sum(r['pairs'] for r in rs)} | "
+            f"{max(r['worst_distance'] for r in rs):.1e} | "
+            f"{sum(r['volume_sum'] for r in rs) / (done * steps):.3e} | "
+            f"{sum(r['inconsistent'] for r in rs)} | {sum(r['seconds'] for r in rs):.0f} |"
+        )
+    return 1 if bad else 0
 
 
 def main() -> int:
@@ -36,13 +115,22 @@ def main() -> int:
         help="progress bars on stderr; filters each batch in chunks of 100 trajectories "
         "(same trajectories; CZSMF runs faster in chunks: its LP batches then fit in cache)",
     )
+    ap.add_argument("--first", type=int, default=0,
+                    help="audit the trajectories from this index on (of --trials)")
+    ap.add_argument("--count", type=int, default=None,
+                    help="audit this many trajectories (default: up to --trials)")
+    ap.add_argument("--log", default=None,
+                    help="append one JSON line per chunk of 100 trajectories to this file")
+    ap.add_argument("--merge", default=None, metavar="LOG",
+                    help="print the table of a --log file and exit")
     args = ap.parse_args()
+    if args.merge:
+        return merge(args.merge)
     torch.set_default_dtype(torch.float64)
+    source = source_fingerprint() if args.log else None
     override = {k: int(v) for k, v in (s.split("=") for s in args.trials_for)}
     names = args.systems or systems.names()
-    print("| system | filter | noise | trajectories x steps | outside / pairs | worst dist. "
-          "| mean volume | inconsistent | time [s] |")
-    print("|---|---|---|---|---:|---:|---:|---:|---:|")
+    print(HEADER)
     bad = 0
     for sname in names:
         system = systems.get(sname)
@@ -53,8 +141,23 @@ def main() -> int:
         for fname in args.filters:
             for noise in args.noises:
                 filt = filters.by_name(fname)(system)
+                on_chunk = None
+                if args.log:
+                    meta = {
+                        "system": sname, "filter": type(filt).__name__, "noise": noise,
+                        "trials": trials, "steps": args.steps or paper_steps(system),
+                        "seed": args.seed, "source": source,
+                        "sets": sets_fingerprint(fname, system, noise, args.seed),
+                    }
+
+                    def on_chunk(part: dict, meta: dict = meta) -> None:
+                        with open(args.log, "a") as fh:
+                            fh.write(json.dumps({**meta, **part}) + "\n")
+
                 rep = containment(
-                    filt, system, trials, args.steps, noise, args.seed, progress=args.progress
+                    filt, system, trials, args.steps, noise, args.seed,
+                    progress=args.progress, first=args.first, count=args.count,
+                    on_chunk=on_chunk,
                 )
                 bad += rep.violations
                 print(

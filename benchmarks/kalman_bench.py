@@ -3,7 +3,9 @@
 One trajectory of ``spring_damper`` (2 states, 1 output). The peer is filterpy's
 ``ExtendedKalmanFilter`` with the analytic Jacobian of the model (numpy), stepped online
 (``predict`` then ``update``); ours run ``forward`` over the horizon, eager and compiled
-(``filt.compile()``, the one-off compile time printed separately), and the compiled filter
+(``filt.compile()``, the one-off compile time printed separately; and
+``filt.compile(steps_per_call=K)``, K steps per compiled call; with ``--cpp-wrapper`` each
+compiled row again with Inductor's C++ wrapper), and the compiled filter
 also online, one ``filt.step`` call per measurement (with Dynamo's guard checks, and inside
 ``filt.streaming()``, which skips them once checked). The CombinedFilter does a
 Kalman step plus the outer Minkowski sums of its mean set, so filterpy's EKF step is the
@@ -11,6 +13,7 @@ natural lower reference for it. Median of ``--repeats`` timings; filterpy is tim
 right after each row (its time drifts by up to 1.7x between runs here); one torch thread.
 
     python benchmarks/kalman_bench.py [--steps 200] [--repeats 5] [--no-compile]
+        [--per-call 8] [--cpp-wrapper]
 """
 
 from __future__ import annotations
@@ -84,6 +87,11 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--no-compile", action="store_true")
+    ap.add_argument("--per-call", type=int, nargs="*", default=[8],
+                    help="steps_per_call values of the extra compiled rows (none: no rows)")
+    ap.add_argument("--cpp-wrapper", action="store_true",
+                    help="also each compiled row with Inductor's C++ wrapper "
+                    "(options={'cpp_wrapper': True})")
     args = ap.parse_args()
     torch.set_num_threads(1)
     system = systems.get("spring_damper")
@@ -105,12 +113,18 @@ def main() -> None:
           "| compile s |")
     print("|---|---|---:|---:|---:|---:|")
     for name in ("ekf", "combined"):
-        modes = [("eager", False)] + ([] if args.no_compile else [("compiled", True)])
-        for mode, comp in modes:
+        modes = [("eager", 0, False)]
+        if not args.no_compile:
+            for cw in (False, True) if args.cpp_wrapper else (False,):
+                tag = ", C++ wrapper" if cw else ""
+                modes += [(f"compiled{tag}", 1, cw)] + [
+                    (f"compiled, {k} steps per call{tag}", k, cw) for k in args.per_call
+                ]
+        for mode, comp, cw in modes:
             filt = filters.by_name(name)(system)
             tc = 0.0
             if comp:
-                filt.compile()
+                filt.compile(steps_per_call=comp, options={"cpp_wrapper": True} if cw else None)
                 t0 = time.perf_counter()
                 with torch.no_grad():
                     filt(y[:, :2])
@@ -119,7 +133,7 @@ def main() -> None:
             ref = reference()
             print(f"| {name} | {mode} | {1e3 * t:.3f} | {1e3 * ref:.3f} | {t / ref:.1f} | "
                   f"{tc:.0f} |", flush=True)
-            for stream in (False, True) if comp else ():  # online, like filterpy's loop
+            for stream in (False, True) if comp == 1 else ():  # online, like filterpy's loop
                 t = online_seconds(filt, y, args.repeats, stream) / args.steps
                 ref = reference()
                 how = "in `streaming()`" if stream else "guarded"

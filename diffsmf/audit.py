@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -27,6 +28,8 @@ from diffsmf.sets.base import ConvexSet
 __all__ = ["AuditReport", "add_arguments", "containment", "gauge", "main", "paper_steps"]
 
 TOL = 1e-9
+#: Trajectories filtered per batch with ``progress`` or ``on_chunk`` (:func:`containment`).
+CHUNK = 100
 
 def paper_steps(system) -> int:
     """Horizon of a system: its ``horizon`` attribute (the built-ins carry the papers'), or 100."""
@@ -140,6 +143,9 @@ def containment(
     seed: int = 0,
     tol: float = TOL,
     progress: bool = False,
+    first: int = 0,
+    count: int | None = None,
+    on_chunk: Callable[[dict], None] | None = None,
 ) -> AuditReport:
     """Containment audit of ``filt`` (a :class:`~diffsmf.filters.SetFilter`) on ``system``.
 
@@ -150,52 +156,80 @@ def containment(
         noise: ``"vertex"`` (worst case) or ``"uniform"``.
         seed: seed of the simulation.
         tol: relative tolerance on the gauge.
-        progress: show a progress bar over trajectories (the batch is then filtered in
-            chunks of at most 100 trajectories; the counts are the same).
+        progress: show a progress bar over trajectories with the running counts of outside
+            pairs and inconsistent steps (the batch is then filtered in chunks of at most
+            :data:`CHUNK` trajectories; the counts are the same).
+        first, count: audit only the trajectories ``first .. first + count - 1`` of the
+            ``trials`` simulated ones (default: all), e.g. to split a long audit into runs;
+            the trajectories are the same as in the whole audit.
+        on_chunk: called after each chunk of at most :data:`CHUNK` trajectories (chunking
+            as with ``progress``) with a dict of its counts: ``start``, ``stop`` (trajectory
+            indices), ``violations``, ``pairs``, ``worst_distance``, ``volume_sum`` (over
+            its trajectories and steps 1..T), ``inconsistent``, ``seconds``; a log of these
+            lets an audit that is stopped resume (``benchmarks/filters_audit.py --log``).
 
     Returns:
-        :class:`AuditReport`. ``mean_volume`` averages over trajectories and steps 1..T.
+        :class:`AuditReport` over the audited trajectories. ``mean_volume`` averages over
+        trajectories and steps 1..T.
     """
     if trials < 1:
         raise ValueError(f"trials: must be >= 1, got {trials}")
+    count = trials - first if count is None else count
+    if not 0 <= first < trials or not 1 <= count <= trials - first:
+        raise ValueError(
+            f"first, count: trajectories {first}..{first + count - 1} are not within the "
+            f"{trials} simulated ones"
+        )
     system = filt.system if system is None else system
     steps = paper_steps(system) if steps is None else steps
     traj = system.simulate(steps=steps, batch=trials, seed=seed, noise=noise)
-    chunk = 100 if progress else trials
+    chunk = CHUNK if progress or on_chunk is not None else count
     viol_n, worst, vol_sum, incons, seconds = 0, 0.0, 0.0, 0, 0.0
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=trials, desc=f"audit ({noise} noise)", unit="traj", leave=False)
-    for i in range(0, trials, chunk):
-        x = traj.x[i : i + chunk]
-        u = None if traj.u is None else traj.u[i : i + chunk]
+        bar = tqdm(total=count, desc=f"audit ({noise} noise)", unit="traj", leave=False)
+    for i in range(first, first + count, chunk):
+        j = min(i + chunk, first + count)
+        x = traj.x[i:j]
+        u = None if traj.u is None else traj.u[i:j]
         t0 = time.perf_counter()
         with torch.no_grad():
-            res = filt(traj.y[i : i + chunk], u=u)
-        seconds += time.perf_counter() - t0
+            res = filt(traj.y[i:j], u=u)
+        dt = time.perf_counter() - t0
         g = gauge(res.sets, x, tol)  # [b, T+1]
-        viol_n += int((g > 1 + tol).sum())
-        worst = max(worst, float((g - 1).clamp_min(0).max()))
-        vol_sum += float(res.volume[:, 1:].sum())
-        incons += int((~res.consistent).sum())
-        if bar is not None:
-            bar.update(x.shape[0])
+        part = {
+            "start": i, "stop": j, "violations": int((g > 1 + tol).sum()),
+            "pairs": (j - i) * (steps + 1),
+            "worst_distance": float((g - 1).clamp_min(0).max()),
+            "volume_sum": float(res.volume[:, 1:].sum()),
+            "inconsistent": int((~res.consistent).sum()), "seconds": dt,
+        }
+        viol_n += part["violations"]
+        worst = max(worst, part["worst_distance"])
+        vol_sum += part["volume_sum"]
+        incons += part["inconsistent"]
+        seconds += dt
+        if on_chunk is not None:
+            on_chunk(part)
+        if bar is not None:  # running counts: a stopped audit still tells what it checked
+            bar.set_postfix(outside=viol_n, inconsistent=incons, refresh=False)
+            bar.update(j - i)
     if bar is not None:
         bar.close()
-    pairs = trials * (steps + 1)
+    pairs = count * (steps + 1)
     return AuditReport(
         filter=type(filt).__name__,
         system=system.name,
         noise=noise,
-        trials=trials,
+        trials=count,
         steps=steps,
         pairs=pairs,
         violations=viol_n,
         fraction=viol_n / pairs,
         worst_distance=worst,
-        mean_volume=vol_sum / (trials * steps),
+        mean_volume=vol_sum / (count * steps),
         inconsistent=incons,
         seconds=seconds,
     )

@@ -14,7 +14,10 @@ expansion, with rounding error below ``(n + 1)! eps`` times the product of the c
 (the Hadamard bound); ``solve`` for n <= 2 is Cramer's rule, forward stable for 2 x 2
 (Higham, *Accuracy and Stability of Numerical Algorithms*, 2nd ed., sec. 1.10.1); ``eigvalsh``
 for n <= 2 is the characteristic-polynomial root ``(a + d) / 2 -+ sqrt(((a - d) / 2)^2 + b^2)``
-with absolute error a few ``eps ||S||``, the same order as LAPACK's. Every guaranteed caller
+with absolute error a few ``eps ||S||``, the same order as LAPACK's; ``eigh`` for n <= 2 adds
+the rotation angle ``theta = atan2(b, (a - d) / 2) / 2`` of the eigenvectors (Golub & Van Loan,
+*Matrix Computations*, 4th ed., sec. 8.5.2, the symmetric Schur decomposition), orthonormal to
+a few ``eps``. Every guaranteed caller
 already pads for an error of this order (e.g. ``hessian_eig_lower_bound``: ``(8 n + 16) eps``).
 
 A singular matrix gives ``inf`` / NaN entries in ``solve`` at n <= 2 instead of LAPACK's
@@ -27,10 +30,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["CLOSED_FORM_MAX_N", "SMALL_MATMUL_MAX", "det", "eigvalsh", "matmul", "solve"]
+__all__ = [
+    "CLOSED_FORM_MAX_N", "SMALL_MATMUL_MAX", "det", "eigh", "eigvalsh", "matmul", "solve",
+]
 
-#: Largest size with a closed form: ``det`` up to 3, ``solve`` and ``eigvalsh`` up to 2.
-CLOSED_FORM_MAX_N = {"det": 3, "solve": 2, "eigvalsh": 2}
+#: Largest size with a closed form: ``det`` up to 3, ``solve``, ``eigvalsh`` and ``eigh`` up
+#: to 2.
+CLOSED_FORM_MAX_N = {"det": 3, "solve": 2, "eigvalsh": 2, "eigh": 2}
 
 
 #: ``matmul`` uses a broadcast multiply-and-sum when every dimension of the product is at most
@@ -105,3 +111,28 @@ def eigvalsh(S: Tensor) -> Tensor:
         r = torch.sqrt(h * h + b * b + torch.finfo(S.dtype).tiny)
         return torch.stack([m - r, m + r], -1)
     return torch.linalg.eigvalsh(S)
+
+
+def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
+    """Eigenvalues (ascending) ``[..., n]`` and orthonormal eigenvectors (columns) ``[..., n, n]``
+    of symmetric ``S [..., n, n]``.
+
+    Closed form up to n = 2 (no LAPACK call, no host sync: ``torch.linalg.eigh`` checks its
+    result on the host, and at n = 2 each call cost about 50 us in a compiled step): the
+    eigenvalues of :func:`eigvalsh` and the rotation ``[[c, -s], [s, c]]`` by ``theta =
+    atan2(b, (a - d) / 2) / 2``, columns reordered to ``[[-s, c], [c, s]]`` for ascending
+    eigenvalues (``b = (S_01 + S_10) / 2``; ``S`` diagonal with ``a = d`` gives the identity).
+    Eigenvector signs may differ from LAPACK's. Not differentiable at repeated eigenvalues (the
+    callers wrap it in autograd Functions with their own backward), else ``torch.linalg.eigh``.
+    """
+    n = _check_square("S", S)
+    if n == 1:
+        return S[..., 0, :], torch.ones_like(S)
+    if n == 2:
+        a, d = S[..., 0, 0], S[..., 1, 1]
+        b = 0.5 * (S[..., 0, 1] + S[..., 1, 0])
+        theta = 0.5 * torch.atan2(b, 0.5 * (a - d))
+        c, s = torch.cos(theta), torch.sin(theta)
+        V = torch.stack([torch.stack([-s, c], -1), torch.stack([c, s], -1)], -2)
+        return eigvalsh(S), V
+    return torch.linalg.eigh(S)

@@ -102,6 +102,69 @@ def test_czsmf_compiled_step_is_one_graph():
     assert torch.equal(rc.bounded, re.bounded)
 
 
+@pytest.mark.parametrize(
+    "name,system", [("hsnsmf", "spring_damper"), ("cdsmf", "spring_damper"), ("ekf", "bilinear")]
+)
+def test_steps_per_call_one_graph_same_sets(name, system):
+    """``compile(steps_per_call=3)``: forward runs 3 steps per compiled call in one graph (the
+    last, shorter part on repeated y / u, its extra states dropped) and gives the eager sets;
+    CDSMF's first step (initial box in its extras) runs eagerly."""
+    s = ds.systems.get(system)
+    tr = s.simulate(steps=7, batch=2, seed=1, noise="vertex")  # 7 = 3 + 3 + 1 (+ 2 padded)
+    eager = ds.filters.by_name(name)(s)
+    comp = ds.filters.by_name(name)(s).compile(steps_per_call=3, backend="eager")
+    calls, inner = [], comp._compiled_steps
+    comp._compiled_steps = lambda *a: calls.append(1) or inner(*a)
+    torch._dynamo.utils.counters.clear()
+    with torch.no_grad():
+        re = eager(tr.y, u=tr.u)
+        rc = comp(tr.y, u=tr.u)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1
+    assert len(calls) == (2 if name == "cdsmf" else 3)  # CDSMF: 1 eager step, then 3 + 3
+    assert rc.lower.shape == re.lower.shape == (2, 8, s.n)
+    torch.testing.assert_close(rc.lower, re.lower, rtol=1e-10, atol=1e-13)
+    torch.testing.assert_close(rc.upper, re.upper, rtol=1e-10, atol=1e-13)
+    assert torch.equal(rc.consistent, re.consistent)
+
+
+def test_steps_per_call_gradients_and_online_step():
+    """Gradients through the K-step graph equal the eager ones (the padded steps feed no
+    loss); the online ``step`` still runs one step per call; a bad K raises."""
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=5, batch=2, seed=0)
+    filt = ds.filters.HSNSMF(s).compile(steps_per_call=2, backend="aot_eager")
+    filt(tr.y).volume[:, 1:].log().mean().backward()
+    ref = ds.filters.HSNSMF(s)
+    ref(tr.y).volume[:, 1:].log().mean().backward()
+    torch.testing.assert_close(
+        filt.raw_process_noise.grad, ref.raw_process_noise.grad, rtol=1e-8, atol=1e-12
+    )
+    with torch.no_grad():
+        st, se = filt.initial_state(batch=2), ref.initial_state(batch=2)
+        for k in range(3):
+            st, se = filt.step(st, None, tr.y[:, k]), ref.step(se, None, tr.y[:, k])
+        torch.testing.assert_close(st.set.interval_hull().upper, se.set.interval_hull().upper)
+    for bad in (0, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="steps_per_call"):
+            ds.filters.HSNSMF(s).compile(steps_per_call=bad)
+
+
+def test_czsmf_steps_per_call():
+    """CZSMF with K steps per call: the growing steps run eagerly, then K-step calls at the
+    caps; the same sets as eager."""
+    from diffsmf.filters.czsmf import CZSMF
+
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=9, batch=2, seed=0, noise="vertex")
+    kw = dict(max_generators=8, max_constraints=2, elimination="propagation", lp_iters=2)
+    eager = CZSMF(s, **kw)
+    comp = CZSMF(s, **kw).compile(steps_per_call=2, backend="eager")
+    with torch.no_grad():
+        re, rc = eager(tr.y), comp(tr.y)
+    torch.testing.assert_close(rc.lower, re.lower, rtol=1e-10, atol=1e-13)
+    torch.testing.assert_close(rc.upper, re.upper, rtol=1e-10, atol=1e-13)
+
+
 @pytest.mark.parametrize("name,system", CASES)
 def test_whole_module_compiles_with_fullgraph(name, system):
     """``torch.compile(filt, fullgraph=True)`` (the whole unrolled forward, collect included)

@@ -44,6 +44,33 @@ def test_eigvalsh_matches_numpy(n: int) -> None:
     np.testing.assert_allclose(linalg.eigvalsh(S).numpy(), ref, rtol=1e-12, atol=1e-13)
 
 
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_eigh_matches_numpy(n: int) -> None:
+    """Eigenpairs against numpy's LAPACK ``eigh``, degenerate 2 x 2 cases included: a double
+    eigenvalue, the zero matrix, diagonal with a < d, a negative off-diagonal, a matrix with
+    a = d (theta = +-pi / 4). Eigenvectors are compared up to sign (projectors), except at the
+    double eigenvalue, where any orthonormal basis is right."""
+    M = _rand(n)
+    S = M + M.mT
+    if n == 2:
+        extra = torch.tensor(
+            [[[2.0, 0.0], [0.0, 2.0]], [[0.0, 0.0], [0.0, 0.0]], [[1.0, 0.0], [0.0, 3.0]],
+             [[1.0, -0.5], [-0.5, 2.0]], [[1.0, 0.7], [0.7, 1.0]], [[1.0, -1e-12], [-1e-12, 1.0]]],
+            dtype=torch.float64,
+        )
+        S = torch.cat([S, extra])
+    lam, V = linalg.eigh(S)
+    ref_l, ref_V = np.linalg.eigh(S.numpy())
+    np.testing.assert_allclose(lam.numpy(), ref_l, rtol=1e-12, atol=1e-13)
+    eye = torch.eye(n, dtype=torch.float64)
+    torch.testing.assert_close(V.mT @ V, eye.expand_as(V), rtol=0, atol=1e-14)
+    torch.testing.assert_close(V @ torch.diag_embed(lam) @ V.mT, S, rtol=1e-13, atol=1e-13)
+    simple = (np.diff(ref_l, axis=-1) > 1e-6).all(-1) if n > 1 else np.ones(len(S), bool)
+    P = torch.einsum("...ai,...bi->...iab", V, V)  # projector v_i v_i' per eigenvector i
+    Pr = torch.einsum("...ai,...bi->...iab", *(torch.as_tensor(ref_V),) * 2)
+    torch.testing.assert_close(P[simple], Pr[simple], rtol=0, atol=1e-10)
+
+
 def test_eigvalsh_double_eigenvalue_and_gradient() -> None:
     S = torch.tensor([[2.0, 0.0], [0.0, 2.0]], dtype=torch.float64, requires_grad=True)
     lam = linalg.eigvalsh(S)

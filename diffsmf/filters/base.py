@@ -248,6 +248,27 @@ def _signature(state: FilterState, u: Tensor | None, y: Tensor) -> tuple:
     )
 
 
+def _flat_args(state: FilterState) -> tuple:
+    """``state`` as the flat, contiguous tensors that the compiled step takes: fields,
+    consistent, bounded (all True for None), extras (contiguous: the expanded initial set
+    would otherwise be a second graph)."""
+    S, b = state.set, state.bounded
+    if b is None:
+        b = torch.ones_like(state.consistent)
+    return (
+        tuple(t.contiguous() for t in S._tensors()), state.consistent.contiguous(),
+        b.contiguous(), {k: _contiguous(v) for k, v in state.extras.items()},
+    )
+
+
+def _pad_horizon(x: Tensor, K: int) -> Tensor:
+    """``x [B, T, d]`` padded along T to a multiple of ``K`` by repeating its last step."""
+    pad = -x.shape[1] % K
+    if pad == 0:
+        return x
+    return torch.cat([x, x[:, -1:].expand(x.shape[0], pad, x.shape[2])], 1)
+
+
 def _pad_and_stack(sets: list[ConvexSet]) -> ConvexSet:
     """Stack along a new dim 1; zonotopes with differing generator counts are zero-padded."""
     return stack(align(sets), dim=1)
@@ -472,11 +493,23 @@ class SetFilter(nn.Module):
                 states.append(state)
             return self.collect(states)
         self._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
+        K = getattr(self, "_steps_per_call", 1)
+        ys_pad = _pad_horizon(y, K)
+        us_pad = None if u is None else _pad_horizon(u, K)
         with contextlib.ExitStack() as stack:
-            skipping = False
-            for k in range(T):
-                state = self._compiled_step(state, us[k], ys[k])
-                states.append(state)
+            skipping, k = False, 0
+            while k < T:
+                if K == 1 or not self._compile_ready(state):
+                    state = self._compiled_step(state, us[k], ys[k])  # eager when not ready
+                    states.append(state)
+                    k += 1
+                else:  # K steps in one graph; a last part past T runs on repeated y / u
+                    chunk = slice(k, k + K)
+                    uk = None if us_pad is None else us_pad[:, chunk].contiguous()
+                    new = self._compiled_steps(state, uk, ys_pad[:, chunk].contiguous())
+                    states.extend(new[: T - k])
+                    state = states[-1]
+                    k += K
                 if not skipping and self._guarded_calls >= _GUARDED_STEPS:
                     stack.enter_context(_skip_guards())  # once, for the rest of the loop
                     skipping = True
@@ -555,7 +588,7 @@ class SetFilter(nn.Module):
             raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
         return y
 
-    def compile(self, **compile_kwargs: Any) -> SetFilter:  # type: ignore[override]
+    def compile(self, steps_per_call: int = 1, **compile_kwargs: Any) -> SetFilter:  # type: ignore[override]
         """The fast path: compile one filter step with ``torch.compile(fullgraph=True)``.
 
         The step (predict + update, the guard included) is traced once per state structure
@@ -564,41 +597,65 @@ class SetFilter(nn.Module):
         synchronise are skipped (``forward`` still validates ``y`` and ``u`` once for the
         whole horizon, eagerly) and data-dependent branches take their branch-free general
         form (same sets up to rounding; every bound stays guaranteed). ``forward`` then runs
-        the compiled step in its time loop; ``predict`` / ``update`` stay eager. Returns
-        ``self``. ``compile_kwargs`` go to :func:`torch.compile` (default ``fullgraph=True,
-        dynamic=False`` and, for Inductor, ``options=COMPILE_OPTIONS``: no SIMD vectorisation
-        of the generated C++ kernels, which halves the compile time and is faster at run time
-        for these small-matrix steps; pass ``options={"cpp.vec_isa_ok": None}`` for Inductor's
-        default). Unlike ``nn.Module.compile`` this compiles the step, not the whole unrolled
-        horizon, so compile time does not grow with T.
+        the compiled step in its time loop, and :meth:`step` is the online fast path;
+        ``predict`` / ``update`` stay eager. Returns ``self``.
+
+        Args:
+            steps_per_call: ``K >= 1``, the steps of ``forward``'s loop that one compiled call
+                runs (one graph of K unrolled steps). Each call of a compiled graph costs a
+                fixed framework overhead (about 85 us on this 2-core CPU: Dynamo's frame,
+                AOTAutograd's and Inductor's wrappers), which dominates small filters at
+                batch 1 (the EKF's step is about 0.13 ms); ``K`` steps share it, at the
+                price of a graph (and a compile time) about ``K`` times larger. A last part
+                shorter than ``K`` runs the same graph on the last ``y`` / ``u`` repeated and
+                its extra states are dropped (steps are causal: the kept states are
+                unchanged). The online :meth:`step` always uses the one-step graph.
+            compile_kwargs: passed to :func:`torch.compile` (default ``fullgraph=True,
+                dynamic=False`` and, for Inductor, ``options=COMPILE_OPTIONS``: no SIMD
+                vectorisation of the generated C++ kernels, which halves the compile time
+                and is faster at run time for these small-matrix steps; pass
+                ``options={"cpp.vec_isa_ok": None}`` for Inductor's default).
+
+        Unlike ``nn.Module.compile`` this compiles the step, not the whole unrolled horizon,
+        so compile time does not grow with T.
         """
+        if isinstance(steps_per_call, bool) or not isinstance(steps_per_call, int) or (
+            steps_per_call < 1
+        ):
+            raise ValueError(f"steps_per_call: must be an integer >= 1, got {steps_per_call!r}")
         kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
         if kw.get("backend", "inductor") == "inductor" and "mode" not in kw:
             kw["options"] = {**_compile_options(), **_check_options(kw.get("options"))}
+        # each its own code object (own recompile budget, see _own_code); compiled lazily
         flat = torch.compile(_own_code(type(self)._flat_step).__get__(self), **kw)
+        multi = torch.compile(_own_code(type(self)._flat_steps).__get__(self), **kw)
 
         def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
-            if not all(isinstance(v, Tensor) for v in state.extras.values()):
-                # a one-off state (the ellipsoidal filters' first step carries the initial
-                # box): run it eagerly rather than compile a second graph for it
+            if not self._compile_ready(state):
                 return self._eager_step(state, u, y)
-            S = state.set
-            b = state.bounded
-            if b is None:
-                b = torch.ones_like(state.consistent)
-            # contiguous inputs: the expanded initial set would otherwise be a second graph
-            args = (
-                tuple(t.contiguous() for t in S._tensors()), state.consistent.contiguous(),
-                b.contiguous(), {k: _contiguous(v) for k, v in state.extras.items()}, u, y,
-                type(S),
-            )
             self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1  # see forward
-            fields, consistent, bounded, extras = flat(*args)
-            return FilterState(self._out_type._from_tensors(fields), consistent, extras, bounded)
+            return self._unflatten(flat(*_flat_args(state), u, y, type(state.set)))
+
+        def compiled_steps(state: FilterState, us: Tensor | None, ys: Tensor) -> list[FilterState]:
+            self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1
+            outs = multi(*_flat_args(state), us, ys, type(state.set))
+            return [self._unflatten(o) for o in outs]
 
         self._out_type = type(self.initial_state(batch=1).set)
+        self._steps_per_call = steps_per_call
         self._compiled_step = compiled
+        self._compiled_steps = compiled_steps
         return self
+
+    def _compile_ready(self, state: FilterState) -> bool:
+        """Whether the compiled graph serves ``state`` (else its step runs eagerly): every
+        extra is a tensor. The ellipsoidal filters' first state carries the initial box; it
+        runs eagerly rather than compile a second graph for it."""
+        return all(isinstance(v, Tensor) for v in state.extras.values())
+
+    def _unflatten(self, out: tuple) -> FilterState:
+        fields, consistent, bounded, extras = out
+        return FilterState(self._out_type._from_tensors(fields), consistent, extras, bounded)
 
     def _flat_step(
         self,
@@ -615,6 +672,26 @@ class SetFilter(nn.Module):
         new = self._eager_step(FilterState(S, consistent, extras, bounded), u, y)
         nb = torch.ones_like(new.consistent) if new.bounded is None else new.bounded
         return new.set._tensors(), new.consistent, nb, dict(new.extras)
+
+    def _flat_steps(
+        self,
+        fields: tuple[Tensor, ...],
+        consistent: Tensor,
+        bounded: Tensor,
+        extras: dict[str, Tensor],
+        us: Tensor | None,
+        ys: Tensor,
+        set_type: type,
+    ) -> tuple[tuple, ...]:
+        """``K = ys.shape[1]`` steps of :meth:`_flat_step` (``us [B, K, p]``, ``ys [B, K, m]``)
+        -> the K flat states (the function that ``compile(steps_per_call=K)`` traces)."""
+        out = []
+        flat = (fields, consistent, bounded, extras)
+        for j in range(ys.shape[1]):
+            u = None if us is None else us[:, j]
+            flat = self._flat_step(*flat, u, ys[:, j], set_type)
+            out.append(flat)
+        return tuple(out)
 
     def collect(self, states: list[FilterState]) -> FilterResult:
         """Assemble a :class:`FilterResult` from the per-step states."""

@@ -317,28 +317,19 @@ class CZSMF(SetFilter):
         new = FilterState(set=Zu, consistent=ok, extras={"lower": ulo, "upper": uhi})
         return new.replace(bounded=state.bounded).and_bounded(bounded)
 
-    def compile(self, **compile_kwargs) -> CZSMF:  # type: ignore[override]
-        """:meth:`SetFilter.compile` for the fixed-size phase: a step whose state set is not
+    def _compile_ready(self, state: FilterState) -> bool:
+        """The compiled graph serves the fixed-size phase only: a step whose state set is not
         yet at the caps (the first steps, while generators and constraints grow; every step
         with ``max_generators=None``) runs eagerly, so that one graph (static shapes) serves
         every later step. While tracing, the LPs run their fixed iteration count
-        (:func:`~diffsmf.sets.czono_lp.box_lp`) and the fault path is taken branch-free."""
-        super().compile(**compile_kwargs)
-        inner = self._compiled_step
-
-        def step(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
-            S = state.set
-            at_caps = self.reduces and (S.num_generators, S.num_constraints) == (
-                self.max_generators, self.max_constraints
-            )
-            if not at_caps:
-                return self._eager_step(state, u, y)
-            # eager steps do not count towards forward's guard skip: the first compiled calls
-            # at the caps run Dynamo's full guard check (base._GUARDED_STEPS)
-            return inner(state, u, y)
-
-        self._compiled_step = step
-        return self
+        (:func:`~diffsmf.sets.czono_lp.box_lp`) and the fault path is taken branch-free.
+        Eager steps do not count towards ``forward``'s guard skip: the first compiled calls at
+        the caps run Dynamo's full guard check (``base._GUARDED_STEPS``)."""
+        S = state.set
+        at_caps = self.reduces and (S.num_generators, S.num_constraints) == (
+            self.max_generators, self.max_constraints
+        )
+        return at_caps and super()._compile_ready(state)
 
     def collect(self, states: list[FilterState]) -> FilterResult:
         """Results from the cached hulls (no LP re-solve); sets padded to a common size."""

@@ -34,7 +34,7 @@ class _SqrtmPSD(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, S: Tensor) -> Tensor:  # type: ignore[override]
-        evals, V = torch.linalg.eigh(S)
+        evals, V = linalg.eigh(S)  # closed form for n <= 2
         s = evals.clamp_min(0).sqrt()
         ctx.save_for_backward(s, V)
         return (V * s.unsqueeze(-2)) @ V.mT
@@ -59,7 +59,7 @@ class _EighSafe(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, S: Tensor) -> tuple[Tensor, Tensor]:  # type: ignore[override]
-        evals, V = torch.linalg.eigh(S)
+        evals, V = linalg.eigh(S)  # closed form for n <= 2
         ctx.save_for_backward(evals, V)
         return evals, V
 
