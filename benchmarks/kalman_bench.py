@@ -4,8 +4,9 @@ One trajectory of ``spring_damper`` (2 states, 1 output). The peer is filterpy's
 ``ExtendedKalmanFilter`` with the analytic Jacobian of the model (numpy), stepped online
 (``predict`` then ``update``); ours run ``forward`` over the horizon, eager and compiled
 (``filt.compile()``, the one-off compile time printed separately; and
-``filt.compile(steps_per_call=K)``, K steps per compiled call; with ``--cpp-wrapper`` each
-compiled row again with Inductor's C++ wrapper), and the compiled filter
+``filt.compile(steps_per_call=K)``, K steps per compiled call; with ``--python-wrapper`` each
+compiled row again with Inductor's Python wrapper instead of the default C++ one), and the
+compiled filter
 also online, one ``filt.step`` call per measurement (with Dynamo's guard checks, and inside
 ``filt.streaming()``, which skips them once checked). The CombinedFilter does a
 Kalman step plus the outer Minkowski sums of its mean set, so filterpy's EKF step is the
@@ -13,7 +14,7 @@ natural lower reference for it. Median of ``--repeats`` timings; filterpy is tim
 right after each row (its time drifts by up to 1.7x between runs here); one torch thread.
 
     python benchmarks/kalman_bench.py [--steps 200] [--repeats 5] [--no-compile]
-        [--per-call 8] [--cpp-wrapper]
+        [--per-call 8] [--python-wrapper]
 """
 
 from __future__ import annotations
@@ -89,9 +90,9 @@ def main() -> None:
     ap.add_argument("--no-compile", action="store_true")
     ap.add_argument("--per-call", type=int, nargs="*", default=[8],
                     help="steps_per_call values of the extra compiled rows (none: no rows)")
-    ap.add_argument("--cpp-wrapper", action="store_true",
-                    help="also each compiled row with Inductor's C++ wrapper "
-                    "(options={'cpp_wrapper': True})")
+    ap.add_argument("--python-wrapper", action="store_true",
+                    help="also each compiled row with Inductor's Python wrapper "
+                    "(options={'cpp_wrapper': False}; the default is the C++ wrapper)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     system = systems.get("spring_damper")
@@ -115,8 +116,8 @@ def main() -> None:
     for name in ("ekf", "combined"):
         modes = [("eager", 0, False)]
         if not args.no_compile:
-            for cw in (False, True) if args.cpp_wrapper else (False,):
-                tag = ", C++ wrapper" if cw else ""
+            for cw in (True, False) if args.python_wrapper else (True,):
+                tag = "" if cw else ", Python wrapper"
                 modes += [(f"compiled{tag}", 1, cw)] + [
                     (f"compiled, {k} steps per call{tag}", k, cw) for k in args.per_call
                 ]
@@ -124,7 +125,7 @@ def main() -> None:
             filt = filters.by_name(name)(system)
             tc = 0.0
             if comp:
-                filt.compile(steps_per_call=comp, options={"cpp_wrapper": True} if cw else None)
+                filt.compile(steps_per_call=comp, options=None if cw else {"cpp_wrapper": False})
                 t0 = time.perf_counter()
                 with torch.no_grad():
                     filt(y[:, :2])

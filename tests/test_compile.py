@@ -192,9 +192,22 @@ def test_many_compiled_filters_in_one_process():
             assert res.lower.shape == (b, 3, 2)
 
 
+def test_inductor_default_options_match_eager():
+    """The real default path, Inductor with :data:`COMPILE_OPTIONS` (scalar C++ kernels and
+    the C++ wrapper), 2 steps per call on a 5-step horizon: the eager EKF's results (the EKF:
+    a compile of seconds)."""
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=5, batch=2, seed=3)
+    comp = ds.filters.EKF(s).compile(steps_per_call=2)
+    with torch.no_grad():
+        rc, re = comp(tr.y), ds.filters.EKF(s)(tr.y)
+    torch.testing.assert_close(rc.lower, re.lower, rtol=1e-10, atol=1e-13)
+    torch.testing.assert_close(rc.upper, re.upper, rtol=1e-10, atol=1e-13)
+
+
 def test_compile_options(monkeypatch):
-    """``compile()`` passes :data:`COMPILE_OPTIONS` (no SIMD kernels) to Inductor, lets the
-    caller override them, leaves them out for another backend or a ``mode``, and drops an
+    """``compile()`` passes :data:`COMPILE_OPTIONS` (no SIMD kernels, C++ wrapper) to Inductor,
+    lets the caller override them, leaves them out for another backend or a ``mode``, and drops an
     option that this torch's Inductor does not know."""
     from diffsmf.filters import base
 
@@ -202,9 +215,12 @@ def test_compile_options(monkeypatch):
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: seen.append(kw) or fn)
     s = ds.systems.get("spring_damper")
     ds.filters.EKF(s).compile()
-    assert seen[-1]["options"] == {"cpp.vec_isa_ok": False} and seen[-1]["fullgraph"]
+    assert seen[-1]["options"] == {"cpp.vec_isa_ok": False, "cpp_wrapper": True}
+    assert seen[-1]["fullgraph"]
     ds.filters.EKF(s).compile(options={"cpp.vec_isa_ok": None, "max_autotune": False})
-    assert seen[-1]["options"] == {"cpp.vec_isa_ok": None, "max_autotune": False}
+    assert seen[-1]["options"] == {
+        "cpp.vec_isa_ok": None, "cpp_wrapper": True, "max_autotune": False
+    }
     ds.filters.EKF(s).compile(backend="eager")
     assert "options" not in seen[-1]
     ds.filters.EKF(s).compile(mode="default")
@@ -214,7 +230,7 @@ def test_compile_options(monkeypatch):
     with pytest.raises(ValueError, match="options: expected a dict"):
         ds.filters.EKF(s).compile(options=["cpp.vec_isa_ok"])
     monkeypatch.setitem(base.COMPILE_OPTIONS, "cpp.no_such_option", 1)
-    assert base._compile_options() == {"cpp.vec_isa_ok": False}
+    assert base._compile_options() == {"cpp.vec_isa_ok": False, "cpp_wrapper": True}
 
 
 @pytest.mark.parametrize("name,system", [("hsnsmf", "spring_damper"), ("cdsmf", "spring_damper")])
