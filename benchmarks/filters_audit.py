@@ -170,4 +170,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except (ValueError, KeyError, OSError) as e:  # a bad option, log file or log line
+        print(f"filters_audit.py: {type(e).__name__}: {e}", file=sys.stderr)
+        sys.exit(2)

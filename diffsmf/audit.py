@@ -174,11 +174,13 @@ def containment(
     """
     if trials < 1:
         raise ValueError(f"trials: must be >= 1, got {trials}")
+    if not 0 <= first < trials:
+        raise ValueError(f"first: must be in 0..{trials - 1} (trials = {trials}), got {first}")
     count = trials - first if count is None else count
-    if not 0 <= first < trials or not 1 <= count <= trials - first:
+    if not 1 <= count <= trials - first:
         raise ValueError(
-            f"first, count: trajectories {first}..{first + count - 1} are not within the "
-            f"{trials} simulated ones"
+            f"count: must be in 1..{trials - first} (trajectories {first}..{trials - 1} of "
+            f"{trials}), got {count}"
         )
     system = filt.system if system is None else system
     steps = paper_steps(system) if steps is None else steps

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+import pytest
 import torch
 
 import diffsmf as ds
@@ -84,3 +85,28 @@ def test_gauge_of_constrained_zonotope_vs_highs():
     assert d > 0.1 and g[1] > 1 + 1e-3
     scale = 1.0 + x[1].abs().max() + 1.0
     assert torch.isclose(g[1], 1 + d / scale)
+
+
+def test_partial_audits_add_up_to_the_whole():
+    """``first`` / ``count`` audit a part of the same simulated trajectories, and ``on_chunk``
+    reports chunks of :data:`audit.CHUNK`: the parts' counts and volume sums add up to the
+    whole audit's. Out-of-range parts raise naming the argument."""
+    system = systems.get("spring_damper")
+    filt = filters.HSNSMF(system)
+    whole = audit.containment(filt, system, trials=7, steps=6, noise="vertex", seed=5)
+    parts, chunks = [], []
+    for first, count in ((0, 3), (3, 4)):
+        parts.append(audit.containment(
+            filt, system, trials=7, steps=6, noise="vertex", seed=5, first=first, count=count,
+            on_chunk=chunks.append,
+        ))
+    assert [p.trials for p in parts] == [3, 4]
+    assert sum(p.pairs for p in parts) == whole.pairs == sum(c["pairs"] for c in chunks)
+    assert [(c["start"], c["stop"]) for c in chunks] == [(0, 3), (3, 7)]
+    vol = sum(c["volume_sum"] for c in chunks) / (7 * 6)
+    assert abs(vol - whole.mean_volume) <= 1e-12 * whole.mean_volume
+    assert sum(p.violations for p in parts) == whole.violations
+    with pytest.raises(ValueError, match="first"):
+        audit.containment(filt, system, trials=7, steps=2, first=7)
+    with pytest.raises(ValueError, match="count"):
+        audit.containment(filt, system, trials=7, steps=2, first=3, count=5)
