@@ -168,7 +168,7 @@ def test_scalar_scale_state_dict(filter_name):
     assert fresh.minkowski_scale.shape == ()
     assert float(fresh.minkowski_scale.detach()) == pytest.approx(2.0, rel=1e-15)
     fresh.minkowski_scale = 3.0
-    assert float(fresh.minkowski_scale) == pytest.approx(3.0, rel=1e-15)
+    assert float(fresh.minkowski_scale.detach()) == pytest.approx(3.0, rel=1e-15)
     with pytest.raises(RuntimeError, match="size mismatch"):
         sd["minkowski_scale_scale"] = torch.ones(2, dtype=torch.float64)
         fresh.load_state_dict(sd)
