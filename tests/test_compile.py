@@ -82,8 +82,8 @@ def test_compiled_forward_across_batch_sizes_and_grad_modes():
 
 def test_czsmf_compiled_step_is_one_graph():
     """CZSMF at its caps: one graph (``fullgraph=True``, static shapes); the growing first
-    steps run eagerly (``CZSMF._compile_ready``). Fast caps and 2 LP iterations keep the trace short;
-    the LPs are unrolled with their fixed count while tracing."""
+    steps run eagerly (``CZSMF._compile_ready``). Fast caps and 2 LP iterations keep the
+    trace short; the LPs are unrolled with their fixed count while tracing."""
     from diffsmf.filters.czsmf import CZSMF
 
     s = ds.systems.get("spring_damper")
