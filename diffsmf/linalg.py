@@ -31,7 +31,8 @@ import torch
 from torch import Tensor
 
 __all__ = [
-    "CLOSED_FORM_MAX_N", "SMALL_MATMUL_MAX", "det", "eigh", "eigvalsh", "matmul", "solve",
+    "CLOSED_FORM_MAX_N", "SMALL_MATMUL_ELEMS", "SMALL_MATMUL_MAX", "det", "eigh", "eigvalsh",
+    "matmul", "solve",
 ]
 
 #: Largest size with a closed form: ``det`` up to 3, ``solve``, ``eigvalsh`` and ``eigh`` up
@@ -40,15 +41,21 @@ CLOSED_FORM_MAX_N = {"det": 3, "solve": 2, "eigvalsh": 2, "eigh": 2}
 
 
 #: ``matmul`` uses a broadcast multiply-and-sum when every dimension of the product is at most
-#: this (Inductor fuses it; a BLAS call per 2 x 2 product costs a few microseconds).
+#: this (Inductor fuses it; a BLAS call per 2 x 2 product costs a few microseconds) ...
 SMALL_MATMUL_MAX = 4
+#: ... or when the product has at most this many multiplications per matrix ``p q r`` (e.g. the
+#: ``[9, 2] x [2, 2]`` axis points of the statistical linearisation at n = 2); larger products
+#: go to BLAS, so the ``[..., p, q, r]`` temporary stays small.
+SMALL_MATMUL_ELEMS = 64
 
 
 def matmul(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B`` for ``A [..., p, q]``, ``B [..., q, r]`` (broadcast batch) -> ``[..., p, r]``:
-    an elementwise multiply-and-sum when p, q, r <= :data:`SMALL_MATMUL_MAX`, else ``@``."""
+    an elementwise multiply-and-sum when p, q, r <= :data:`SMALL_MATMUL_MAX` or
+    ``p q r <= SMALL_MATMUL_ELEMS``, else ``@``."""
     p, q, r = A.shape[-2], A.shape[-1], B.shape[-1]
-    if max(p, q, r) <= SMALL_MATMUL_MAX and B.shape[-2] == q:
+    small = max(p, q, r) <= SMALL_MATMUL_MAX or p * q * r <= SMALL_MATMUL_ELEMS
+    if small and B.shape[-2] == q:
         return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
     return A @ B
 

@@ -306,8 +306,9 @@ class CombinedFilter(SetFilter):
         """
         if self._gaussian_meas:
             return torch.ones(nu.shape[:-1], dtype=torch.bool, device=nu.device)
-        Sy = outer_sum_shape(_sym(H @ S @ H.mT), E, "trace")
-        d2 = (nu.unsqueeze(-2) @ linalg.solve(Sy, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
+        mm = linalg.matmul
+        Sy = outer_sum_shape(_sym(mm(mm(H, S), H.mT)), E, "trace")
+        d2 = mm(nu.unsqueeze(-2), linalg.solve(Sy, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
         return d2 <= 1.0 + 1e-9
 
     def collect(self, states: list[FilterState]) -> CombinedResult:

@@ -112,7 +112,9 @@ def _check(S: ConvexSet, c: Tensor, J: Tensor | None) -> tuple[Tensor, Tensor | 
 def _padded(lo: Tensor, hi: Tensor, scale: Tensor) -> Interval:
     """``[lo - tol, hi + tol]`` with ``tol = PAD * eps * scale`` (detached) + tiny."""
     tol = (_PAD_ULPS * _eps(lo)) * scale.detach() + torch.finfo(lo.dtype).tiny
-    return Interval(lo - tol, hi + tol)
+    # internal bounds (lo <= hi by construction): no validation, and no host sync, per call;
+    # a NaN propagates to the filters' guard (sanitize_remainder), which flags the element
+    return Interval._make(lo - tol, hi + tol)
 
 
 def _hull_with(S: ConvexSet, c: Tensor) -> Interval:

@@ -37,14 +37,15 @@ class _SqrtmPSD(torch.autograd.Function):
         evals, V = linalg.eigh(S)  # closed form for n <= 2
         s = evals.clamp_min(0).sqrt()
         ctx.save_for_backward(s, V)
-        return (V * s.unsqueeze(-2)) @ V.mT
+        return linalg.matmul(V * s.unsqueeze(-2), V.mT)
 
     @staticmethod
     def backward(ctx, G: Tensor) -> Tensor:  # type: ignore[override]
         s, V = ctx.saved_tensors
-        Gs = V.mT @ (0.5 * (G + G.mT)) @ V
+        mm = linalg.matmul
+        Gs = mm(mm(V.mT, 0.5 * (G + G.mT)), V)
         denom = (s.unsqueeze(-1) + s.unsqueeze(-2)).clamp_min(torch.finfo(s.dtype).tiny)
-        return V @ (Gs / denom) @ V.mT
+        return mm(mm(V, Gs / denom), V.mT)
 
 
 class _EighSafe(torch.autograd.Function):
@@ -69,10 +70,11 @@ class _EighSafe(torch.autograd.Function):
         gap = evals.unsqueeze(-2) - evals.unsqueeze(-1)  # l_j - l_i
         tol = 1e-10 * evals.abs().amax(-1, keepdim=True).unsqueeze(-1).clamp_min(1e-300)
         F = torch.where(gap.abs() > tol, 1.0 / torch.where(gap == 0, 1.0, gap), 0.0)
-        inner = F * (V.mT @ gV) if gV is not None else torch.zeros_like(V)
+        mm = linalg.matmul
+        inner = F * mm(V.mT, gV) if gV is not None else torch.zeros_like(V)
         if gl is not None:
             inner = inner + torch.diag_embed(gl)
-        g = V @ inner @ V.mT
+        g = mm(mm(V, inner), V.mT)
         return 0.5 * (g + g.mT)
 
 
@@ -131,7 +133,7 @@ def axis_points(
         )
     M = _axes_matrix(shape, axes)
     z = _unit_points(center.shape[-1], lv, center)
-    points = center + (z @ M.mT).movedim(-2, 0)  # [K, ..., n]
+    points = center + linalg.matmul(z, M.mT).movedim(-2, 0)  # [K, ..., n]
     return points, z, M
 
 
@@ -189,20 +191,24 @@ def statistical_linearization(
     K, n = z.shape
     w = _weight_vector(weights, K, len(tuple(levels)), z)
     Z1 = torch.cat([z, torch.ones(K, 1, dtype=z.dtype, device=z.device)], -1)  # [K, n+1]
-    normal = Z1.mT @ (w.unsqueeze(-1) * Z1)  # eq. 54: F L F'
-    if not tracing() and bool(torch.linalg.cholesky_ex(normal)[1] != 0):
-        raise ValueError("weights: the weighted points do not determine an affine fit")
+    wZ1 = w.unsqueeze(-1) * Z1
+    symmetric = _symmetric_weights(weights, K, len(tuple(levels)))
+    if not tracing() or not symmetric:
+        normal = Z1.mT @ wZ1  # eq. 54: F L F'
+        if not tracing() and bool(torch.linalg.cholesky_ex(normal)[1] != 0):
+            raise ValueError("weights: the weighted points do not determine an affine fit")
     Y = fn(points)  # [K, ..., k]
     if Y.dim() != points.dim() or Y.shape[0] != K:
         raise ValueError(f"fn: expected output [{K}, ..., k], got {tuple(Y.shape)}")
-    rhs = torch.tensordot(w.unsqueeze(-1) * Z1, Y, dims=([0], [0])).movedim(0, -2)  # F L beta'
-    if _symmetric_weights(weights, K, len(tuple(levels))):
+    rhs = linalg.matmul(wZ1.mT, Y.movedim(0, -2))  # F L beta' [..., n+1, k]
+    if symmetric:
         # +-t point pairs with equal weights: the normal matrix is diagonal (exactly, up to
-        # the rounding of its zero entries), so the fit is a division (no LAPACK call)
-        theta = rhs / torch.diagonal(normal).unsqueeze(-1)  # eq. 54: [..., n+1, k]
+        # the rounding of its zero entries), so the fit is a division by its diagonal
+        # (no LAPACK call, and no matrix product while tracing)
+        theta = rhs / (wZ1 * Z1).sum(0).unsqueeze(-1)  # eq. 54: [..., n+1, k]
     else:
         theta = torch.linalg.solve(normal, rhs)  # eq. 54: [..., n+1, k]
     G, g0 = theta[..., :n, :].mT, theta[..., n, :]  # fn(c + M z) ~ G z + g0
     A = linalg.solve(M.mT, G.mT).mT  # A = G M^-1 (closed form for n <= 2)
-    b = g0 - (A @ center.unsqueeze(-1)).squeeze(-1)
+    b = g0 - linalg.matmul(A, center.unsqueeze(-1)).squeeze(-1)
     return A, b

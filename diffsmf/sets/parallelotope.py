@@ -100,7 +100,7 @@ class Parallelotope(ConvexSet):
         from diffsmf.sets.interval import Interval
 
         r = self.T.abs().sum(-1)
-        return Interval(self._c - r, self._c + r)
+        return Interval._make(self._c - r, self._c + r)  # lower <= upper (NaN propagates)
 
     def to_interval(self) -> Interval:
         return self.interval_hull()
