@@ -11,10 +11,12 @@ also online, one ``filt.step`` call per measurement (with Dynamo's guard checks,
 ``filt.streaming()``, which skips them once checked). The CombinedFilter does a
 Kalman step plus the outer Minkowski sums of its mean set, so filterpy's EKF step is the
 natural lower reference for it. Median of ``--repeats`` timings; filterpy is timed again
-right after each row (its time drifts by up to 1.7x between runs here); one torch thread.
+right after each timed run of ours (A B A B), and the ratio is the median of the per-pair
+ratios (filterpy's own time drifts by 2x within a run on this loaded machine); one torch
+thread.
 
-    python benchmarks/kalman_bench.py [--steps 200] [--repeats 5] [--no-compile]
-        [--per-call 8] [--python-wrapper]
+    python benchmarks/kalman_bench.py [--steps 200] [--repeats 9] [--no-compile]
+        [--per-call 8] [--python-wrapper] [--filters ekf combined]
 """
 
 from __future__ import annotations
@@ -57,36 +59,41 @@ def filterpy_seconds(y: np.ndarray, x0: np.ndarray, P0: np.ndarray, Q: np.ndarra
     return time.perf_counter() - t0
 
 
-def torch_seconds(filt, y: torch.Tensor, repeats: int) -> float:
+def torch_seconds(filt, y: torch.Tensor) -> float:
+    """Seconds for ``filt``'s ``forward`` over ``y [1, T, m]``."""
     with torch.no_grad():
-        filt(y[:, :3])  # warm-up (and compile)
-        ts = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            filt(y)
-            ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
+        t0 = time.perf_counter()
+        filt(y)
+        return time.perf_counter() - t0
 
 
-def online_seconds(filt, y: torch.Tensor, repeats: int, stream: bool) -> float:
-    """Median seconds for ``filt.step`` over ``y [1, T, m]``, one measurement at a time
+def online_seconds(filt, y: torch.Tensor, stream: bool) -> float:
+    """Seconds for ``filt.step`` over ``y [1, T, m]``, one measurement at a time
     (``stream``: inside ``filt.streaming()``, Dynamo's guards skipped once checked)."""
-    ts = []
-    with torch.no_grad():
-        for _ in range(repeats):
-            with filt.streaming() if stream else contextlib.nullcontext():
-                st = filt.initial_state(batch=1)
-                t0 = time.perf_counter()
-                for k in range(y.shape[1]):
-                    st = filt.step(st, None, y[:, k])
-                ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
+    with torch.no_grad(), filt.streaming() if stream else contextlib.nullcontext():
+        st = filt.initial_state(batch=1)
+        t0 = time.perf_counter()
+        for k in range(y.shape[1]):
+            st = filt.step(st, None, y[:, k])
+        return time.perf_counter() - t0
+
+
+def paired(ours, ref, repeats: int) -> tuple[float, float, float]:
+    """``repeats`` timings of ``ours()`` each followed by one of ``ref()`` (A B A B: both see
+    the same machine load) -> medians of ours, of ref, and of the per-pair ratios."""
+    ours()  # warm-up (and compile)
+    pairs = [(ours(), ref()) for _ in range(repeats)]
+    a, b = np.array(pairs).T
+    return float(np.median(a)), float(np.median(b)), float(np.median(a / b))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=200)
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=9,
+                    help="timed runs of each row, each followed by a filterpy run")
+    ap.add_argument("--filters", nargs="*", default=["ekf", "combined"],
+                    choices=["ekf", "combined"])
     ap.add_argument("--no-compile", action="store_true")
     ap.add_argument("--per-call", type=int, nargs="*", default=[8],
                     help="steps_per_call values of the extra compiled rows (none: no rows)")
@@ -105,15 +112,14 @@ def main() -> None:
     Q = np.diag(ekf.process_noise.detach().numpy() ** 2 / 3)  # uniform-noise variances
     R = np.diag(ekf.measurement_noise.detach().numpy() ** 2 / 3)
 
-    def reference() -> float:  # filterpy s/step, median of --repeats (timed next to each row)
-        runs = [filterpy_seconds(y[0].numpy(), x0, P0, Q, R) for _ in range(args.repeats)]
-        return float(np.median(runs)) / args.steps
+    def reference() -> float:  # filterpy seconds for the horizon
+        return filterpy_seconds(y[0].numpy(), x0, P0, Q, R)
 
     print(f"torch {torch.__version__}, 1 thread; spring_damper, B = 1, {args.steps} steps")
     print("\n| filter | mode | ms per step | filterpy EKF ms per step | ratio (ours / filterpy) "
           "| compile s |")
     print("|---|---|---:|---:|---:|---:|")
-    for name in ("ekf", "combined"):
+    for name in args.filters:
         modes = [("eager", 0, False)]
         if not args.no_compile:
             for cw in (True, False) if args.python_wrapper else (True,):
@@ -130,16 +136,17 @@ def main() -> None:
                 with torch.no_grad():
                     filt(y[:, :2])
                 tc = time.perf_counter() - t0
-            t = torch_seconds(filt, y, args.repeats) / args.steps
-            ref = reference()
-            print(f"| {name} | {mode} | {1e3 * t:.3f} | {1e3 * ref:.3f} | {t / ref:.1f} | "
+            t, ref, ratio = paired(lambda f=filt: torch_seconds(f, y), reference, args.repeats)
+            ms = 1e3 / args.steps
+            print(f"| {name} | {mode} | {ms * t:.3f} | {ms * ref:.3f} | {ratio:.1f} | "
                   f"{tc:.0f} |", flush=True)
             for stream in (False, True) if comp == 1 else ():  # online, like filterpy's loop
-                t = online_seconds(filt, y, args.repeats, stream) / args.steps
-                ref = reference()
+                t, ref, ratio = paired(
+                    lambda f=filt, s=stream: online_seconds(f, y, s), reference, args.repeats
+                )
                 how = "in `streaming()`" if stream else "guarded"
-                print(f"| {name} | compiled, online `step`, {how} | {1e3 * t:.3f} | "
-                      f"{1e3 * ref:.3f} | {t / ref:.1f} | |", flush=True)
+                print(f"| {name} | compiled, online `step`, {how} | {ms * t:.3f} | "
+                      f"{ms * ref:.3f} | {ratio:.1f} | |", flush=True)
 
 
 if __name__ == "__main__":

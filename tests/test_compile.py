@@ -206,20 +206,23 @@ def test_inductor_default_options_match_eager():
 
 
 def test_compile_options(monkeypatch):
-    """``compile()`` passes :data:`COMPILE_OPTIONS` (no SIMD kernels, C++ wrapper) to Inductor,
-    lets the caller override them, leaves them out for another backend or a ``mode``, and drops an
-    option that this torch's Inductor does not know."""
+    """``compile()`` passes :data:`COMPILE_OPTIONS` (no SIMD kernels, C++ wrapper, planned
+    buffers) to Inductor, lets the caller override them, leaves them out for another backend or
+    a ``mode``, and drops an option that this torch's Inductor does not know."""
     from diffsmf.filters import base
 
     seen = []
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: seen.append(kw) or fn)
     s = ds.systems.get("spring_damper")
     ds.filters.EKF(s).compile()
-    assert seen[-1]["options"] == {"cpp.vec_isa_ok": False, "cpp_wrapper": True}
+    assert seen[-1]["options"] == {
+        "cpp.vec_isa_ok": False, "cpp_wrapper": True, "memory_planning": True
+    }
     assert seen[-1]["fullgraph"]
     ds.filters.EKF(s).compile(options={"cpp.vec_isa_ok": None, "max_autotune": False})
     assert seen[-1]["options"] == {
-        "cpp.vec_isa_ok": None, "cpp_wrapper": True, "max_autotune": False
+        "cpp.vec_isa_ok": None, "cpp_wrapper": True, "memory_planning": True,
+        "max_autotune": False,
     }
     ds.filters.EKF(s).compile(backend="eager")
     assert "options" not in seen[-1]
@@ -230,7 +233,9 @@ def test_compile_options(monkeypatch):
     with pytest.raises(ValueError, match="options: expected a dict"):
         ds.filters.EKF(s).compile(options=["cpp.vec_isa_ok"])
     monkeypatch.setitem(base.COMPILE_OPTIONS, "cpp.no_such_option", 1)
-    assert base._compile_options() == {"cpp.vec_isa_ok": False, "cpp_wrapper": True}
+    assert base._compile_options() == {
+        "cpp.vec_isa_ok": False, "cpp_wrapper": True, "memory_planning": True
+    }
 
 
 @pytest.mark.parametrize("name,system", [("hsnsmf", "spring_damper"), ("cdsmf", "spring_damper")])
