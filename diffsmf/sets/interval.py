@@ -157,6 +157,15 @@ class Interval(ConvexSet):
 
     # ------------------------------------------------------------------ tensor-like structure
     @property
+    def batch_shape(self) -> torch.Size:
+        """Leading dims (from the shapes alone: no midpoint is computed)."""
+        return torch.broadcast_shapes(self.lower.shape, self.upper.shape)[:-1]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.lower.dtype
+
+    @property
     def center(self) -> Tensor:
         """Midpoint ``(lower + upper) / 2``, shape of the interval."""
         return 0.5 * (self.lower + self.upper)
