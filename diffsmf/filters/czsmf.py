@@ -67,8 +67,10 @@ class CZSMF(SetFilter):
             docs/constrained_zonotopes.md for the measured table of tightness vs cost).
         max_constraints: constraint cap (``None``: no reduction). Default ``4 + 6 m``.
         elimination: choice of the eliminated constraint (Scott 2016 sec. 4.2): ``"hull"``
-            (default: the 8 best Appendix A candidates re-ranked by the exact hull of the
-            result, 2 n x 9 batched LPs), ``"lp"`` (Appendix A with LP ranges) or
+            (default: the ``HULL_CANDIDATES = 4`` best Appendix A candidates, each eliminated
+            exactly and ranked by the hull of the result, 2 n x 4 batched LPs per eliminated
+            constraint, whose solutions also certify the kept set's hull), ``"lp"`` (Appendix A
+            with LP ranges) or
             ``"propagation"`` (Appendix A as published, interval propagation; cheapest).
         reduce_method: lifted generator reduction, ``"girard"`` | ``"combastel"``.
         remainder: guaranteed remainder bound by name, over the interval hull of the set
