@@ -124,9 +124,13 @@ def test_basis_tie_rule_is_deterministic() -> None:
 
 
 @pytest.mark.parametrize("shape_a,shape_b", [((5, 2, 3), (5, 3, 1)), ((3, 3), (4, 3, 2)),
-                                             ((2, 4, 4), (4, 4)), ((6, 5), (5, 2))])
+                                             ((2, 4, 4), (4, 4)), ((6, 5), (5, 2)),
+                                             ((9, 2), (7, 2, 2)), ((3, 9), (7, 9, 2)),
+                                             ((9, 8), (8, 2)), ((7, 1, 40), (40, 1))])
 def test_matmul_matches_operator(shape_a, shape_b) -> None:
     g = torch.Generator().manual_seed(1)
     A = torch.randn(*shape_a, generator=g, dtype=torch.float64)
     B = torch.randn(*shape_b, generator=g, dtype=torch.float64)
+    # both paths: multiply-and-sum (at most SMALL_MATMUL_ELEMS products per matrix, e.g. the
+    # axis points [9, 2] x [..., 2, 2], a 40-long contraction) and BLAS ([9, 8] x [8, 2])
     torch.testing.assert_close(linalg.matmul(A, B), A @ B, rtol=1e-14, atol=1e-14)
