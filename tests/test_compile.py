@@ -273,6 +273,10 @@ def test_online_step_validates_y():
                      (torch.full((2, 1), float("nan"), dtype=torch.float64), "NaN")):
         with pytest.raises(ValueError, match=f"y: .*{msg}"):
             filt.step(st, None, bad)
+    big = torch.zeros(65, 1, dtype=torch.float64)  # more than _SMALL_Y entries: tensor check
+    big[64] = float("inf")
+    with pytest.raises(ValueError, match="y: contains inf"):
+        filt.step(filt.initial_state(batch=65), None, big)
     skip = ds.filters.HSNSMF(s, skip_nan=True).compile(backend="eager")
     y = tr.y[:, 0].clone()
     y[1] = float("nan")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
 import types
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -167,6 +168,11 @@ def _contiguous(v: Any) -> Any:
 #: tell cached graphs apart are run (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``;
 #: about a third of a compiled B = 1 step was guard evaluation). ``forward`` resets the count.
 _GUARDED_STEPS = 2
+
+
+#: Measurements with at most this many entries are checked for inf / NaN in Python (an
+#: online step's ``y [1, m]``: 1 us instead of two tensor ops and a sync, about 11 us here).
+_SMALL_Y = 64
 
 
 #: Inductor options of :meth:`SetFilter.compile`. A filter step is hundreds of operations on
@@ -592,7 +598,10 @@ class SetFilter(nn.Module):
 
     def _check_finite_y(self, y: Tensor) -> Tensor:
         """``y`` unchanged; inf raises, NaN raises unless ``skip_nan`` (host syncs)."""
-        if bool(torch.isfinite(y).all()):  # the common case: one check
+        if y.numel() <= _SMALL_Y and y.device.type == "cpu":  # online B = 1: no tensor ops
+            if all(map(math.isfinite, y.reshape(-1).tolist())):
+                return y
+        elif bool(torch.isfinite(y).all()):  # the common case: one check
             return y
         if torch.isinf(y).any():
             raise ValueError("y: contains inf")
