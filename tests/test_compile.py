@@ -65,6 +65,35 @@ def test_compiled_step_differentiable():
     torch.testing.assert_close(g, ref.raw_process_noise.grad, rtol=1e-8, atol=1e-12)
 
 
+def test_grad_mode_initial_state_uses_the_same_graph():
+    """While training, the constant initial state and the later states (functions of the
+    parameters) enter the compiled step with the same ``requires_grad`` signature: one graph
+    for the whole horizon (two before: about 40 s more of Inductor compile for HSNSMF at
+    B = 64), and the parameters' gradients are the eager ones."""
+    from torch._dynamo.backends.debugging import aot_eager
+
+    graphs = []
+
+    def counting(gm, inputs):
+        graphs.append(gm)
+        return aot_eager(gm, inputs)
+
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=4, batch=2, seed=5)
+    comp = ds.filters.HSNSMF(s).compile(backend=counting)
+    comp(tr.y).volume[:, 1:].log().mean().backward()
+    assert len(graphs) == 1
+    ref = ds.filters.HSNSMF(s)
+    ref(tr.y).volume[:, 1:].log().mean().backward()
+    for name, p in ref.named_parameters():
+        if p.grad is not None:
+            got = dict(comp.named_parameters())[name].grad
+            torch.testing.assert_close(got, p.grad, rtol=1e-8, atol=1e-12)
+    with torch.no_grad():  # no gradient recorded: the state is left as it is
+        comp(tr.y)
+    assert len(graphs) == 2  # the no-grad graph
+
+
 def test_compiled_forward_across_batch_sizes_and_grad_modes():
     """``forward`` skips Dynamo's guard checks after its first compiled steps; switching the
     batch size or the grad mode between calls must still pick (or build) the right graph."""

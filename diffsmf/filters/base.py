@@ -279,6 +279,31 @@ def _flat_args(state: FilterState) -> tuple:
     )
 
 
+def _grad_leaf(t: Any) -> Any:
+    """A floating tensor that does not require grad as a leaf that does (else ``t``)."""
+    if isinstance(t, Tensor) and t.is_floating_point() and not t.requires_grad:
+        return t.detach().requires_grad_()
+    return t
+
+
+def _same_grad_signature(args: tuple, trains: bool) -> tuple:
+    """``_flat_args`` with every floating state tensor requiring grad while a gradient is
+    being recorded for trainable parameters (``trains``).
+
+    Dynamo guards on ``requires_grad``: the initial state (constant) and the later states
+    (functions of the parameters) would otherwise compile two graph pairs, forward and
+    backward, for the same step: about 40 s each for HSNSMF at B = 64. As leaves, the initial
+    state's tensors take the graph of the later steps; the gradient they receive is not used,
+    and the parameters' gradients are unchanged."""
+    if not (trains and torch.is_grad_enabled()):
+        return args
+    fields, consistent, bounded, extras = args
+    return (
+        tuple(_grad_leaf(t) for t in fields), consistent, bounded,
+        {k: _grad_leaf(v) for k, v in extras.items()},
+    )
+
+
 def _pad_horizon(x: Tensor, K: int) -> Tensor:
     """``x [B, T, d]`` padded along T to a multiple of ``K`` by repeating its last step."""
     pad = -x.shape[1] % K
@@ -657,11 +682,13 @@ class SetFilter(nn.Module):
             if not self._compile_ready(state):
                 return self._eager_step(state, u, y)
             self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1  # see forward
-            return self._unflatten(flat(*_flat_args(state), u, y, type(state.set)))
+            args = _same_grad_signature(_flat_args(state), self._trains())
+            return self._unflatten(flat(*args, u, y, type(state.set)))
 
         def compiled_steps(state: FilterState, us: Tensor | None, ys: Tensor) -> list[FilterState]:
             self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1
-            outs = multi(*_flat_args(state), us, ys, type(state.set))
+            args = _same_grad_signature(_flat_args(state), self._trains())
+            outs = multi(*args, us, ys, type(state.set))
             return [self._unflatten(o) for o in outs]
 
         self._out_type = type(self.initial_state(batch=1).set)
@@ -669,6 +696,10 @@ class SetFilter(nn.Module):
         self._compiled_step = compiled
         self._compiled_steps = compiled_steps
         return self
+
+    def _trains(self) -> bool:
+        """Whether any parameter of the filter (or its system) requires grad."""
+        return any(p.requires_grad for p in self.parameters())
 
     def _compile_ready(self, state: FilterState) -> bool:
         """Whether the compiled graph serves ``state`` (else its step runs eagerly): every
