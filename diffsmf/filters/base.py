@@ -11,7 +11,7 @@ import contextlib
 import functools
 import math
 import types
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -286,16 +286,16 @@ def _grad_leaf(t: Any) -> Any:
     return t
 
 
-def _same_grad_signature(args: tuple, trains: bool) -> tuple:
+def _same_grad_signature(args: tuple, trains: Callable[[], bool]) -> tuple:
     """``_flat_args`` with every floating state tensor requiring grad while a gradient is
-    being recorded for trainable parameters (``trains``).
+    being recorded for trainable parameters (``trains()``, asked only in grad mode).
 
     Dynamo guards on ``requires_grad``: the initial state (constant) and the later states
     (functions of the parameters) would otherwise compile two graph pairs, forward and
     backward, for the same step: about 40 s each for HSNSMF at B = 64. As leaves, the initial
     state's tensors take the graph of the later steps; the gradient they receive is not used,
     and the parameters' gradients are unchanged."""
-    if not (trains and torch.is_grad_enabled()):
+    if not torch.is_grad_enabled() or not trains():
         return args
     fields, consistent, bounded, extras = args
     return (
@@ -682,12 +682,12 @@ class SetFilter(nn.Module):
             if not self._compile_ready(state):
                 return self._eager_step(state, u, y)
             self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1  # see forward
-            args = _same_grad_signature(_flat_args(state), self._trains())
+            args = _same_grad_signature(_flat_args(state), self._trains)
             return self._unflatten(flat(*args, u, y, type(state.set)))
 
         def compiled_steps(state: FilterState, us: Tensor | None, ys: Tensor) -> list[FilterState]:
             self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1
-            args = _same_grad_signature(_flat_args(state), self._trains())
+            args = _same_grad_signature(_flat_args(state), self._trains)
             outs = multi(*args, us, ys, type(state.set))
             return [self._unflatten(o) for o in outs]
 
