@@ -113,17 +113,13 @@ def seed_table(steps: int, trials: int) -> None:
 
 
 def _tile(state, reps: int):
-    """``state`` with its batch repeated ``reps`` times (every field, consistent, extras)."""
+    """``state`` with its batch repeated ``reps`` times (the sets' batch indexing)."""
     from diffsmf.filters.base import FilterState
 
-    def rep(t):
-        return t.repeat(reps, *([1] * (t.dim() - 1)))
-
-    S = state.set
+    idx = torch.arange(state.consistent.shape[0]).repeat(reps)
     return FilterState(
-        type(S)._from_tensors(tuple(rep(t) for t in S._tensors())), rep(state.consistent),
-        {k: rep(v) for k, v in state.extras.items()},
-        None if state.bounded is None else rep(state.bounded),
+        state.set[idx], state.consistent[idx], {k: v[idx] for k, v in state.extras.items()},
+        None if state.bounded is None else state.bounded[idx],
     )
 
 

@@ -11,7 +11,7 @@ import contextlib
 import functools
 import math
 import types
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -266,42 +266,36 @@ def _signature(state: FilterState, u: Tensor | None, y: Tensor) -> tuple:
     )
 
 
-def _flat_args(state: FilterState) -> tuple:
+def _flat_args(state: FilterState, grad_leaves: bool = False) -> tuple:
     """``state`` as the flat, contiguous tensors that the compiled step takes: fields,
     consistent, bounded (all True for None), extras (contiguous: the expanded initial set
-    would otherwise be a second graph)."""
+    would otherwise be a second graph). ``grad_leaves``: every floating field and extra that
+    does not require grad becomes a leaf that does (:func:`_grad_leaf`)."""
     S, b = state.set, state.bounded
     if b is None:
         b = torch.ones_like(state.consistent)
+    leaf = _grad_leaf if grad_leaves else _identity
     return (
-        tuple(t.contiguous() for t in S._tensors()), state.consistent.contiguous(),
-        b.contiguous(), {k: _contiguous(v) for k, v in state.extras.items()},
+        tuple(leaf(t.contiguous()) for t in S._tensors()), state.consistent.contiguous(),
+        b.contiguous(), {k: leaf(_contiguous(v)) for k, v in state.extras.items()},
     )
 
 
-def _grad_leaf(t: Any) -> Any:
-    """A floating tensor that does not require grad as a leaf that does (else ``t``)."""
-    if isinstance(t, Tensor) and t.is_floating_point() and not t.requires_grad:
-        return t.detach().requires_grad_()
+def _identity(t: Any) -> Any:
     return t
 
 
-def _same_grad_signature(args: tuple, trains: Callable[[], bool]) -> tuple:
-    """``_flat_args`` with every floating state tensor requiring grad while a gradient is
-    being recorded for trainable parameters (``trains()``, asked only in grad mode).
+def _grad_leaf(t: Any) -> Any:
+    """A floating tensor that does not require grad as a leaf that does (else ``t``).
 
-    Dynamo guards on ``requires_grad``: the initial state (constant) and the later states
-    (functions of the parameters) would otherwise compile two graph pairs, forward and
-    backward, for the same step: about 40 s each for HSNSMF at B = 64. As leaves, the initial
-    state's tensors take the graph of the later steps; the gradient they receive is not used,
-    and the parameters' gradients are unchanged."""
-    if not torch.is_grad_enabled() or not trains():
-        return args
-    fields, consistent, bounded, extras = args
-    return (
-        tuple(_grad_leaf(t) for t in fields), consistent, bounded,
-        {k: _grad_leaf(v) for k, v in extras.items()},
-    )
+    Dynamo guards on ``requires_grad``: while training, the initial state (constant) and the
+    later states (functions of the parameters) would otherwise compile two graph pairs,
+    forward and backward, for the same step (about 40 s each for HSNSMF at B = 64). As
+    leaves, the initial state's tensors take the graph of the later steps; the gradient they
+    receive is not used, and the parameters' gradients are unchanged."""
+    if isinstance(t, Tensor) and t.is_floating_point() and not t.requires_grad:
+        return t.detach().requires_grad_()
+    return t
 
 
 def _pad_horizon(x: Tensor, K: int) -> Tensor:
@@ -682,13 +676,11 @@ class SetFilter(nn.Module):
             if not self._compile_ready(state):
                 return self._eager_step(state, u, y)
             self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1  # see forward
-            args = _same_grad_signature(_flat_args(state), self._trains)
-            return self._unflatten(flat(*args, u, y, type(state.set)))
+            return self._unflatten(flat(*self._step_args(state), u, y, type(state.set)))
 
         def compiled_steps(state: FilterState, us: Tensor | None, ys: Tensor) -> list[FilterState]:
             self._guarded_calls = getattr(self, "_guarded_calls", 0) + 1
-            args = _same_grad_signature(_flat_args(state), self._trains)
-            outs = multi(*args, us, ys, type(state.set))
+            outs = multi(*self._step_args(state), us, ys, type(state.set))
             return [self._unflatten(o) for o in outs]
 
         self._out_type = type(self.initial_state(batch=1).set)
@@ -697,9 +689,12 @@ class SetFilter(nn.Module):
         self._compiled_steps = compiled_steps
         return self
 
-    def _trains(self) -> bool:
-        """Whether any parameter of the filter (or its system) requires grad."""
-        return any(p.requires_grad for p in self.parameters())
+    def _step_args(self, state: FilterState) -> tuple:
+        """:func:`_flat_args` for a compiled call; while a gradient is recorded for a
+        trainable parameter (of the filter or its system), the state's floating tensors enter
+        as grad leaves, so that every step of a training forward has one signature."""
+        trains = torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters())
+        return _flat_args(state, grad_leaves=trains)
 
     def _compile_ready(self, state: FilterState) -> bool:
         """Whether the compiled graph serves ``state`` (else its step runs eagerly): every
