@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib.util
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,14 +22,31 @@ __all__ = [
     "inv_softplus",
     "load_object",
     "register_positive",
+    "traced",
     "tracing",
 ]
 
 
 def tracing() -> bool:
-    """True while ``torch.compile`` traces the code (then host-syncing checks are skipped and
-    data-dependent branches take their general, branch-free form)."""
-    return bool(torch.compiler.is_compiling())
+    """True while ``torch.compile`` (or :func:`traced`) traces the code: then host-syncing
+    checks are skipped and data-dependent branches take their general, branch-free form."""
+    return _TRACED or bool(torch.compiler.is_compiling())
+
+
+_TRACED = False  # set by traced()
+
+
+@contextlib.contextmanager
+def traced() -> Iterator[None]:
+    """Make :func:`tracing` true inside the block: for graph capture without Dynamo
+    (``make_fx`` in :mod:`diffsmf.filters._direct`), which must see the same branch-free
+    code as ``torch.compile``."""
+    global _TRACED
+    old, _TRACED = _TRACED, True
+    try:
+        yield
+    finally:
+        _TRACED = old
 
 _SOFTPLUS_ONE = math.log(math.expm1(1.0))  # inv_softplus(1)
 

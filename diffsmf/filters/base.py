@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from diffsmf.filters._direct import DirectSteps, config_key
 from diffsmf.sets.base import ConvexSet, align, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -168,6 +169,10 @@ def _contiguous(v: Any) -> Any:
 #: tell cached graphs apart are run (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``;
 #: about a third of a compiled B = 1 step was guard evaluation). ``forward`` resets the count.
 _GUARDED_STEPS = 2
+
+
+#: Filter configurations whose Dynamo-free compiled steps are kept (see ``_direct_steps``).
+_DIRECT_CONFIGS = 4
 
 
 #: Measurements with at most this many entries are checked for inf / NaN in Python (an
@@ -565,8 +570,11 @@ class SetFilter(nn.Module):
         compiled = getattr(self, "_compiled_step", None)
         if compiled is None or tracing():
             return self._eager_step(state, u, y)
-        u, y = self._check_u(u, state), self._check_step_y(y, state)
         stream = getattr(self, "_stream", None)
+        if stream is not None and stream["direct"] is not None and not torch.is_grad_enabled():
+            if self._compile_ready(state):
+                return self._direct_step(stream, state, u, y)
+        u, y = self._check_u(u, state), self._check_step_y(y, state)
         if stream is None:
             return compiled(state, u, y)
         sig = _signature(state, u, y)
@@ -582,26 +590,74 @@ class SetFilter(nn.Module):
 
     @contextlib.contextmanager
     def streaming(self) -> Iterator[SetFilter]:
-        """Online use of the compiled step without Dynamo's guard checks once they passed.
+        """Online use of the compiled step without Dynamo.
 
-        ``with filt.streaming(): state = filt.step(state, u, y)`` -- inside the block, once two
-        compiled calls have run Dynamo's full guard check for the same input structure (set
-        type, field shapes, dtypes, batch, ``u`` / ``y`` shapes, grad mode), the later calls
-        with that structure skip the guard evaluation, as ``forward`` does inside its loop
-        (Dynamo's wrapper took 225 us per online EKF step with the checks and 60 us without,
-        measured under load; docs/filter_core.md). The inputs are still validated, and a call
-        with another structure runs the full checks again.
+        ``with filt.streaming(): state = filt.step(state, u, y)`` -- inside the block, after
+        :meth:`compile` with Inductor and in no-grad mode (``torch.no_grad()``), ``step``
+        calls Inductor's compiled code directly, without Dynamo's frame and guards
+        (:mod:`diffsmf.filters._direct`): the step is captured once per input structure (set
+        type, tensor shapes, strides, dtypes, devices, ``u`` given or not) with ``make_fx``,
+        from the same branch-free code that ``torch.compile`` traces, and compiled by Inductor
+        (seconds, once; reused by later blocks of the same configuration). The EKF's online
+        step at B = 1 went from 0.25 to 0.06 ms (docs/filter_core.md). The inputs are still
+        validated (``y`` shape, inf / NaN; ``u`` by the system). While autograd records (or
+        with another backend) a call runs the Dynamo-compiled step and skips its guard checks
+        once two guarded calls have seen the same input structure.
 
         The contract: inside the block, do not change the filter or its system (attributes,
-        submodules, which tensors are its parameters and buffers), since those changes are what
-        the skipped guards would notice. Without :meth:`compile` it changes nothing.
+        submodules, which tensors are its parameters and buffers, what its functions read).
+        Between blocks such changes are allowed: on entry, the filter's configuration
+        (:func:`~diffsmf.filters._direct.config_key`: attributes of every submodule, identity
+        and in-place version of every tensor, the system functions' code, closures and the
+        globals they name) selects the compiled steps, so a changed one is compiled anew.
+        Parameters and buffers are inputs of the compiled step (their current values are
+        used at every call, e.g. after an optimiser step). Without :meth:`compile` it changes
+        nothing.
         """
         old = getattr(self, "_stream", None)
-        self._stream = {"sig": None, "guarded": 0}
+        self._stream = {
+            "sig": None, "guarded": 0, "direct": self._direct_steps(),
+            "n_inputs": self.system.n_inputs, "m": self.system.m,
+            "dtype": self.system.x0_set.dtype,
+        }
         try:
             yield self
         finally:
             self._stream = old
+
+    def _direct_step(
+        self, stream: dict, state: FilterState, u: Tensor | None, y: Tensor
+    ) -> FilterState:
+        """:meth:`step` inside :meth:`streaming` in no-grad mode: the inputs validated as in
+        :meth:`step` (the system's dimensions read once per block), then the Dynamo-free
+        compiled step (:class:`~diffsmf.filters._direct.DirectSteps`)."""
+        c = state.consistent
+        if u is not None or stream["n_inputs"]:
+            u = self._check_u(u, state)
+        if not isinstance(y, Tensor) or y.dtype != stream["dtype"] or y.device != c.device:
+            y = torch.as_tensor(y, dtype=stream["dtype"], device=c.device)
+        if y.shape != (*c.shape, stream["m"]):
+            raise ValueError(
+                f"y: expected shape {[*c.shape, stream['m']]} for this state, got {list(y.shape)}"
+            )
+        y = self._check_finite_y(y)
+        fields, consistent, bounded, extras = _flat_args(state)
+        out = stream["direct"](fields, consistent, bounded, extras, u, y, type(state.set))
+        return self._unflatten(out)
+
+    def _direct_steps(self) -> DirectSteps | None:
+        """The Dynamo-free compiled steps (:mod:`diffsmf.filters._direct`) for the filter's
+        current configuration, or None when it is not compiled with Inductor."""
+        options = getattr(self, "_direct_options", None)
+        if options is None or getattr(self, "_compiled_step", None) is None:
+            return None
+        key = config_key(self)
+        cache = self.__dict__.setdefault("_direct_cache", {})
+        if key not in cache:
+            if len(cache) >= _DIRECT_CONFIGS:
+                cache.pop(next(iter(cache)))
+            cache[key] = DirectSteps(self, options)
+        return cache[key]
 
     def _eager_step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
         """``update(predict(state, u), y)``, eagerly (what :meth:`compile` traces)."""
@@ -666,8 +722,12 @@ class SetFilter(nn.Module):
         ):
             raise ValueError(f"steps_per_call: must be an integer >= 1, got {steps_per_call!r}")
         kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
+        self._direct_options = None  # streaming() calls Inductor's graphs directly
         if kw.get("backend", "inductor") == "inductor" and "mode" not in kw:
             kw["options"] = {**_compile_options(), **_check_options(kw.get("options"))}
+            if set(kw) <= {"fullgraph", "dynamic", "options", "backend"} and not kw["dynamic"]:
+                self._direct_options = kw["options"]
+        self.__dict__.pop("_direct_cache", None)
         # each its own code object (own recompile budget, see _own_code); compiled lazily
         flat = torch.compile(_own_code(type(self)._flat_step).__get__(self), **kw)
         multi = torch.compile(_own_code(type(self)._flat_steps).__get__(self), **kw)

@@ -1,0 +1,219 @@
+"""Compiled filter steps called without Dynamo: the online fast path of ``SetFilter.streaming``.
+
+A call of a ``torch.compile``-d step passes through Dynamo's frame (guard evaluation, or
+entering and leaving its skip-guards stance) and AOTAutograd's and Inductor's wrappers before
+the kernels run. For a 2-state EKF at batch 1 that was about 200 us of a 250 us online step
+(docs/filter_core.md). Inside :meth:`SetFilter.streaming` the filter does not change (its
+documented contract), so the guards have nothing to check. There the step is
+
+1. captured once per input structure with ``make_fx`` on fake tensors, running the same
+   branch-free code that ``torch.compile`` traces (:func:`diffsmf.utils.traced`; a host sync
+   or a branch on a tensor value raises instead of being baked in), with the filter's
+   parameters and buffers as explicit inputs (``torch.func.functional_call``), so that their
+   current values are read at every call;
+2. compiled by Inductor (``torch._inductor.compile``, the filter's compile options);
+3. called directly on the flat state tensors.
+
+Which compiled step a call may use is decided by :func:`config_key` (the filter's
+configuration, computed once per ``streaming()`` block) and the call's input structure (set
+type, tensor shapes, strides, dtypes, devices; computed at every call). Only the no-grad mode
+takes this path; while autograd records, ``step`` uses the Dynamo-compiled graph.
+"""
+
+from __future__ import annotations
+
+import operator
+import types
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from diffsmf.utils import traced
+
+#: Attributes of a filter that change while it runs, not its configuration.
+RUNTIME_ATTRS = frozenset({
+    "_compiled_step", "_compiled_steps", "_direct_cache", "_guarded_calls", "_out_type",
+    "_steps_per_call", "_stream", "_direct_options",
+})
+
+#: Compiled structures kept per configuration (least recently used dropped first).
+MAX_ENTRIES = 8
+
+
+def _value_key(v: Any, depth: int = 0) -> Any:
+    """A hashable stand-in for a value the step may read, which changes when the value does:
+    numbers and strings by value; tensors by identity and in-place version; containers, sets
+    (``_tensors()``) and modules by their items; functions by their code, defaults, closure
+    cells and the globals their code names (what ``f(x, u, theta)`` of a user's system reads);
+    any other object by identity. Nested values are followed 6 levels deep."""
+    if v is None or isinstance(v, (bool, int, float, str, complex, type, types.ModuleType)):
+        return v if not isinstance(v, types.ModuleType) else ("id", id(v))
+    if isinstance(v, Tensor):
+        return ("T", id(v), v._version)
+    if depth < 6:
+        d = depth + 1
+        if isinstance(v, (tuple, list)):
+            return (type(v), tuple(_value_key(x, d) for x in v))
+        if isinstance(v, dict):
+            return ("D", tuple((k, _value_key(x, d)) for k, x in v.items()))
+        if isinstance(v, nn.Module):
+            return ("M", id(v), _module_key(v, d))
+        if isinstance(v, types.MethodType):
+            return ("B", _value_key(v.__func__, d), _value_key(v.__self__, d))
+        if isinstance(v, types.FunctionType):
+            return _function_key(v, d)
+        tensors = getattr(v, "_tensors", None)
+        if callable(tensors):
+            return (type(v), id(v), tuple(_value_key(t, d) for t in tensors()))
+    return ("id", id(v))
+
+
+def _function_key(f: types.FunctionType, depth: int) -> tuple:
+    """A function's code, defaults, closure cells and named globals (:func:`_value_key`)."""
+    cells = []
+    for c in f.__closure__ or ():
+        try:
+            cells.append(_value_key(c.cell_contents, depth))
+        except ValueError:  # an empty cell
+            cells.append(None)
+    g = f.__globals__
+    names = tuple(
+        (n, _value_key(g[n], depth)) for n in f.__code__.co_names if n in g
+    )
+    return ("F", f.__code__, _value_key(f.__defaults__, depth), tuple(cells), names)
+
+
+def _module_key(module: nn.Module, depth: int) -> tuple:
+    out = []
+    for mod in module.modules():
+        attrs = tuple(
+            (k, _value_key(v, depth)) for k, v in vars(mod).items()
+            if k not in RUNTIME_ATTRS and k not in ("_parameters", "_buffers", "_modules")
+        )
+        tensors = tuple(
+            (k, id(t), tuple(t.shape), t.dtype, t.device)
+            for k, t in (*mod._parameters.items(), *mod._buffers.items()) if t is not None
+        )
+        out.append((type(mod), attrs, tensors))
+    return tuple(out)
+
+
+def config_key(module: nn.Module) -> tuple:
+    """What a captured step depends on besides its inputs, computed once per ``streaming()``
+    block: for every submodule its type, attributes (:func:`_value_key`, which follows the
+    system's functions into their closures and globals), and its parameters' and buffers'
+    identities and metadata.
+
+    Parameters and buffers enter the compiled step as inputs (their values may change in
+    place, e.g. by an optimiser); every other tensor the step reads is a constant of the
+    graph, so an in-place change of one (its ``_version``) gives a new key."""
+    return _module_key(module, 0)
+
+
+def _meta(t: Tensor) -> tuple:
+    return (t.shape, t.stride(), t.dtype, t.device)
+
+
+class _Step(nn.Module):
+    """The filter's flat step as a module whose parameters and buffers are the filter's, for
+    ``torch.func.functional_call``."""
+
+    def __init__(self, filt: nn.Module) -> None:
+        super().__init__()
+        self.filt = filt
+
+    def forward(self, *flat: Any) -> Any:
+        return self.filt._flat_step(*flat)
+
+
+class DirectSteps:
+    """The compiled one-step graphs of a filter for one configuration, called without Dynamo.
+
+    ``steps(fields, consistent, bounded, extras, u, y, set_type)`` takes the flat state of
+    :func:`diffsmf.filters.base._flat_args` (fields ``[B, ...]``, ``consistent [B]``,
+    ``bounded [B]``, extras ``{name: [B, ...]}``), ``u [B, p]`` or None and ``y [B, m]``, and
+    returns the next flat state, like ``SetFilter._flat_step``. Call it in no-grad mode.
+    """
+
+    def __init__(self, filt: nn.Module, options: dict[str, Any]) -> None:
+        self._module = _Step(filt)
+        self._options = options
+        self._entries: OrderedDict[tuple, Callable] = OrderedDict()
+        named = [*self._module.named_parameters(), *self._module.named_buffers()]
+        self._names = [k for k, _ in named]
+        self._tensors = [t for _, t in named]
+        # the last call's output tensors and their structure: when they come back as the
+        # next state (the online loop), their metadata is known without reading it again
+        self._last: tuple = ((), (), ())
+
+    def __call__(
+        self, fields: Sequence[Tensor], consistent: Tensor, bounded: Tensor,
+        extras: dict[str, Tensor], u: Tensor | None, y: Tensor, set_type: type,
+    ) -> tuple:
+        state = [*fields, consistent, bounded, *extras.values()]
+        struct = (set_type, len(fields), tuple(extras))
+        last_struct, last_out, last_meta = self._last
+        if struct == last_struct and len(state) == len(last_out) and all(
+            map(operator.is_, state, last_out)
+        ):
+            meta = last_meta
+        else:
+            meta = tuple(map(_meta, state))
+        key = (struct, meta, _meta(y), None if u is None else _meta(u))
+        entry = self._entries.get(key)
+        if entry is None:
+            entry = self._build(state, u, y, key)
+        else:
+            self._entries.move_to_end(key)
+        out, self._last = entry(state, u, y)
+        return out
+
+    def _build(self, state: list[Tensor], u: Tensor | None, y: Tensor, key: tuple) -> Callable:
+        """Capture and compile the step for one input structure (seconds, once)."""
+        (set_type, n_fields, extra_keys), *_ = key
+        n_par = len(self._names)
+        out_keys: list[tuple] = []
+
+        def flat_step(*args: Tensor) -> list[Tensor]:
+            params = dict(zip(self._names, args[:n_par]))
+            ls = args[n_par:]
+            fields, consistent, bounded = ls[:n_fields], ls[n_fields], ls[n_fields + 1]
+            j = n_fields + 2 + len(extra_keys)
+            extras = dict(zip(extra_keys, ls[n_fields + 2:j]))
+            u = ls[j + 1] if len(ls) > j + 1 else None
+            out = torch.func.functional_call(
+                self._module, params, (tuple(fields), consistent, bounded, extras, u, ls[j],
+                                       set_type))
+            new_fields, new_consistent, new_bounded, new_extras = out
+            out_keys.append((len(new_fields), tuple(new_extras)))
+            return [*new_fields, new_consistent, new_bounded, *new_extras.values()]
+
+        from torch._inductor import compile as inductor_compile
+        from torch.fx.experimental.proxy_tensor import make_fx
+
+        example = [*self._tensors, *state, y, *([] if u is None else [u])]
+        with torch.no_grad(), traced():
+            gm = make_fx(flat_step, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
+        compiled = inductor_compile(gm, example, options=self._options)
+        (n_out, out_extras), = out_keys
+        out_struct = (self._module.filt._out_type, n_out, out_extras)
+        tensors = self._tensors
+        out_meta: list[tuple] = []
+
+        def run(state: list[Tensor], u: Tensor | None, y: Tensor) -> tuple:
+            out = compiled(*tensors, *state, y) if u is None else compiled(*tensors, *state, y, u)
+            if not out_meta:
+                out_meta.append(tuple(map(_meta, out)))
+            flat = (
+                tuple(out[:n_out]), out[n_out], out[n_out + 1],
+                dict(zip(out_extras, out[n_out + 2:])),
+            )
+            return flat, (out_struct, out, out_meta[0])
+
+        self._entries[key] = run
+        while len(self._entries) > MAX_ENTRIES:
+            self._entries.popitem(last=False)
+        return run

@@ -1,0 +1,143 @@
+"""The Dynamo-free online step (``diffsmf.filters._direct``) inside ``filt.streaming()``.
+
+After ``compile()`` with Inductor, ``step`` inside ``streaming()`` in no-grad mode captures the
+step with ``make_fx`` and calls Inductor's code directly. These tests compile real Inductor
+code (a few seconds each, the EKF's small step) and compare with the eager filter.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import diffsmf as ds
+from diffsmf.filters import _direct
+from diffsmf.utils import traced, tracing
+
+_GAIN = 0.9  # read by _f below as a global: a change must give a new compiled step
+
+
+def _f(x, u=None, theta=None):
+    x1, x2 = x[..., 0], x[..., 1]
+    return torch.stack([x1 + 0.1 * x2, _GAIN * x2 - 0.1 * torch.sin(x1)], -1)
+
+
+def _h(x):
+    return x[..., :1] + 0.1 * x[..., 1:] ** 2
+
+
+def _system() -> ds.System:
+    box = ds.Interval(torch.tensor([-1.0, -1.0]), torch.tensor([1.0, 1.0]))
+    return ds.System(
+        _f, _h, box, ds.Interval.from_center_radius(torch.zeros(2), torch.full((2,), 0.02)),
+        ds.Interval.from_center_radius(torch.zeros(1), torch.full((1,), 0.05)),
+        process_cov=torch.eye(2) * 1e-4, measurement_cov=torch.eye(1) * 1e-3, name="gain",
+    )
+
+
+@pytest.fixture(autouse=True)
+def _fresh_dynamo():
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()
+
+
+def _unique_graphs() -> int:
+    return torch._dynamo.utils.counters["stats"]["unique_graphs"]
+
+
+def _run(filt, y, B):
+    st = filt.initial_state(batch=B)
+    for k in range(y.shape[1]):
+        st = filt.step(st, None, y[:, k])
+    return st
+
+
+def _close(a, b) -> None:
+    """Same set and extras (the EKF's covariance) to rounding."""
+    for x, y in zip(a.set._tensors(), b.set._tensors()):
+        torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-14)
+    assert a.extras.keys() == b.extras.keys()
+    for k in a.extras:
+        torch.testing.assert_close(a.extras[k], b.extras[k], rtol=1e-12, atol=1e-14)
+
+
+def test_traced_makes_tracing_true():
+    assert not tracing()
+    with traced():
+        assert tracing()
+        with traced():
+            assert tracing()
+        assert tracing()
+    assert not tracing()
+
+
+def test_streaming_step_is_dynamo_free_and_matches_eager():
+    """Inside ``streaming()`` (no grad) the compiled EKF step runs without Dynamo (no graph is
+    captured by it) and gives the eager filter's states; the compiled steps are reused by the
+    next block of the same configuration."""
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=8, batch=2, seed=3)
+    eager, comp = ds.filters.EKF(s), ds.filters.EKF(s).compile()
+    n0 = _unique_graphs()
+    with torch.no_grad():
+        ref = _run(eager, tr.y, 2)
+        with comp.streaming():
+            got = _run(comp, tr.y, 2)
+            (direct,) = comp._direct_cache.values()
+            built = len(direct._entries)
+        with comp.streaming():
+            again = _run(comp, tr.y, 2)
+    assert _unique_graphs() == n0  # Dynamo traced nothing
+    assert built >= 1 and len(direct._entries) == built  # the second block compiled nothing
+    for a, b in ((got, ref), (again, ref)):
+        _close(a, b)
+        assert torch.equal(a.consistent, b.consistent)
+
+
+def test_a_changed_global_or_attribute_gives_a_new_compiled_step():
+    """The captured step bakes in what the system's functions read; a change of a global they
+    read (or of a filter attribute) between ``streaming()`` blocks must not reuse it."""
+    global _GAIN
+    s = _system()
+    tr = s.simulate(steps=4, batch=1, seed=0)
+    comp = ds.filters.EKF(s).compile()
+    old = _GAIN
+    try:
+        with torch.no_grad():
+            for gain in (0.9, 0.5):
+                _GAIN = gain
+                with comp.streaming():
+                    got = _run(comp, tr.y, 1)
+                ref = _run(ds.filters.EKF(s), tr.y, 1)
+                _close(got, ref)
+    finally:
+        _GAIN = old
+    assert len(comp._direct_cache) == 2
+    key = _direct.config_key(comp)
+    comp.skip_nan = True
+    assert _direct.config_key(comp) != key
+    comp.skip_nan = False
+    assert _direct.config_key(comp) == key
+
+
+def test_direct_step_validates_inputs_and_grad_mode_uses_dynamo(monkeypatch):
+    """Bad ``y`` raises as in ``step`` (shape, inf, NaN); with autograd recording the call
+    takes the Dynamo-compiled step instead (the direct graphs are no-grad only)."""
+    s = ds.systems.get("spring_damper")
+    comp = ds.filters.EKF(s).compile()
+    st = comp.initial_state(batch=2)
+    with torch.no_grad(), comp.streaming():
+        for bad, msg in ((torch.zeros(1, 1), "shape"), (torch.zeros(2, 2), "shape"),
+                         (torch.full((2, 1), float("inf")), "inf"),
+                         (torch.full((2, 1), float("nan")), "NaN")):
+            with pytest.raises(ValueError, match=f"y: .*{msg}"):
+                comp.step(st, None, bad.double())
+        with pytest.raises(ValueError, match="u: "):
+            comp.step(st, torch.zeros(2, 1), torch.zeros(2, 1))
+        comp.step(st, None, [[0.1], [0.2]])  # a nested list is converted as in step
+    calls = []
+    monkeypatch.setattr(comp, "_compiled_step", lambda *a: calls.append(a) or a[0])
+    with torch.enable_grad(), comp.streaming():
+        comp.step(st, None, torch.zeros(2, 1, dtype=torch.float64))
+    assert len(calls) == 1
