@@ -74,8 +74,9 @@ def test_traced_makes_tracing_true():
 
 def test_streaming_step_is_dynamo_free_and_matches_eager():
     """Inside ``streaming()`` (no grad) the compiled EKF step runs without Dynamo (no graph is
-    captured by it) and gives the eager filter's states; the compiled steps are reused by the
-    next block of the same configuration."""
+    captured by it), in ``step`` and in ``forward``'s loop, and gives the eager filter's
+    states; the compiled steps are reused by the next block of the same configuration and
+    by slices of ``y`` with other strides."""
     s = ds.systems.get("spring_damper")
     tr = s.simulate(steps=8, batch=2, seed=3)
     eager, comp = ds.filters.EKF(s), ds.filters.EKF(s).compile()
@@ -88,8 +89,13 @@ def test_streaming_step_is_dynamo_free_and_matches_eager():
             built = len(direct._entries)
         with comp.streaming():
             again = _run(comp, tr.y, 2)
+            longer = s.simulate(steps=11, batch=2, seed=3).y  # other strides of y[:, k]
+            _close(_run(comp, longer, 2), _run(eager, longer, 2))
+            res, res_ref = comp(longer), eager(longer)  # forward's loop takes them too
+    for f in ("lower", "upper", "center", "covariance"):
+        torch.testing.assert_close(getattr(res, f), getattr(res_ref, f), rtol=1e-12, atol=1e-14)
     assert _unique_graphs() == n0  # Dynamo traced nothing
-    assert built >= 1 and len(direct._entries) == built  # the second block compiled nothing
+    assert built >= 1 and len(direct._entries) == built  # the later blocks compiled nothing
     for a, b in ((got, ref), (again, ref)):
         _close(a, b)
         assert torch.equal(a.consistent, b.consistent)

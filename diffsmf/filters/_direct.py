@@ -114,7 +114,10 @@ def config_key(module: nn.Module) -> tuple:
 
 
 def _meta(t: Tensor) -> tuple:
-    return (t.shape, t.stride(), t.dtype, t.device)
+    """Shape, strides (those of size-1 dims do not matter to the compiled code and are left
+    out: a ``y[:, k]`` slice of a ``[1, T, m]`` log then keys as any ``[1, m]`` tensor),
+    dtype and device."""
+    return (t.shape, tuple(s for s, n in zip(t.stride(), t.shape) if n != 1), t.dtype, t.device)
 
 
 class _Step(nn.Module):

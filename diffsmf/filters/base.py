@@ -534,6 +534,12 @@ class SetFilter(nn.Module):
                 state = self._eager_step(state, us[k], ys[k])
                 states.append(state)
             return self.collect(states)
+        stream = getattr(self, "_stream", None)
+        if stream is not None and stream["direct"] is not None and not torch.is_grad_enabled():
+            for k in range(T):  # inside streaming(): the Dynamo-free compiled steps
+                state = self._direct_call(stream["direct"], state, us[k], ys[k])
+                states.append(state)
+            return self.collect(states)
         self._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
         K = getattr(self, "_steps_per_call", 1)
         ys_pad = _pad_horizon(y, K)
@@ -572,8 +578,7 @@ class SetFilter(nn.Module):
             return self._eager_step(state, u, y)
         stream = getattr(self, "_stream", None)
         if stream is not None and stream["direct"] is not None and not torch.is_grad_enabled():
-            if self._compile_ready(state):
-                return self._direct_step(stream, state, u, y)
+            return self._direct_step(stream, state, u, y)
         u, y = self._check_u(u, state), self._check_step_y(y, state)
         if stream is None:
             return compiled(state, u, y)
@@ -600,7 +605,8 @@ class SetFilter(nn.Module):
         from the same branch-free code that ``torch.compile`` traces, and compiled by Inductor
         (seconds, once; reused by later blocks of the same configuration). The EKF's online
         step at B = 1 went from 0.25 to 0.06 ms (docs/filter_core.md). The inputs are still
-        validated (``y`` shape, inf / NaN; ``u`` by the system). While autograd records (or
+        validated (``y`` shape, inf / NaN; ``u`` by the system). ``forward`` called inside
+        the block runs the same captured step in its loop. While autograd records (or
         with another backend) a call runs the Dynamo-compiled step and skips its guard checks
         once two guarded calls have seen the same input structure.
 
@@ -640,10 +646,19 @@ class SetFilter(nn.Module):
             raise ValueError(
                 f"y: expected shape {[*c.shape, stream['m']]} for this state, got {list(y.shape)}"
             )
-        y = self._check_finite_y(y)
+        return self._direct_call(stream["direct"], state, u, self._check_finite_y(y))
+
+    def _direct_call(
+        self, direct: DirectSteps, state: FilterState, u: Tensor | None, y: Tensor
+    ) -> FilterState:
+        """One step of the Dynamo-free compiled graph on validated ``u``, ``y`` (eager for a
+        state that the graph does not serve, see :meth:`_compile_ready`)."""
+        if not self._compile_ready(state):
+            return self._eager_step(state, u, y)
+        y = y.contiguous()  # one compiled step for every slice y[:, k] of a log
+        u = None if u is None else u.contiguous()
         fields, consistent, bounded, extras = _flat_args(state)
-        out = stream["direct"](fields, consistent, bounded, extras, u, y, type(state.set))
-        return self._unflatten(out)
+        return self._unflatten(direct(fields, consistent, bounded, extras, u, y, type(state.set)))
 
     def _direct_steps(self) -> DirectSteps | None:
         """The Dynamo-free compiled steps (:mod:`diffsmf.filters._direct`) for the filter's
