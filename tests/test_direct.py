@@ -147,3 +147,25 @@ def test_direct_step_validates_inputs_and_grad_mode_uses_dynamo(monkeypatch):
     with torch.enable_grad(), comp.streaming():
         comp.step(st, None, torch.zeros(2, 1, dtype=torch.float64))
     assert len(calls) == 1
+
+
+def test_a_step_that_cannot_be_captured_falls_back_to_dynamo(monkeypatch):
+    """If ``make_fx`` or Inductor fails on a step, ``streaming()`` warns once and the block
+    goes on with the Dynamo-compiled step (here the ``"eager"`` backend's capture, fast),
+    in ``step`` and in ``forward``: the states are the eager filter's."""
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=4, batch=2, seed=1)
+    eager = ds.filters.EKF(s)
+    comp = ds.filters.EKF(s).compile(backend="eager")
+    comp._direct_options = {}  # as after an Inductor compile, so that streaming() tries
+
+    def fail(*args, **kw):
+        raise NotImplementedError("no fake implementation of some op")
+
+    monkeypatch.setattr(_direct.DirectSteps, "_build", fail)
+    with torch.no_grad():
+        with comp.streaming(), pytest.warns(RuntimeWarning, match="could not be captured"):
+            _close(_run(comp, tr.y, 2), _run(eager, tr.y, 2))
+        with comp.streaming(), pytest.warns(RuntimeWarning, match="NotImplementedError"):
+            res = comp(tr.y)
+    torch.testing.assert_close(res.upper, eager(tr.y).upper, rtol=1e-12, atol=1e-14)

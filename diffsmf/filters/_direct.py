@@ -113,6 +113,11 @@ def config_key(module: nn.Module) -> tuple:
     return _module_key(module, 0)
 
 
+class CaptureError(RuntimeError):
+    """The step could not be captured with ``make_fx`` or compiled by Inductor; the filter
+    then uses its Dynamo-compiled step for the rest of the ``streaming()`` block."""
+
+
 def _meta(t: Tensor) -> tuple:
     """Shape, strides (those of size-1 dims do not matter to the compiled code and are left
     out: a ``y[:, k]`` slice of a ``[1, T, m]`` log then keys as any ``[1, m]`` tensor),
@@ -168,7 +173,10 @@ class DirectSteps:
         key = (struct, meta, _meta(y), None if u is None else _meta(u))
         entry = self._entries.get(key)
         if entry is None:
-            entry = self._build(state, u, y, key)
+            try:
+                entry = self._build(state, u, y, key)
+            except Exception as err:  # noqa: BLE001 -- any capture failure: the caller falls back
+                raise CaptureError(f"{type(err).__name__}: {err}") from err
         else:
             self._entries.move_to_end(key)
         out, self._last = entry(state, u, y)

@@ -11,6 +11,7 @@ import contextlib
 import functools
 import math
 import types
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -18,7 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from diffsmf.filters._direct import DirectSteps, config_key
+from diffsmf.filters._direct import CaptureError, DirectSteps, config_key
 from diffsmf.sets.base import ConvexSet, align, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -536,10 +537,14 @@ class SetFilter(nn.Module):
             return self.collect(states)
         stream = getattr(self, "_stream", None)
         if stream is not None and stream["direct"] is not None and not torch.is_grad_enabled():
-            for k in range(T):  # inside streaming(): the Dynamo-free compiled steps
-                state = self._direct_call(stream["direct"], state, us[k], ys[k])
-                states.append(state)
-            return self.collect(states)
+            try:
+                for k in range(T):  # inside streaming(): the Dynamo-free compiled steps
+                    state = self._direct_call(stream["direct"], state, us[k], ys[k])
+                    states.append(state)
+                return self.collect(states)
+            except CaptureError as err:  # the whole horizon again, with Dynamo's step
+                self._drop_direct(stream, err)
+                state, states = states[0], states[:1]
         self._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
         K = getattr(self, "_steps_per_call", 1)
         ys_pad = _pad_horizon(y, K)
@@ -646,7 +651,23 @@ class SetFilter(nn.Module):
             raise ValueError(
                 f"y: expected shape {[*c.shape, stream['m']]} for this state, got {list(y.shape)}"
             )
-        return self._direct_call(stream["direct"], state, u, self._check_finite_y(y))
+        y = self._check_finite_y(y)
+        try:
+            return self._direct_call(stream["direct"], state, u, y)
+        except CaptureError as err:
+            self._drop_direct(stream, err)
+        return self._compiled_step(state, u, y)
+
+    @staticmethod
+    def _drop_direct(stream: dict, err: CaptureError) -> None:
+        """A step that ``make_fx`` / Inductor could not capture: warn once and use the
+        Dynamo-compiled step for the rest of the ``streaming()`` block."""
+        warnings.warn(
+            f"streaming(): the step could not be captured without Dynamo ({err}); the "
+            "Dynamo-compiled step is used for the rest of this block", RuntimeWarning,
+            stacklevel=4,
+        )
+        stream["direct"] = None
 
     def _direct_call(
         self, direct: DirectSteps, state: FilterState, u: Tensor | None, y: Tensor
