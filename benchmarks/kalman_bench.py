@@ -7,8 +7,9 @@ One trajectory of ``spring_damper`` (2 states, 1 output). The peer is filterpy's
 ``filt.compile(steps_per_call=K)``, K steps per compiled call; with ``--python-wrapper`` each
 compiled row again with Inductor's Python wrapper instead of the default C++ one), and the
 compiled filter
-also online, one ``filt.step`` call per measurement (with Dynamo's guard checks, and inside
-``filt.streaming()``, which skips them once checked). The CombinedFilter does a
+also online, one ``filt.step`` call per measurement (through Dynamo with its guard checks, and
+inside ``filt.streaming()``, where the step captured with ``make_fx`` is called without
+Dynamo; its one-off capture runs in the untimed warm-up). The CombinedFilter does a
 Kalman step plus the outer Minkowski sums of its mean set, so filterpy's EKF step is the
 natural lower reference for it. Median of ``--repeats`` timings; filterpy is timed again
 right after each timed run of ours (A B A B), and the ratio is the median of the per-pair
@@ -69,7 +70,7 @@ def torch_seconds(filt, y: torch.Tensor) -> float:
 
 def online_seconds(filt, y: torch.Tensor, stream: bool) -> float:
     """Seconds for ``filt.step`` over ``y [1, T, m]``, one measurement at a time
-    (``stream``: inside ``filt.streaming()``, Dynamo's guards skipped once checked)."""
+    (``stream``: inside ``filt.streaming()``, the Dynamo-free captured step)."""
     with torch.no_grad(), filt.streaming() if stream else contextlib.nullcontext():
         st = filt.initial_state(batch=1)
         t0 = time.perf_counter()
