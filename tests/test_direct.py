@@ -85,7 +85,7 @@ def test_streaming_step_is_dynamo_free_and_matches_eager():
         ref = _run(eager, tr.y, 2)
         with comp.streaming():
             got = _run(comp, tr.y, 2)
-            (direct,) = comp._direct_cache.values()
+            ((direct, _),) = comp._direct_cache.values()
             built = len(direct._entries)
         with comp.streaming():
             again = _run(comp, tr.y, 2)
@@ -103,7 +103,8 @@ def test_streaming_step_is_dynamo_free_and_matches_eager():
 
 def test_a_changed_global_or_attribute_gives_a_new_compiled_step():
     """The captured step bakes in what the system's functions read; a change of a global they
-    read (or of a filter attribute) between ``streaming()`` blocks must not reuse it."""
+    read (a number, or a tensor replaced by another) or of a filter attribute between
+    ``streaming()`` blocks must not reuse it."""
     global _GAIN
     s = _system()
     tr = s.simulate(steps=4, batch=1, seed=0)
@@ -111,15 +112,18 @@ def test_a_changed_global_or_attribute_gives_a_new_compiled_step():
     old = _GAIN
     try:
         with torch.no_grad():
-            for gain in (0.9, 0.5):
-                _GAIN = gain
+            for gain in (0.9, 0.5, 0.7, 0.3):
+                # 0.7 and 0.3 as tensors: a tensor global is keyed by identity and version
+                # (the cache pins the keyed objects, so no new tensor can take a keyed id)
+                _GAIN = None
+                _GAIN = gain if gain > 0.4 and gain != 0.7 else torch.tensor(gain)
                 with comp.streaming():
                     got = _run(comp, tr.y, 1)
                 ref = _run(ds.filters.EKF(s), tr.y, 1)
                 _close(got, ref)
     finally:
         _GAIN = old
-    assert len(comp._direct_cache) == 2
+    assert len(comp._direct_cache) == 4
     key = _direct.config_key(comp)
     comp.skip_nan = True
     assert _direct.config_key(comp) != key
@@ -185,3 +189,24 @@ def test_streaming_combined_filter_matches_eager():
         ref = eager(tr.y)
     for f in ("lower", "upper", "volume"):
         torch.testing.assert_close(getattr(res, f), getattr(ref, f), rtol=1e-10, atol=1e-13)
+
+
+def test_config_key_pins_every_object_it_keys_by_identity():
+    """Every identity in the key belongs to an object in ``pins`` (kept alive with the cache
+    entry, so that a new object cannot take over a keyed identity); the key is hashable and
+    stable."""
+    filt = ds.filters.HSNSMF(_system())
+    pins: list = []
+    key = _direct.config_key(filt, pins)
+    assert hash(key) == hash(_direct.config_key(filt))
+    ids = set()
+
+    def walk(k):
+        if isinstance(k, tuple):
+            if len(k) >= 2 and k[0] in ("T", "id", "M") and isinstance(k[1], int):
+                ids.add(k[1])
+            for x in k:
+                walk(x)
+
+    walk(key)
+    assert ids and ids <= {id(p) for p in pins}

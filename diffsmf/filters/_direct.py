@@ -43,74 +43,80 @@ RUNTIME_ATTRS = frozenset({
 MAX_ENTRIES = 8
 
 
-def _value_key(v: Any, depth: int = 0) -> Any:
+def _value_key(v: Any, pins: list, depth: int = 0) -> Any:
     """A hashable stand-in for a value the step may read, which changes when the value does:
     numbers and strings by value; tensors by identity and in-place version; containers, sets
     (``_tensors()``) and modules by their items; functions by their code, defaults, closure
     cells and the globals their code names (what ``f(x, u, theta)`` of a user's system reads);
-    any other object by identity. Nested values are followed 6 levels deep."""
-    if v is None or isinstance(v, (bool, int, float, str, complex, type, types.ModuleType)):
-        return v if not isinstance(v, types.ModuleType) else ("id", id(v))
+    any other object by identity. Nested values are followed 6 levels deep. Every object keyed
+    by its identity is appended to ``pins``: the cache keeps them alive with the key, so that
+    no other object can take over a keyed identity."""
+    if v is None or isinstance(v, (bool, int, float, str, complex, type)):
+        return v
     if isinstance(v, Tensor):
+        pins.append(v)
         return ("T", id(v), v._version)
-    if depth < 6:
+    if depth < 6 and not isinstance(v, types.ModuleType):
         d = depth + 1
         if isinstance(v, (tuple, list)):
-            return (type(v), tuple(_value_key(x, d) for x in v))
+            return (type(v), tuple(_value_key(x, pins, d) for x in v))
         if isinstance(v, dict):
-            return ("D", tuple((k, _value_key(x, d)) for k, x in v.items()))
-        if isinstance(v, nn.Module):
-            return ("M", id(v), _module_key(v, d))
+            return ("D", tuple((k, _value_key(x, pins, d)) for k, x in v.items()))
         if isinstance(v, types.MethodType):
-            return ("B", _value_key(v.__func__, d), _value_key(v.__self__, d))
+            return ("B", _value_key(v.__func__, pins, d), _value_key(v.__self__, pins, d))
         if isinstance(v, types.FunctionType):
-            return _function_key(v, d)
+            return _function_key(v, pins, d)
+        pins.append(v)
+        if isinstance(v, nn.Module):
+            return ("M", id(v), _module_key(v, pins, d))
         tensors = getattr(v, "_tensors", None)
         if callable(tensors):
-            return (type(v), id(v), tuple(_value_key(t, d) for t in tensors()))
+            return (type(v), id(v), tuple(_value_key(t, pins, d) for t in tensors()))
+    pins.append(v)
     return ("id", id(v))
 
 
-def _function_key(f: types.FunctionType, depth: int) -> tuple:
+def _function_key(f: types.FunctionType, pins: list, depth: int) -> tuple:
     """A function's code, defaults, closure cells and named globals (:func:`_value_key`)."""
     cells = []
     for c in f.__closure__ or ():
         try:
-            cells.append(_value_key(c.cell_contents, depth))
+            cells.append(_value_key(c.cell_contents, pins, depth))
         except ValueError:  # an empty cell
             cells.append(None)
     g = f.__globals__
-    names = tuple(
-        (n, _value_key(g[n], depth)) for n in f.__code__.co_names if n in g
-    )
-    return ("F", f.__code__, _value_key(f.__defaults__, depth), tuple(cells), names)
+    names = tuple((n, _value_key(g[n], pins, depth)) for n in f.__code__.co_names if n in g)
+    return ("F", f.__code__, _value_key(f.__defaults__, pins, depth), tuple(cells), names)
 
 
-def _module_key(module: nn.Module, depth: int) -> tuple:
+def _module_key(module: nn.Module, pins: list, depth: int) -> tuple:
     out = []
     for mod in module.modules():
+        pins.append(mod)
         attrs = tuple(
-            (k, _value_key(v, depth)) for k, v in vars(mod).items()
+            (k, _value_key(v, pins, depth)) for k, v in vars(mod).items()
             if k not in RUNTIME_ATTRS and k not in ("_parameters", "_buffers", "_modules")
         )
-        tensors = tuple(
-            (k, id(t), tuple(t.shape), t.dtype, t.device)
-            for k, t in (*mod._parameters.items(), *mod._buffers.items()) if t is not None
-        )
-        out.append((type(mod), attrs, tensors))
+        tensors = []
+        for k, t in (*mod._parameters.items(), *mod._buffers.items()):
+            if t is not None:
+                pins.append(t)
+                tensors.append((k, id(t), tuple(t.shape), t.dtype, t.device))
+        out.append((type(mod), id(mod), attrs, tuple(tensors)))
     return tuple(out)
 
 
-def config_key(module: nn.Module) -> tuple:
+def config_key(module: nn.Module, pins: list | None = None) -> tuple:
     """What a captured step depends on besides its inputs, computed once per ``streaming()``
-    block: for every submodule its type, attributes (:func:`_value_key`, which follows the
-    system's functions into their closures and globals), and its parameters' and buffers'
-    identities and metadata.
+    block: for every submodule its identity, type, attributes (:func:`_value_key`, which
+    follows the system's functions into their closures and globals), and its parameters' and
+    buffers' identities and metadata.
 
     Parameters and buffers enter the compiled step as inputs (their values may change in
     place, e.g. by an optimiser); every other tensor the step reads is a constant of the
-    graph, so an in-place change of one (its ``_version``) gives a new key."""
-    return _module_key(module, 0)
+    graph, so an in-place change of one (its ``_version``) gives a new key. ``pins`` receives
+    the objects keyed by identity (keep them with the key)."""
+    return _module_key(module, [] if pins is None else pins, 0)
 
 
 class CaptureError(RuntimeError):

@@ -687,13 +687,15 @@ class SetFilter(nn.Module):
         options = getattr(self, "_direct_options", None)
         if options is None or getattr(self, "_compiled_step", None) is None:
             return None
-        key = config_key(self)
+        pins: list = []
+        key = config_key(self, pins)
         cache = self.__dict__.setdefault("_direct_cache", {})
         if key not in cache:
             if len(cache) >= _DIRECT_CONFIGS:
                 cache.pop(next(iter(cache)))
-            cache[key] = DirectSteps(self, options)
-        return cache[key]
+            # the pinned objects live as long as the key: no other can take their identity
+            cache[key] = (DirectSteps(self, options), pins)
+        return cache[key][0]
 
     def _eager_step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
         """``update(predict(state, u), y)``, eagerly (what :meth:`compile` traces)."""
