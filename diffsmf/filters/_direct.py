@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import operator
 import types
+import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -214,7 +215,9 @@ class DirectSteps:
         example = [*self._tensors, *state, y, *([] if u is None else [u])]
         with torch.no_grad(), traced():
             gm = make_fx(flat_step, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
-        compiled = inductor_compile(gm, example, options=self._options)
+        with warnings.catch_warnings():  # torch 2.13's lowering calls its own deprecated check
+            warnings.filterwarnings("ignore", ".*_prims_common.check", FutureWarning)
+            compiled = inductor_compile(gm, example, options=self._options)
         (n_out, out_extras), = out_keys
         out_struct = (self._module.filt._out_type, n_out, out_extras)
         tensors = self._tensors
