@@ -584,7 +584,8 @@ class SetFilter(nn.Module):
         stream = getattr(self, "_stream", None)
         if stream is not None and stream["direct"] is not None and not torch.is_grad_enabled():
             return self._direct_step(stream, state, u, y)
-        u, y = self._check_u(u, state), self._check_step_y(y, state)
+        u = self._check_u(u, state)
+        y = self._check_step_y(y, state, self.system.m, self.system.x0_set.dtype)
         if stream is None:
             return compiled(state, u, y)
         sig = _signature(state, u, y)
@@ -642,16 +643,9 @@ class SetFilter(nn.Module):
         """:meth:`step` inside :meth:`streaming` in no-grad mode: the inputs validated as in
         :meth:`step` (the system's dimensions read once per block), then the Dynamo-free
         compiled step (:class:`~diffsmf.filters._direct.DirectSteps`)."""
-        c = state.consistent
         if u is not None or stream["n_inputs"]:
             u = self._check_u(u, state)
-        if not isinstance(y, Tensor) or y.dtype != stream["dtype"] or y.device != c.device:
-            y = torch.as_tensor(y, dtype=stream["dtype"], device=c.device)
-        if y.shape != (*c.shape, stream["m"]):
-            raise ValueError(
-                f"y: expected shape {[*c.shape, stream['m']]} for this state, got {list(y.shape)}"
-            )
-        y = self._check_finite_y(y)
+        y = self._check_step_y(y, state, stream["m"], stream["dtype"])
         try:
             return self._direct_call(stream["direct"], state, u, y)
         except CaptureError as err:
@@ -701,12 +695,16 @@ class SetFilter(nn.Module):
         """``update(predict(state, u), y)``, eagerly (what :meth:`compile` traces)."""
         return self.update(self.predict(state, u), y)
 
-    def _check_step_y(self, y: Any, state: FilterState) -> Tensor:
-        """``y [B, m]`` for one compiled step: shape (B from ``state``), dtype, inf / NaN."""
-        m, batch = self.system.m, tuple(state.set.batch_shape)
-        y = torch.as_tensor(y, dtype=self.system.x0_set.dtype, device=state.consistent.device)
-        if tuple(y.shape) != (*batch, m):
-            raise ValueError(f"y: expected shape {[*batch, m]} for this state, got {list(y.shape)}")
+    def _check_step_y(self, y: Any, state: FilterState, m: int, dtype: torch.dtype) -> Tensor:
+        """``y [B, m]`` for one compiled step, as a ``dtype`` tensor on the state's device:
+        shape (``B`` from ``state.consistent [B]``; the system's ``m``), inf / NaN. ``m`` and
+        ``dtype`` are passed in so that :meth:`streaming` reads them once per block."""
+        c = state.consistent
+        if not isinstance(y, Tensor) or y.dtype != dtype or y.device != c.device:
+            y = torch.as_tensor(y, dtype=dtype, device=c.device)
+        if y.shape != (*c.shape, m):
+            expected = [*c.shape, m]
+            raise ValueError(f"y: expected shape {expected} for this state, got {list(y.shape)}")
         return self._check_finite_y(y)
 
     def _check_finite_y(self, y: Tensor) -> Tensor:
