@@ -8,7 +8,14 @@
    HSNSMF (parallelotope, exact area), MSZM (zonotope, exact area) and CZSMF (the area of the
    outer polygon of 64 support directions, an upper bound of its true area, and its interval
    hull area), uniform noise.
-3. Time per step at batch 1, 100 and 10,000 (``--big-steps`` steps at 10,000, after the
+3. ``--parts chain``: caps at n = 8 (``oscillator_chain``, 4 outputs; the default caps are
+   308 generators and 28 constraints there): mean over steps 1..T of the geometric mean
+   hull width ``vol(hull)^(1/n)`` relative to the default caps, and time per step over the
+   whole run (growth phase included), vertex noise. HSNSMF and MSZM as references. (The
+   ``"lp"`` elimination is not in it: its ranking solves 2 q range LPs per eliminated
+   constraint; its (308, 28) row had not finished 4 x 50 steps after 10 minutes, about 4x the
+   default's whole run.)
+4. Time per step at batch 1, 100 and 10,000 (``--big-steps`` steps at 10,000, after the
    warm-up steps that grow the sets to their caps; at 10,000 the warm-up runs at batch
    ``--tile-from`` 100 and is tiled).
 
@@ -112,6 +119,41 @@ def seed_table(steps: int, trials: int) -> None:
             print(f"| {name} | {label} | {area:.4e} | {hull:.4e} | {dt:.3f} |", flush=True)
 
 
+CHAIN_CONFIGS = {
+    "default (35 n + c = 308, 4 + 6 m = 28, hull)": {},
+    "(460, 28, hull)": dict(max_generators=460, max_constraints=28),
+    "(308, 16, hull)": dict(max_generators=308, max_constraints=16),
+    "(148, 28, hull)": dict(max_generators=148, max_constraints=28),
+    "(108, 28, hull)": dict(max_generators=108, max_constraints=28),
+    "(108, 16, hull)": dict(max_generators=108, max_constraints=16),
+    "(68, 16, hull)": dict(max_generators=68, max_constraints=16),
+    "(68, 16, propagation)": dict(max_generators=68, max_constraints=16, elimination="propagation"),
+}
+
+
+def chain_table(steps: int, trials: int, n: int) -> None:
+    """Tightness vs cost of the CZSMF caps on ``oscillator_chain`` (``n`` states)."""
+    system = ds.systems.get("oscillator_chain", n=n)
+    traj = system.simulate(steps=steps, batch=trials, seed=0, noise="vertex")
+    print(
+        f"\noscillator_chain n = {n}, {trials} trajectories x {steps} steps, vertex noise "
+        "(mean over steps 1..T of vol(hull)^(1/n), relative to the default caps)\n"
+    )
+    print("| filter | mean width / default | mean vol(hull)^(1/n) | time per step [s] |")
+    print("|---|---:|---:|---:|")
+    filts = [(f"CZSMF {k}", CZSMF(system, **v)) for k, v in CHAIN_CONFIGS.items()]
+    filts += [("HSNSMF", ds.filters.HSNSMF(system)), ("MSZM", ds.filters.MSZM(system))]
+    ref = None
+    for label, filt in filts:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            res = filt(traj.y, u=traj.u)
+        dt = (time.perf_counter() - t0) / steps
+        gw = (res.upper - res.lower).clamp_min(0).log().mean(-1).exp()[:, 1:].mean()
+        ref = gw if ref is None else ref
+        print(f"| {label} | {float(gw / ref):.4f} | {float(gw):.4e} | {dt:.3f} |", flush=True)
+
+
 def _tile(state, reps: int):
     """``state`` with its batch repeated ``reps`` times (the sets' batch indexing)."""
     from diffsmf.filters.base import FilterState
@@ -167,7 +209,11 @@ def main() -> int:
     ap.add_argument("--big-steps", type=int, default=2)
     ap.add_argument("--tile-from", type=int, default=100,
                     help="warm-up batch that is tiled to the 10,000 of the last rows (0: none)")
-    ap.add_argument("--parts", nargs="*", default=["linear", "seed", "cost"])
+    ap.add_argument("--parts", nargs="*", default=["linear", "seed", "cost"],
+                    help="linear | seed | cost | chain (the n = 8 caps table, about 15 min)")
+    ap.add_argument("--chain-steps", type=int, default=50)
+    ap.add_argument("--chain-trials", type=int, default=4)
+    ap.add_argument("--chain-n", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_default_dtype(torch.float64)
@@ -176,6 +222,8 @@ def main() -> int:
         linear_table(args.steps, args.trials)
     if "seed" in args.parts:
         seed_table(args.seed_steps, args.seed_trials)
+    if "chain" in args.parts:
+        chain_table(args.chain_steps, args.chain_trials, args.chain_n)
     if "cost" in args.parts:
         cost_table(args.big_steps, args.tile_from)
     return 0
