@@ -7,7 +7,8 @@ set. The size of a miss is the *normalised distance outside*: ``gauge(x) - 1``, 
 (``||T^-1 (x - c)||_inf`` for a parallelotope, the Mahalanobis radius for an ellipsoid, the
 smallest ``||alpha||_inf`` with ``G alpha = x - c`` for a zonotope, by LP). A pair counts as a
 violation when ``gauge(x) > 1 + tol`` (default ``tol = 1e-9``: scale-free, i.e. a relative
-tolerance).
+tolerance). Pairs whose set the filter flagged unbounded (it diverged and says so: bounds
++-inf) are counted apart (``AuditReport.unbounded``), not as violations.
 
 Command line: ``diffsmf audit --system spring_damper --filter hsnsmf --trials 1000``.
 """
@@ -52,6 +53,11 @@ class AuditReport:
     mean_volume: float
     inconsistent: int
     seconds: float
+    #: (trajectory, step) pairs whose set the filter flagged unbounded (``bounded`` False: it
+    #: gave up on that trajectory, its bounds are +-inf, the set is R^n). Such a pair is never
+    #: counted outside (the placeholder set that the result carries is not a claim), so a
+    #: filter that diverges passes the count of violations vacuously: read both.
+    unbounded: int = 0
 
     def __str__(self) -> str:
         return (
@@ -59,7 +65,8 @@ class AuditReport:
             f"{self.steps} steps): {self.violations}/{self.pairs} pairs outside "
             f"(fraction {self.fraction:.3g}, worst normalised distance outside "
             f"{self.worst_distance:.3g}), mean volume {self.mean_volume:.4g}, "
-            f"{self.inconsistent} inconsistent steps, {self.seconds:.2f} s"
+            f"{self.inconsistent} inconsistent steps, {self.unbounded} unbounded pairs, "
+            f"{self.seconds:.2f} s"
         )
 
 
@@ -165,7 +172,8 @@ def containment(
         on_chunk: called after each chunk of at most :data:`CHUNK` trajectories (chunking
             as with ``progress``) with a dict of its counts: ``start``, ``stop`` (trajectory
             indices), ``violations``, ``pairs``, ``worst_distance``, ``volume_sum`` (over
-            its trajectories and steps 1..T), ``inconsistent``, ``seconds``; a log of these
+            its trajectories and steps 1..T), ``inconsistent``, ``seconds``, ``unbounded``
+            (pairs flagged unbounded, steps 0..T); a log of these
             lets an audit that is stopped resume (``benchmarks/filters_audit.py --log``).
 
     Returns:
@@ -186,7 +194,7 @@ def containment(
     steps = paper_steps(system) if steps is None else steps
     traj = system.simulate(steps=steps, batch=trials, seed=seed, noise=noise)
     chunk = CHUNK if progress or on_chunk is not None else count
-    viol_n, worst, vol_sum, incons, seconds = 0, 0.0, 0.0, 0, 0.0
+    viol_n, worst, vol_sum, incons, unb, seconds = 0, 0.0, 0.0, 0, 0, 0.0
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -201,22 +209,26 @@ def containment(
             res = filt(traj.y[i:j], u=u)
         dt = time.perf_counter() - t0
         g = gauge(res.sets, x, tol)  # [b, T+1]
+        if res.bounded is not None:  # flagged unbounded: the set is R^n (counted apart)
+            g = torch.where(res.bounded, g, torch.zeros_like(g))
         part = {
             "start": i, "stop": j, "violations": int((g > 1 + tol).sum()),
             "pairs": (j - i) * (steps + 1),
             "worst_distance": float((g - 1).clamp_min(0).max()),
             "volume_sum": float(res.volume[:, 1:].sum()),
             "inconsistent": int((~res.consistent).sum()), "seconds": dt,
+            "unbounded": 0 if res.bounded is None else int((~res.bounded).sum()),
         }
         viol_n += part["violations"]
         worst = max(worst, part["worst_distance"])
         vol_sum += part["volume_sum"]
         incons += part["inconsistent"]
+        unb += part["unbounded"]
         seconds += dt
         if on_chunk is not None:
             on_chunk(part)
         if bar is not None:  # running counts: a stopped audit still tells what it checked
-            bar.set_postfix(outside=viol_n, inconsistent=incons, refresh=False)
+            bar.set_postfix(outside=viol_n, inconsistent=incons, unbounded=unb, refresh=False)
             bar.update(j - i)
     if bar is not None:
         bar.close()
@@ -234,6 +246,7 @@ def containment(
         mean_volume=vol_sum / (count * steps),
         inconsistent=incons,
         seconds=seconds,
+        unbounded=unb,
     )
 
 

@@ -105,3 +105,34 @@ def test_high_dim_containment_vertex_noise(n, name):
         res = filt(tr.y)
     assert res.sets.contains(tr.x).all()
     assert torch.isfinite(res.volume).all()
+
+
+def test_diverging_filter_is_flagged_not_raised():
+    """CDSMF (box-covering ellipsoids, a sqrt(n) inflation per step) diverges on the chain at
+    n = 32 from step 21: the radii overflow when squared. The step must flag the element
+    unbounded (bounds +-inf), not raise from a constructor's NaN/inf check, and the audit
+    must count those pairs as unbounded, not as violations."""
+    from diffsmf.audit import containment
+
+    s = ds.systems.get("oscillator_chain", n=32)
+    tr = s.simulate(steps=24, batch=1, seed=2024, noise="vertex")
+    filt = ds.filters.CDSMF(s)
+    with torch.no_grad():
+        res = filt(tr.y)
+    assert res.bounded[:, :5].all() and not res.bounded[:, -1].any()
+    assert torch.isinf(res.upper[:, -1]).all() and torch.isinf(res.volume[:, -1]).all()
+    rep = containment(filt, s, trials=2, steps=24, noise="vertex", seed=2024)
+    assert rep.violations == 0 and rep.unbounded > 0
+
+
+def test_sanitize_remainder_flags_huge_boxes():
+    """A remainder box beyond MAX_SET_RADIUS (finite, but its square overflows) is not ok;
+    the other elements keep their bounds bit for bit."""
+    from diffsmf.filters._common import sanitize_remainder
+    from diffsmf.filters.base import MAX_SET_RADIUS
+    from diffsmf.sets import Interval
+
+    lo = torch.tensor([[-1.0, -2.0], [-3.0 * MAX_SET_RADIUS, 0.0], [float("nan"), 0.0]])
+    R, ok = sanitize_remainder(Interval._make(lo, lo.nan_to_num(0.0).abs() + 1.0))
+    assert ok.tolist() == [True, False, False]
+    assert torch.equal(R.lower[0], lo[0]) and (R.lower[1:] == 0).all()

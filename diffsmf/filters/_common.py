@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.filters.base import MAX_SET_RADIUS, FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -42,11 +42,15 @@ def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor
 def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:
     """``(R', ok)``: ``ok [...]`` is False where the remainder box ``R [..., n]`` is not finite
     (NaN / inf: the set reached a singularity of the model, e.g. the pole of the fermenter's
-    ``mu``, or grew without bound); there ``R'`` is 0 so that no NaN reaches the rest of the
-    batch. The caller must mark those elements unbounded (``FilterState.and_bounded(ok)``):
-    no bounded guaranteed set exists for them. Branch-free.
+    ``mu``) or has a bound beyond :data:`~diffsmf.filters.base.MAX_SET_RADIUS` (the set grew
+    without bound: squaring such a radius, as the ellipsoidal covers do, would overflow before
+    the guard sees the set); there ``R'`` is 0 so that no NaN reaches the rest of the batch.
+    The caller must mark those elements unbounded (``FilterState.and_bounded(ok)``): no
+    bounded guaranteed set exists for them. Branch-free; the bounds of the other elements are
+    returned unchanged.
     """
-    ok = (torch.isfinite(R.lower) & torch.isfinite(R.upper)).all(-1)
+    big = MAX_SET_RADIUS
+    ok = ((R.lower.abs() <= big) & (R.upper.abs() <= big)).all(-1)  # False for NaN and inf
     keep = ok.unsqueeze(-1)
     z = torch.zeros_like(R.lower)
     return Interval._make(torch.where(keep, R.lower, z), torch.where(keep, R.upper, z)), ok
