@@ -18,13 +18,22 @@ consistency excess of every measurement, so all three losses come from one pass.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from diffsmf.filters.base import FilterResult, FilterState, SetFilter
+from diffsmf.filters.base import (
+    FilterResult,
+    FilterState,
+    SetFilter,
+    flat_state,
+    state_from_flat,
+)
 from diffsmf.sets.base import ConvexSet, where
+from diffsmf.utils import tracing
 
 __all__ = [
     "LossWeights",
@@ -137,18 +146,30 @@ def consistency_excess(filt: SetFilter, predicted: ConvexSet, y: Tensor) -> Tens
     ``(|y_i - h_i(c) - cV_i| - r_i - rV_i) / s_i``: <= 0 consistent, > 0 not, where
     ``s_i = rV_i + |J_i| rW`` is one step of noise seen at the output (the scale that the
     tuned bounds change; normalising by the whole half-width would let the initial set, not
-    the noise, set the units).
+    the noise, set the units). A constrained zonotope is not symmetric about its centre: its
+    range ``[-h(-J_i), h(J_i)]`` is taken from both support values.
     """
     from diffsmf.linearize import jacobian
+    from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 
     c = predicted.center
     h = filt.system.h
     J = jacobian(h, c.detach())  # [B, m, n]; a direction only, so no gradient through it
     Jm = J.movedim(-2, 0)  # [m, B, n]
-    r = predicted.support(Jm) - (Jm * c).sum(-1)  # [m, B]
+    Jc = (Jm * c).sum(-1)  # [m, B]
+    hi = predicted.support(Jm)
+    mid = h(c) + filt.measurement_noise_center
+    if isinstance(predicted, ConstrainedZonotope):
+        # not symmetric about its centre c: J.x ranges over [-h(-J), h(J)], whose midpoint
+        # need not be J.c (the symmetric formula below would cut the range and report a
+        # consistent measurement as outside)
+        lo = -predicted.support(-Jm)
+        r = 0.5 * (hi - lo)
+        mid = mid + (0.5 * (hi + lo) - Jc).movedim(0, -1)
+    else:
+        r = hi - Jc  # [m, B]; the set is symmetric about c
     r = r.movedim(0, -1)  # [B, m]
     rv = filt.measurement_noise
-    mid = h(c) + filt.measurement_noise_center
     scale = (rv + (J.abs() * filt.process_noise).sum(-1)).clamp_min(1e-12)
     return ((y - mid).abs() - r - rv) / scale
 
@@ -182,23 +203,64 @@ def filter_with_predictions(
     state = filt.initial_state(batch=B) if state is None else state
     if state.set.batch_shape != (B,):
         raise ValueError(f"state: expected batch shape [{B}], got {list(state.set.batch_shape)}")
+    compiled = _compiled_guarded_step(filt)
     states = [state]
     excess = []
     for k in range(T):
-        pred = filt.predict(state, None if u is None else u[:, k])
-        yk = y[:, k]
-        nan = torch.isnan(yk)
-        e = consistency_excess(filt, pred.set, torch.nan_to_num(yk))
-        excess.append(torch.where(nan, torch.full_like(e, -1.0), e))
-        bad = ((e > -1e-9) & ~nan).any(-1)
-        if guard_empty and bool(bad.any()):
-            safe = torch.where(bad.unsqueeze(-1), _output_centre(filt, pred.set), yk)
-            new = filt.update(pred, safe)
-            state = new.replace(set=where(bad, pred.set, new.set), consistent=new.consistent & ~bad)
+        uk = None if u is None else u[:, k]
+        if compiled is not None and filt._compile_ready(state):
+            flat, e = compiled(*filt._step_args(state), uk, y[:, k], type(state.set), guard_empty)
+            state = filt._unflatten(flat)
         else:
-            state = filt.update(pred, yk)
+            state, e = _guarded_step(filt, state, uk, y[:, k], guard_empty)
+        excess.append(e)
         states.append(state)
     return PassOutput(result=filt.collect(states), excess=torch.stack(excess, 1), final=state)
+
+
+def _guarded_step(
+    filt: SetFilter, state: FilterState, u: Tensor | None, yk: Tensor, guard_empty: bool
+) -> tuple[FilterState, Tensor]:
+    """One step of :func:`filter_with_predictions` -> ``(state, excess [B, m])``.
+
+    Eagerly the guard runs only when some element needs it (one host sync); while tracing
+    (:meth:`SetFilter.compile`) it always runs, branch-free: for an element that is not
+    guarded it selects the unguarded update, so the values are the same bits either way.
+    """
+    pred = filt.predict(state, u)
+    nan = torch.isnan(yk)
+    e = consistency_excess(filt, pred.set, torch.nan_to_num(yk))
+    excess = torch.where(nan, torch.full_like(e, -1.0), e)
+    if not guard_empty:
+        return filt.update(pred, yk), excess
+    bad = ((e > -1e-9) & ~nan).any(-1)
+    if not tracing() and not bool(bad.any()):
+        return filt.update(pred, yk), excess
+    safe = torch.where(bad.unsqueeze(-1), _output_centre(filt, pred.set), yk)
+    new = filt.update(pred, safe)
+    guarded = new.replace(set=where(bad, pred.set, new.set), consistent=new.consistent & ~bad)
+    return guarded, excess
+
+
+def _flat_guarded_step(filt: SetFilter, *flat: Any) -> tuple[tuple, Tensor]:
+    """:func:`_guarded_step` on flat tensors (what ``filt.compile()`` traces for tuning, like
+    :meth:`SetFilter._flat_step`): ``flat = (*filt._step_args(state), u, y, set_type,
+    guard_empty)`` -> ``(flat state, excess)``."""
+    *fields_to_extras, u, y, set_type, guard_empty = flat
+    state = state_from_flat(*fields_to_extras, set_type)
+    new, excess = _guarded_step(filt, state, u, y, guard_empty)
+    return flat_state(new), excess
+
+
+def _compiled_guarded_step(filt: SetFilter) -> Callable[..., Any] | None:
+    """The compiled :func:`_flat_guarded_step` of a filter after ``filt.compile()`` (None
+    before, while tracing, and for filters whose guarded set would change size: CZSMF's
+    predicted set has more generators than its capped update, so the branch-free guard
+    would pad every state)."""
+    if tracing() or not getattr(filt, "_constant_set_size", True):
+        return None
+    fn = getattr(filt, "compiled_function", None)
+    return None if fn is None else fn("guarded_step", _flat_guarded_step)
 
 
 def _output_centre(filt: SetFilter, predicted: ConvexSet) -> Tensor:

@@ -37,7 +37,7 @@ from diffsmf.utils import traced
 #: Attributes of a filter that change while it runs, not its configuration.
 RUNTIME_ATTRS = frozenset({
     "_compiled_step", "_compiled_steps", "_direct_cache", "_guarded_calls", "_out_type",
-    "_steps_per_call", "_stream", "_direct_options",
+    "_steps_per_call", "_stream", "_direct_options", "_compile_kwargs", "_compiled_functions",
 })
 
 #: Compiled structures kept per configuration (least recently used dropped first).

@@ -12,7 +12,7 @@ import functools
 import math
 import types
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -287,6 +287,21 @@ def _flat_args(state: FilterState, grad_leaves: bool = False) -> tuple:
     )
 
 
+def state_from_flat(
+    fields: tuple[Tensor, ...], consistent: Tensor, bounded: Tensor, extras: dict[str, Tensor],
+    set_type: type,
+) -> FilterState:
+    """The :class:`FilterState` of a compiled step's flat inputs (see :func:`flat_state`)."""
+    return FilterState(set_type._from_tensors(fields), consistent, extras, bounded)
+
+
+def flat_state(state: FilterState) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
+    """``state`` as a compiled step returns it: ``(fields, consistent, bounded, extras)``
+    (``bounded`` all True for None); :meth:`SetFilter._unflatten` rebuilds it."""
+    nb = torch.ones_like(state.consistent) if state.bounded is None else state.bounded
+    return state.set._tensors(), state.consistent, nb, dict(state.extras)
+
+
 def _identity(t: Any) -> Any:
     return t
 
@@ -332,6 +347,10 @@ class SetFilter(nn.Module):
 
     process_noise = Positive()
     measurement_noise = Positive()
+    #: Whether ``predict`` and ``update`` give sets of the same field shapes (False for CZSMF,
+    #: whose predicted set is larger than its capped update); tuning compiles its guarded step
+    #: (:func:`training.losses.filter_with_predictions`) only for such filters.
+    _constant_set_size: bool = True
 
     def __init_subclass__(cls, **kw: Any) -> None:
         """Every subclass's ``predict`` validates ``u`` against the system first
@@ -764,6 +783,8 @@ class SetFilter(nn.Module):
             if set(kw) <= {"fullgraph", "dynamic", "options", "backend"} and not kw["dynamic"]:
                 self._direct_options = kw["options"]
         self.__dict__.pop("_direct_cache", None)
+        self.__dict__.pop("_compiled_functions", None)
+        self._compile_kwargs = kw
         # each its own code object (own recompile budget, see _own_code); compiled lazily
         flat = torch.compile(_own_code(type(self)._flat_step).__get__(self), **kw)
         multi = torch.compile(_own_code(type(self)._flat_steps).__get__(self), **kw)
@@ -784,6 +805,38 @@ class SetFilter(nn.Module):
         self._compiled_step = compiled
         self._compiled_steps = compiled_steps
         return self
+
+    @contextlib.contextmanager
+    def eager(self) -> Iterator[SetFilter]:
+        """``with filt.eager():`` -- inside the block a compiled filter runs eagerly
+        (``forward``, ``step`` and :meth:`compiled_function`), e.g. for a one-off pass on a
+        batch size that would otherwise compile a new graph; the compiled graphs are kept for
+        after the block. Without :meth:`compile` it changes nothing."""
+        keys = ("_compiled_step", "_compile_kwargs")
+        saved = {k: self.__dict__.pop(k) for k in keys if k in self.__dict__}
+        try:
+            yield self
+        finally:
+            self.__dict__.update(saved)
+
+    def compiled_function(self, name: str, fn: Callable[..., Any]) -> Callable[..., Any] | None:
+        """``fn(self, *args)`` compiled with this filter's :meth:`compile` arguments, or None
+        when the filter is not compiled.
+
+        For steps that wrap the filter's own step (e.g. the tuning step of
+        :func:`training.losses.filter_with_predictions`, which adds the consistency excess):
+        ``fn`` gets a code object of its own (its own recompile budget) and is bound to the
+        filter; the compiled function is cached under ``name`` until the next ``compile()``.
+        Call it on :meth:`_step_args` and rebuild the state with :meth:`_unflatten`, as the
+        compiled step does.
+        """
+        kw = getattr(self, "_compile_kwargs", None)
+        if kw is None:
+            return None
+        cache = self.__dict__.setdefault("_compiled_functions", {})
+        if name not in cache:
+            cache[name] = torch.compile(_own_code(fn).__get__(self), **kw)
+        return cache[name]
 
     def _step_args(self, state: FilterState) -> tuple:
         """:func:`_flat_args` for a compiled call; while a gradient is recorded for a
@@ -813,10 +866,8 @@ class SetFilter(nn.Module):
         set_type: type,
     ) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
         """:meth:`step` on flat tensors (the function that ``compile`` traces)."""
-        S = set_type._from_tensors(fields)
-        new = self._eager_step(FilterState(S, consistent, extras, bounded), u, y)
-        nb = torch.ones_like(new.consistent) if new.bounded is None else new.bounded
-        return new.set._tensors(), new.consistent, nb, dict(new.extras)
+        state = state_from_flat(fields, consistent, bounded, extras, set_type)
+        return flat_state(self._eager_step(state, u, y))
 
     def _flat_steps(
         self,

@@ -96,6 +96,7 @@ class CZSMF(SetFilter):
 
     stirling_step = Positive()
     remainder_margin = Positive()
+    _constant_set_size = False  # the predicted set has more generators than the capped update
 
     def __init__(
         self,

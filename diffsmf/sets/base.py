@@ -244,12 +244,17 @@ def stack(sets: Sequence[ConvexSet], dim: int = 0) -> ConvexSet:
 
 def align(sets: Sequence[ConvexSet], count: int | None = None) -> list[ConvexSet]:
     """The same sets with equal field shapes where a set type allows it: zonotopes are padded
-    with zero generators to the largest generator count (or to ``count``); other types are
-    returned unchanged. Use before :func:`stack` / :func:`cat` of sets of one type."""
+    with zero generators to the largest generator count (or to ``count``), constrained
+    zonotopes also with trivial constraints ``0 xi = 0`` to the largest constraint count;
+    other types are returned unchanged. Use before :func:`stack` / :func:`cat` / :func:`where`
+    of sets of one type."""
     sets = list(sets)
     if sets and hasattr(sets[0], "pad_generators"):
         m = max(s.generators.shape[-1] for s in sets)
-        return [s.pad_generators(max(m, count or 0)) for s in sets]
+        sets = [s.pad_generators(max(m, count or 0)) for s in sets]
+    if sets and hasattr(sets[0], "pad_constraints"):
+        k = max(s.num_constraints for s in sets)
+        sets = [s.pad_constraints(k) for s in sets]
     return sets
 
 
@@ -267,9 +272,14 @@ def cat(sets: Sequence[ConvexSet]) -> ConvexSet:
 
 
 def where(cond: Tensor, a: ConvexSet, b: ConvexSet) -> ConvexSet:
-    """Batched select: ``a`` where ``cond [...]`` is True, else ``b`` (same type and shapes)."""
+    """Batched select: ``a`` where ``cond [...]`` is True, else ``b`` (same type; zonotopes
+    and constrained zonotopes of different sizes are first :func:`align`-ed, so the result
+    has the larger generator and constraint counts)."""
     if type(a) is not type(b):
         raise ValueError(f"where: sets differ in type ({type(a).__name__}, {type(b).__name__})")
+    if any(ta.shape[ta.dim() - e :] != tb.shape[tb.dim() - e :]
+           for ta, tb, e in zip(a._tensors(), b._tensors(), a._event_dims)):
+        a, b = align([a, b])
     out = []
     for ta, tb, e in zip(a._tensors(), b._tensors(), a._event_dims):
         c = cond.reshape(cond.shape + (1,) * e)

@@ -731,15 +731,33 @@ def _minimize_rho(
         rho0 = torch.where(rho0 <= 1e-7, torch.zeros_like(rho0), rho0)
     if not (torch.is_grad_enabled() and needs_grad):
         return rho0
-    with torch.enable_grad():
-        r = rho0.detach().clone().requires_grad_(True)
-        f = full_obj(r)
-        (g,) = torch.autograd.grad(f.sum(), r, create_graph=True)
-        (h,) = torch.autograd.grad(g.sum(), r, create_graph=True)
+    if tracing():  # torch.compile cannot trace autograd.grad: forward mode, same derivatives
+        g, h = _rho_derivatives(full_obj, rho0.detach())
+    else:
+        with torch.enable_grad():
+            r = rho0.detach().clone().requires_grad_(True)
+            f = full_obj(r)
+            (g,) = torch.autograd.grad(f.sum(), r, create_graph=True)
+            (h,) = torch.autograd.grad(g.sum(), r, create_graph=True)
     ok = (~at_edge) & (h.detach() > 0)
     step = torch.where(ok, g / torch.where(ok, h, torch.ones_like(h)), torch.zeros_like(g))
     # value: the Newton-polished root; derivative: -d(obj')/d(theta) / obj'' (r is constant)
     return (rho0 - step).detach().clamp(0.0, top) - (step - step.detach())
+
+
+def _rho_derivatives(obj: Any, r: Tensor) -> tuple[Tensor, Tensor]:
+    """First and second derivatives of the elementwise objective ``obj(r) [...]`` at ``r``
+    by nested forward-mode products (``torch.func.jvp`` with unit tangents: each element's
+    objective depends on its own ``r`` only), differentiable w.r.t. what ``obj`` closes over.
+    The traceable twin of :func:`_minimize_rho`'s two ``autograd.grad`` calls (equal up to
+    rounding)."""
+    from torch.func import grad, jvp
+
+    def total(x: Tensor) -> Tensor:
+        return obj(x).sum()
+
+    g, h = jvp(grad(total), (r,), (torch.ones_like(r),))
+    return g, h
 
 
 def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
