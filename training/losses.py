@@ -18,6 +18,7 @@ consistency excess of every measurement, so all three losses come from one pass.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -26,9 +27,11 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.base import (
+    _GUARDED_STEPS,
     FilterResult,
     FilterState,
     SetFilter,
+    _skip_guards,
     flat_state,
     state_from_flat,
 )
@@ -206,15 +209,21 @@ def filter_with_predictions(
     compiled = _compiled_guarded_step(filt)
     states = [state]
     excess = []
-    for k in range(T):
-        uk = None if u is None else u[:, k]
-        if compiled is not None and filt._compile_ready(state):
-            flat, e = compiled(*filt._step_args(state), uk, y[:, k], type(state.set), guard_empty)
-            state = filt._unflatten(flat)
-        else:
-            state, e = _guarded_step(filt, state, uk, y[:, k], guard_empty)
-        excess.append(e)
-        states.append(state)
+    with contextlib.ExitStack() as stack:
+        calls = 0
+        for k in range(T):
+            uk = None if u is None else u[:, k]
+            if compiled is not None and filt._compile_ready(state):
+                args = (*filt._step_args(state), uk, y[:, k], type(state.set), guard_empty)
+                flat, e = compiled(*args)
+                state = filt._unflatten(flat)
+                calls += 1
+                if calls == _GUARDED_STEPS:  # as in SetFilter.forward: the inputs' structure
+                    stack.enter_context(_skip_guards())  # is now known to pass the guards
+            else:
+                state, e = _guarded_step(filt, state, uk, y[:, k], guard_empty)
+            excess.append(e)
+            states.append(state)
     return PassOutput(result=filt.collect(states), excess=torch.stack(excess, 1), final=state)
 
 
