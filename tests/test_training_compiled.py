@@ -124,3 +124,20 @@ def test_where_aligns_sets_of_different_sizes():
     assert cw.num_constraints == ca.num_constraints and cw.num_generators == 6
     torch.testing.assert_close(cw.support(d), torch.where(cond, ca.support(d), cb.support(d)),
                                rtol=1e-6, atol=1e-9)
+
+
+def test_cli_compile_option(tmp_path, capsys):
+    import argparse
+
+    from diffsmf.cli import main as diffsmf_main
+    from training.tune import _merge_config, add_arguments
+
+    ap = argparse.ArgumentParser()
+    add_arguments(ap)
+    assert _merge_config(ap.parse_args(["--compile"])).compile is True
+    assert _merge_config(ap.parse_args([])).compile is False
+    bad = tmp_path / "bad.toml"
+    bad.write_text('compile = "yes"\n')
+    assert diffsmf_main(["tune", "--config", str(bad), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "compile" in err[0] and "true or false" in err[0]
