@@ -141,3 +141,17 @@ def test_cli_compile_option(tmp_path, capsys):
     assert diffsmf_main(["tune", "--config", str(bad), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "compile" in err[0] and "true or false" in err[0]
+
+
+def test_a_step_that_does_not_compile_tunes_eagerly_with_a_warning(sd):
+    s, y = sd
+
+    def broken(gm, example_inputs):
+        raise RuntimeError("no C++ compiler found")
+
+    kw = dict(epochs=2, batch_size=6, progress=False, seed=1)
+    ref, _ = tune(ds.filters.HSNSMF(s), y, **kw)
+    f = ds.filters.HSNSMF(s).compile(backend=broken)
+    with pytest.warns(RuntimeWarning, match="could not be compiled.*tuning eagerly"):
+        rep, _ = tune(f, y, compile=True, **kw)
+    assert rep.final == ref.final  # the eager loop, bit for bit

@@ -19,12 +19,14 @@ consistency excess of every measurement, so all three losses come from one pass.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
+from torch._dynamo.exc import TorchDynamoException
 
 from diffsmf.filters.base import (
     _GUARDED_STEPS,
@@ -213,9 +215,14 @@ def filter_with_predictions(
         calls = 0
         for k in range(T):
             uk = None if u is None else u[:, k]
+            flat = None
             if compiled is not None and filt._compile_ready(state):
                 args = (*filt._step_args(state), uk, y[:, k], type(state.set), guard_empty)
-                flat, e = compiled(*args)
+                try:
+                    flat, e = compiled(*args)
+                except TorchDynamoException as err:  # no C++ compiler, a graph break, ...
+                    compiled = _stop_compiling(filt, err)
+            if flat is not None:
                 state = filt._unflatten(flat)
                 calls += 1
                 if calls == _GUARDED_STEPS:  # as in SetFilter.forward: the inputs' structure
@@ -261,12 +268,25 @@ def _flat_guarded_step(filt: SetFilter, *flat: Any) -> tuple[tuple, Tensor]:
     return flat_state(new), excess
 
 
+def _stop_compiling(filt: SetFilter, err: Exception) -> None:
+    """The compiled tuning step failed to compile: warn once and tune this filter eagerly
+    (same sets and gradients, only slower) until its next ``compile()``."""
+    first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    warnings.warn(
+        f"compile: the tuning step of {type(filt).__name__} could not be compiled ({first}); "
+        "tuning eagerly", RuntimeWarning, stacklevel=4,
+    )
+    filt._guarded_step_failed = True
+
+
 def _compiled_guarded_step(filt: SetFilter) -> Callable[..., Any] | None:
     """The compiled :func:`_flat_guarded_step` of a filter after ``filt.compile()`` (None
     before, while tracing, and for filters whose guarded set would change size: CZSMF's
     predicted set has more generators than its capped update, so the branch-free guard
     would pad every state)."""
     if tracing() or not getattr(filt, "_constant_set_size", True):
+        return None
+    if filt.__dict__.get("_guarded_step_failed", False):
         return None
     fn = getattr(filt, "compiled_function", None)
     return None if fn is None else fn("guarded_step", _flat_guarded_step)

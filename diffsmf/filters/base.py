@@ -784,6 +784,7 @@ class SetFilter(nn.Module):
                 self._direct_options = kw["options"]
         self.__dict__.pop("_direct_cache", None)
         self.__dict__.pop("_compiled_functions", None)
+        self.__dict__.pop("_guarded_step_failed", None)
         self._compile_kwargs = kw
         # each its own code object (own recompile budget, see _own_code); compiled lazily
         flat = torch.compile(_own_code(type(self)._flat_step).__get__(self), **kw)
