@@ -35,7 +35,9 @@ def _pass(filt, y):
     return out, grads
 
 
-@pytest.mark.parametrize("name", ["hsnsmf", "mszm", "cdsmf", "esmf", "ekf"])
+# with tests/test_compile.py::test_compiled_step_differentiable (HSNSMF, CDSMF, ESMF,
+# CombinedFilter) every filter's compiled gradients are checked against eager ones
+@pytest.mark.parametrize("name", ["hsnsmf", "mszm", "ekf"])
 def test_compiled_guarded_step_equals_eager(sd, name):
     s, y = sd
     eager = ds.filters.by_name(name)(s)
