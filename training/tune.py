@@ -265,6 +265,9 @@ def main(args: argparse.Namespace) -> int:
     if test is not None:
         with torch.no_grad():
             before = filt(test.y, u=test.u).volume.mean(0)
+    if cfg.compile and cfg.progress and ddp.rank() == 0:
+        print("compiling the tuning step (once: 1-3 minutes on a CPU, seconds from the cache "
+              "of an earlier run)...", file=sys.stderr, flush=True)
     report, filt = tune(
         filt,
         train,
