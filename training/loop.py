@@ -362,8 +362,8 @@ def tune(
             validation, then runs the compiled step together with the consistency excess
             (:func:`~training.losses.filter_with_predictions`), with the same sets and
             gradients as eagerly up to rounding. Pays a one-off compile per batch size and grad
-            mode (about 1-3 minutes for HSNSMF on a 2-core CPU) and is then about 10x faster
-            per epoch (docs/training.md). CZSMF tunes eagerly.
+            mode (about 1-3 minutes for HSNSMF on a 2-core CPU) and is then 5-8x faster per
+            epoch (measured, docs/training.md). CZSMF tunes eagerly.
 
     Under ``torch.distributed`` each global mini-batch is sharded over the processes and the
     gradients are summed, so K processes follow the single-process trajectory.

@@ -221,7 +221,8 @@ def filter_with_predictions(
                 try:
                     flat, e = compiled(*args)
                 except TorchDynamoException as err:  # no C++ compiler, a graph break, ...
-                    compiled = _stop_compiling(filt, err)
+                    _stop_compiling(filt, err)
+                    compiled = None
             if flat is not None:
                 state = filt._unflatten(flat)
                 calls += 1

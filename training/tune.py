@@ -71,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--compile",
         action="store_true",
         help="tune through the compiled filter step (filt.compile(): a one-off compile of "
-        "1-3 minutes, then about 10x faster epochs)",
+        "1-3 minutes, then 5-8x faster epochs)",
     )
     a("--out", default=d.out, help="output folder (created when missing)")
     a("--no-progress", "--quiet", dest="progress", action="store_false", help="no progress bar")

@@ -747,8 +747,9 @@ def _minimize_rho(
 
 def _rho_derivatives(obj: Any, r: Tensor) -> tuple[Tensor, Tensor]:
     """First and second derivatives of the elementwise objective ``obj(r) [...]`` at ``r``
-    by nested forward-mode products (``torch.func.jvp`` with unit tangents: each element's
-    objective depends on its own ``r`` only), differentiable w.r.t. what ``obj`` closes over.
+    in forward-over-reverse mode (``torch.func.jvp`` of ``torch.func.grad`` of the sum, unit
+    tangent: each element's objective depends on its own ``r`` only), differentiable w.r.t.
+    what ``obj`` closes over.
     The traceable twin of :func:`_minimize_rho`'s two ``autograd.grad`` calls (equal up to
     rounding)."""
     from torch.func import grad, jvp
