@@ -26,19 +26,32 @@ CASES = [
 ]
 
 
-@pytest.fixture(autouse=True)
+@pytest.fixture(autouse=True, scope="module")
 def _fresh_dynamo():
     torch._dynamo.reset()
     yield
     torch._dynamo.reset()
 
 
+@pytest.fixture(scope="module")
+def hsnsmf_eager_compiled():
+    """One compiled HSNSMF (spring_damper, ``"eager"`` backend) shared by the tests of the
+    forward / online paths: each compiled filter traces its own graphs (one per batch size and
+    grad mode), so sharing it keeps the module's tracing to a few graphs. Each test leaves it as
+    it found it (no streaming block open)."""
+    s = ds.systems.get("spring_damper")
+    return s, ds.filters.HSNSMF(s).compile(backend="eager")
+
+
 @pytest.mark.parametrize("name,system", CASES)
-def test_compiled_step_is_one_graph_and_matches_eager(name, system):
+def test_compiled_step_is_one_graph_and_matches_eager(name, system, hsnsmf_eager_compiled):
     s = ds.systems.get(system)
     tr = s.simulate(steps=3, batch=2, seed=0, noise="vertex")
     eager = ds.filters.by_name(name)(s)
-    comp = ds.filters.by_name(name)(s).compile(backend="eager")  # fullgraph=True by default
+    if name == "hsnsmf":
+        comp = hsnsmf_eager_compiled[1]
+    else:
+        comp = ds.filters.by_name(name)(s).compile(backend="eager")  # fullgraph=True by default
     with torch.no_grad():
         re = eager(tr.y, u=tr.u)
         rc = comp(tr.y, u=tr.u)
@@ -57,13 +70,15 @@ def test_compiled_step_is_one_graph_and_matches_eager(name, system):
      ("combined", "spring_damper")],
 )
 def test_compiled_step_differentiable(name, system):
-    """Gradients flow through the compiled step (aot_eager: Dynamo + AOTAutograd) and equal
-    the eager ones (ESMF's rho step takes its derivatives in forward mode while tracing:
-    Dynamo cannot trace ``autograd.grad``). MSZM and the EKF: through the tuning step in
+    """Gradients flow through the compiled step and equal the eager ones (ESMF's rho step
+    takes its derivatives in forward mode while tracing: Dynamo cannot trace
+    ``autograd.grad``). The ``"eager"`` backend runs Dynamo's captured graph (the traced code
+    path, a third of aot_eager's time here); AOTAutograd's forward / backward split, the
+    path Inductor takes, is checked for HSNSMF, MSZM and the EKF through the tuning step in
     tests/test_training_compiled.py."""
     s = ds.systems.get(system)
     tr = s.simulate(steps=3, batch=2, seed=0, noise="vertex")
-    filt = ds.filters.by_name(name)(s).compile(backend="aot_eager")
+    filt = ds.filters.by_name(name)(s).compile(backend="eager")
     filt(tr.y).volume[:, 1:].log().mean().backward()
     ref = ds.filters.by_name(name)(s)
     ref(tr.y).volume[:, 1:].log().mean().backward()
@@ -80,13 +95,11 @@ def test_grad_mode_initial_state_uses_the_same_graph():
     parameters) enter the compiled step with the same ``requires_grad`` signature: one graph
     for the whole horizon (two before: about 40 s more of Inductor compile for HSNSMF at
     B = 64), and the parameters' gradients are the eager ones."""
-    from torch._dynamo.backends.debugging import aot_eager
-
     graphs = []
 
-    def counting(gm, inputs):
+    def counting(gm, inputs):  # Dynamo's graphs, run as captured
         graphs.append(gm)
-        return aot_eager(gm, inputs)
+        return gm.forward
 
     s = ds.systems.get("spring_damper")
     tr = s.simulate(steps=4, batch=2, seed=5)
@@ -104,12 +117,11 @@ def test_grad_mode_initial_state_uses_the_same_graph():
     assert len(graphs) == 2  # the no-grad graph
 
 
-def test_compiled_forward_across_batch_sizes_and_grad_modes():
+def test_compiled_forward_across_batch_sizes_and_grad_modes(hsnsmf_eager_compiled):
     """``forward`` skips Dynamo's guard checks after its first compiled steps; switching the
     batch size or the grad mode between calls must still pick (or build) the right graph."""
-    s = ds.systems.get("spring_damper")
+    s, comp = hsnsmf_eager_compiled
     eager = ds.filters.HSNSMF(s)
-    comp = ds.filters.HSNSMF(s).compile(backend="eager")
     for batch, grad in ((2, False), (3, False), (2, True), (3, False), (2, False)):
         tr = s.simulate(steps=5, batch=batch, seed=batch)
         with torch.set_grad_enabled(grad):
@@ -145,13 +157,13 @@ def test_czsmf_compiled_step_is_one_graph():
     "name,system", [("hsnsmf", "spring_damper"), ("cdsmf", "spring_damper"), ("ekf", "bilinear")]
 )
 def test_steps_per_call_one_graph_same_sets(name, system):
-    """``compile(steps_per_call=3)``: forward runs 3 steps per compiled call in one graph (the
+    """``compile(steps_per_call=2)``: forward runs 2 steps per compiled call in one graph (the
     last, shorter part on repeated y / u, its extra states dropped) and gives the eager sets;
     CDSMF's first step (initial box in its extras) runs eagerly."""
     s = ds.systems.get(system)
-    tr = s.simulate(steps=7, batch=2, seed=1, noise="vertex")  # 7 = 3 + 3 + 1 (+ 2 padded)
+    tr = s.simulate(steps=5, batch=2, seed=1, noise="vertex")  # 5 = 2 + 2 + 1 (+ 1 padded)
     eager = ds.filters.by_name(name)(s)
-    comp = ds.filters.by_name(name)(s).compile(steps_per_call=3, backend="eager")
+    comp = ds.filters.by_name(name)(s).compile(steps_per_call=2, backend="eager")
     calls, inner = [], comp._compiled_steps
     comp._compiled_steps = lambda *a: calls.append(1) or inner(*a)
     torch._dynamo.utils.counters.clear()
@@ -159,8 +171,8 @@ def test_steps_per_call_one_graph_same_sets(name, system):
         re = eager(tr.y, u=tr.u)
         rc = comp(tr.y, u=tr.u)
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1
-    assert len(calls) == (2 if name == "cdsmf" else 3)  # CDSMF: 1 eager step, then 3 + 3
-    assert rc.lower.shape == re.lower.shape == (2, 8, s.n)
+    assert len(calls) == (2 if name == "cdsmf" else 3)  # CDSMF: 1 eager step, then 2 + 2
+    assert rc.lower.shape == re.lower.shape == (2, 6, s.n)
     torch.testing.assert_close(rc.lower, re.lower, rtol=1e-10, atol=1e-13)
     torch.testing.assert_close(rc.upper, re.upper, rtol=1e-10, atol=1e-13)
     assert torch.equal(rc.consistent, re.consistent)
@@ -171,7 +183,7 @@ def test_steps_per_call_gradients_and_online_step():
     loss); the online ``step`` still runs one step per call; a bad K raises."""
     s = ds.systems.get("spring_damper")
     tr = s.simulate(steps=5, batch=2, seed=0)
-    filt = ds.filters.HSNSMF(s).compile(steps_per_call=2, backend="aot_eager")
+    filt = ds.filters.HSNSMF(s).compile(steps_per_call=2, backend="eager")
     filt(tr.y).volume[:, 1:].log().mean().backward()
     ref = ds.filters.HSNSMF(s)
     ref(tr.y).volume[:, 1:].log().mean().backward()
@@ -204,10 +216,12 @@ def test_czsmf_steps_per_call():
     torch.testing.assert_close(rc.upper, re.upper, rtol=1e-10, atol=1e-13)
 
 
-@pytest.mark.parametrize("name,system", CASES)
+@pytest.mark.parametrize("name,system", [c for c in CASES if c != ("esmf", "spring_damper")])
 def test_whole_module_compiles_with_fullgraph(name, system):
     """``torch.compile(filt, fullgraph=True)`` (the whole unrolled forward, collect included)
-    traces without a graph break and gives the eager result."""
+    traces without a graph break and gives the eager result (ESMF on mismatch_quadratic, its
+    two-sided update; the one-sided one compiles in
+    ``test_compiled_step_is_one_graph_and_matches_eager``)."""
     s = ds.systems.get(system)
     tr = s.simulate(steps=2, batch=2, seed=0, noise="vertex")
     filt = ds.filters.by_name(name)(s)
@@ -278,17 +292,20 @@ def test_compile_options(monkeypatch):
 
 
 @pytest.mark.parametrize("name,system", [("hsnsmf", "spring_damper"), ("cdsmf", "spring_damper")])
-def test_online_step_runs_the_compiled_step(name, system):
+def test_online_step_runs_the_compiled_step(name, system, hsnsmf_eager_compiled, monkeypatch):
     """``filt.step`` after ``compile()`` (one measurement at a time, the online fast path)
     runs the compiled graph, not the eager step, and gives ``forward``'s eager sets; CDSMF's
     first step (the initial box) runs eagerly and later ones compiled."""
     s = ds.systems.get(system)
     tr = s.simulate(steps=4, batch=2, seed=1, noise="vertex")
     eager = ds.filters.by_name(name)(s)
-    comp = ds.filters.by_name(name)(s).compile(backend="eager")
+    if name == "hsnsmf":
+        comp = hsnsmf_eager_compiled[1]
+    else:
+        comp = ds.filters.by_name(name)(s).compile(backend="eager")
     calls = []
     inner = comp._compiled_step
-    comp._compiled_step = lambda *a: calls.append(1) or inner(*a)
+    monkeypatch.setattr(comp, "_compiled_step", lambda *a: calls.append(1) or inner(*a))
     with torch.no_grad():
         ref = eager(tr.y)
         st = comp.initial_state(batch=2)
@@ -300,12 +317,11 @@ def test_online_step_runs_the_compiled_step(name, system):
     torch.testing.assert_close(hull.upper, ref.upper[:, -1], rtol=1e-10, atol=1e-13)
 
 
-def test_online_step_validates_y():
+def test_online_step_validates_y(hsnsmf_eager_compiled):
     """The compiled graph skips value checks, so ``step`` checks ``y`` first: shape for the
     state's batch, inf, NaN (unless ``skip_nan``: then the update is skipped, as eagerly)."""
-    s = ds.systems.get("spring_damper")
+    s, filt = hsnsmf_eager_compiled
     tr = s.simulate(steps=2, batch=2, seed=0)
-    filt = ds.filters.HSNSMF(s).compile(backend="eager")
     st = filt.initial_state(batch=2)
     for bad, msg in ((tr.y[:1, 0], "shape"), (tr.y[:, :1], "shape"),
                      (torch.full((2, 1), float("inf"), dtype=torch.float64), "inf"),
@@ -326,7 +342,7 @@ def test_online_step_validates_y():
                                rtol=1e-10, atol=1e-13)
 
 
-def test_streaming_skips_guards_only_for_a_known_structure(monkeypatch):
+def test_streaming_skips_guards_only_for_a_known_structure(monkeypatch, hsnsmf_eager_compiled):
     """``with filt.streaming():`` skips Dynamo's guard checks after two guarded compiled calls
     with the same input structure, and checks fully again when the structure changes (batch
     size, grad mode): the sets stay those of the eager filter throughout."""
@@ -335,9 +351,8 @@ def test_streaming_skips_guards_only_for_a_known_structure(monkeypatch):
     skipped = []
     real = base._skip_guards
     monkeypatch.setattr(base, "_skip_guards", lambda: skipped.append(1) or real())
-    s = ds.systems.get("spring_damper")
+    s, comp = hsnsmf_eager_compiled
     eager = ds.filters.HSNSMF(s)
-    comp = ds.filters.HSNSMF(s).compile(backend="eager")
     with comp.streaming():
         for batch, grad in ((2, False), (3, False), (2, True)):
             tr = s.simulate(steps=6, batch=batch, seed=batch)
