@@ -58,7 +58,8 @@ def test_compiled_guarded_step_equals_eager(sd, name):
 
 def test_tune_compiled_follows_eager(sd):
     """The guarded step's values and gradients, then 3 epochs of ``tune`` on the same compiled
-    filter (its graph traced once for both)."""
+    filter (``tune`` freezes the remainder margin, a guarded ``requires_grad``: its own
+    graph)."""
     s, y = sd
     fc = ds.filters.HSNSMF(s).compile(backend="aot_eager")
     _check_guarded_step(s, y, "hsnsmf", fc)
