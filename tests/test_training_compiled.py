@@ -37,8 +37,11 @@ def _pass(filt, y):
 
 # with tests/test_compile.py::test_compiled_step_differentiable (HSNSMF, CDSMF, ESMF,
 # CombinedFilter) every filter's compiled gradients are checked against eager ones
-def _check_guarded_step(s, y, name, comp):
+@pytest.mark.parametrize("name", ["hsnsmf", "mszm", "ekf"])
+def test_compiled_guarded_step_equals_eager(sd, name):
+    s, y = sd
     eager = ds.filters.by_name(name)(s)
+    comp = ds.filters.by_name(name)(s).compile(backend="aot_eager")
     oe, ge = _pass(eager, y)
     oc, gc = _pass(comp, y)
     assert not oe.result.consistent[0, 4]  # the guarded step
@@ -50,22 +53,11 @@ def _check_guarded_step(s, y, name, comp):
     assert "guarded_step" in comp.__dict__["_compiled_functions"]  # the compiled path ran
 
 
-@pytest.mark.parametrize("name", ["mszm", "ekf"])  # HSNSMF: in test_tune_compiled_follows_eager
-def test_compiled_guarded_step_equals_eager(sd, name):
-    s, y = sd
-    _check_guarded_step(s, y, name, ds.filters.by_name(name)(s).compile(backend="aot_eager"))
-
-
 def test_tune_compiled_follows_eager(sd):
-    """The guarded step's values and gradients, then 3 epochs of ``tune`` on the same compiled
-    filter (``tune`` freezes the remainder margin, a guarded ``requires_grad``: its own
-    graph)."""
     s, y = sd
-    fc = ds.filters.HSNSMF(s).compile(backend="aot_eager")
-    _check_guarded_step(s, y, "hsnsmf", fc)
-    fc.zero_grad()
     kw = dict(epochs=3, batch_size=6, progress=False, seed=1)
     re, _ = tune(ds.filters.HSNSMF(s), y, **kw)
+    fc = ds.filters.HSNSMF(s).compile(backend="aot_eager")
     rc, _ = tune(fc, y, compile=True, **kw)  # already compiled: used as it is
     for k in re.final:  # rounding-level gradient differences, grown by 3 Adam steps: 1e-7
         torch.testing.assert_close(torch.tensor(rc.final[k]), torch.tensor(re.final[k]),
