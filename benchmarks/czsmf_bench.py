@@ -44,6 +44,8 @@ CONFIGS = {
     "default (80, 10, hull)": {},
     "(40, 6, hull)": dict(max_generators=40, max_constraints=6),
     "(20, 4, hull)": dict(max_generators=20, max_constraints=4),
+    "(40, 6, propagation)": dict(max_generators=40, max_constraints=6, elimination="propagation"),
+    "(30, 5, propagation)": dict(max_generators=30, max_constraints=5, elimination="propagation"),
     "(12, 3, propagation)": dict(max_generators=12, max_constraints=3, elimination="propagation"),
 }
 
@@ -119,6 +121,9 @@ def seed_table(steps: int, trials: int) -> None:
             print(f"| {name} | {label} | {area:.4e} | {hull:.4e} | {dt:.3f} |", flush=True)
 
 
+#: CZSMF rows of the cost table (``--cost-configs``: any keys of ``CONFIGS``)
+COST_KEYS = ["(12, 3, propagation)", "(30, 5, propagation)", "default (80, 10, hull)"]
+
 CHAIN_CONFIGS = {
     "default (35 n + c = 308, 4 + 6 m = 28, hull)": {},
     "(460, 28, hull)": dict(max_generators=460, max_constraints=28),
@@ -165,7 +170,7 @@ def _tile(state, reps: int):
     )
 
 
-def cost_table(big_steps: int, tile_from: int) -> None:
+def cost_table(big_steps: int, tile_from: int, keys: list[str] | None = None) -> None:
     """Steady-state time per step: the filter first runs ``warm`` steps online (CZSMF reaches
     its caps), then ``steps`` more steps are timed. At batch 10,000 the warm-up runs at batch
     ``tile_from`` and its state and the measurements of the timed steps are tiled to 10,000
@@ -177,14 +182,13 @@ def cost_table(big_steps: int, tile_from: int) -> None:
     system = ds.systems.get("spring_damper")
     for batch, steps in ((1, 20), (100, 10), (10_000, big_steps)):
         filts = [("HSNSMF", ds.filters.HSNSMF(system)), ("MSZM", ds.filters.MSZM(system))]
-        keys = ["(12, 3, propagation)", "default (80, 10, hull)"]
-        filts += [(f"CZSMF {k}", CZSMF(system, **CONFIGS[k])) for k in keys]
+        filts += [(f"CZSMF {k}", CZSMF(system, **CONFIGS[k])) for k in keys or COST_KEYS]
         small = min(batch, tile_from) if tile_from > 0 else batch
         reps = batch // small
         if small * reps != batch:
             raise ValueError(f"--tile-from: {tile_from} does not divide the batch {batch}")
         for label, filt in filts:
-            warm = 40 if "80" in label else 6
+            warm = 40 if label.startswith("CZSMF") and "(12, 3" not in label else 6
             traj = system.simulate(steps=warm + steps, batch=small, seed=0, noise="uniform")
             y = traj.y.repeat(reps, 1, 1)
             u = None if traj.u is None else traj.u.repeat(reps, 1, 1)
@@ -215,6 +219,8 @@ def main() -> int:
     ap.add_argument("--chain-trials", type=int, default=4)
     ap.add_argument("--chain-n", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cost-configs", nargs="*", default=None, metavar="KEY",
+                    help=f"CZSMF rows of the cost table (default {COST_KEYS}; keys of CONFIGS)")
     args = ap.parse_args()
     torch.set_default_dtype(torch.float64)
     torch.set_num_threads(args.threads)
@@ -225,7 +231,10 @@ def main() -> int:
     if "chain" in args.parts:
         chain_table(args.chain_steps, args.chain_trials, args.chain_n)
     if "cost" in args.parts:
-        cost_table(args.big_steps, args.tile_from)
+        bad = [k for k in args.cost_configs or [] if k not in CONFIGS]
+        if bad:
+            ap.error(f"--cost-configs: unknown {bad}; choose from {list(CONFIGS)}")
+        cost_table(args.big_steps, args.tile_from, args.cost_configs)
     return 0
 
 

@@ -68,13 +68,13 @@ def source_fingerprint() -> str:
     return h.hexdigest()[:12]
 
 
-def sets_fingerprint(fname: str, system, noise: str, seed: int) -> str:
+def sets_fingerprint(fname: str, system, noise: str, seed: int, kw: dict | None = None) -> str:
     """sha256 (first 12 hex digits) of the bounds that the filter gives on a probe (2
     trajectories x 10 steps of this noise and seed): a code change that leaves the sets bit
     for bit the same keeps it, so chunks logged before and after such a change merge."""
     tr = system.simulate(steps=min(10, paper_steps(system)), batch=2, seed=seed, noise=noise)
     with torch.no_grad():
-        res = filters.by_name(fname)(system)(tr.y, u=tr.u)
+        res = filters.by_name(fname)(system, **(kw or {}))(tr.y, u=tr.u)
     h = hashlib.sha256(res.lower.numpy().tobytes())
     h.update(res.upper.numpy().tobytes())
     return h.hexdigest()[:12]
@@ -127,6 +127,19 @@ def _system(spec: str):
     return systems.get(name, n=int(size))
 
 
+def _filter_kwargs(text: str | None) -> dict:
+    """``--filter-kwargs`` (a JSON object) -> dict; a one-line ``ValueError`` otherwise."""
+    if text is None:
+        return {}
+    try:
+        kw = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"--filter-kwargs: not JSON ({e.msg}): {text!r}") from None
+    if not isinstance(kw, dict):
+        raise ValueError(f"--filter-kwargs: expected a JSON object, got {text!r}")
+    return kw
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=1000)
@@ -136,6 +149,10 @@ def main() -> int:
                     help="built-in names; NAME:N for a sized system (oscillator_chain:16)")
     ap.add_argument("--filters", nargs="*", default=["hsnsmf", "mszm", "cdsmf", "esmf"])
     ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--filter-kwargs", default=None, metavar="JSON",
+                    help='keyword arguments for every audited filter, e.g. \'{"max_generators": '
+                    '30, "max_constraints": 5, "elimination": "propagation"}\' (CZSMF caps); '
+                    "the filter column and the log name them")
     ap.add_argument("--noises", nargs="+", default=["vertex", "uniform"],
                     choices=["vertex", "uniform"], help="noise kinds (default both)")
     ap.add_argument(
@@ -157,6 +174,7 @@ def main() -> int:
     torch.set_default_dtype(torch.float64)
     source = source_fingerprint() if args.log else None
     override = {k: int(v) for k, v in (s.split("=") for s in args.trials_for)}
+    kw = _filter_kwargs(args.filter_kwargs)
     names = args.systems or systems.names()
     print(HEADER)
     bad = 0
@@ -168,14 +186,15 @@ def main() -> int:
         trials = override.get(sname, args.trials)
         for fname in args.filters:
             for noise in args.noises:
-                filt = filters.by_name(fname)(system)
+                filt = filters.by_name(fname)(system, **kw)
+                label = type(filt).__name__ + (f" {json.dumps(kw, sort_keys=True)}" if kw else "")
                 on_chunk = None
                 if args.log:
                     meta = {
-                        "system": sname, "filter": type(filt).__name__, "noise": noise,
+                        "system": sname, "filter": label, "noise": noise,
                         "trials": trials, "steps": args.steps or paper_steps(system),
                         "seed": args.seed, "source": source,
-                        "sets": sets_fingerprint(fname, system, noise, args.seed),
+                        "sets": sets_fingerprint(fname, system, noise, args.seed, kw),
                     }
 
                     def on_chunk(part: dict, meta: dict = meta) -> None:
@@ -189,7 +208,7 @@ def main() -> int:
                 )
                 bad += rep.violations
                 print(
-                    f"| {sname} | {rep.filter} | {noise} | {rep.trials} x {rep.steps} | "
+                    f"| {sname} | {label} | {noise} | {rep.trials} x {rep.steps} | "
                     f"{rep.violations} / {rep.pairs} | {rep.worst_distance:.1e} | "
                     f"{rep.mean_volume:.3e} | {rep.inconsistent} | {rep.unbounded} | "
                     f"{rep.seconds:.0f} |",
@@ -201,6 +220,6 @@ def main() -> int:
 if __name__ == "__main__":
     try:
         sys.exit(main())
-    except (ValueError, KeyError, OSError) as e:  # a bad option, log file or log line
+    except (ValueError, KeyError, OSError, TypeError) as e:  # a bad option, log file or line
         print(f"filters_audit.py: {type(e).__name__}: {e}", file=sys.stderr)
         sys.exit(2)

@@ -110,3 +110,37 @@ def test_partial_audits_add_up_to_the_whole():
         audit.containment(filt, system, trials=7, steps=2, first=7)
     with pytest.raises(ValueError, match="count"):
         audit.containment(filt, system, trials=7, steps=2, first=3, count=5)
+
+
+def _audit_script():
+    """``benchmarks/filters_audit.py`` as a module (a script, not part of the package)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "filters_audit.py"
+    spec = importlib.util.spec_from_file_location("filters_audit", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_audit_script_filter_kwargs(tmp_path, monkeypatch, capsys):
+    """``--filter-kwargs`` reaches the filter (other caps: other sets), names the row, and a
+    bad value is a one-line error naming the option."""
+    script = _audit_script()
+    log = tmp_path / "a.jsonl"
+    caps = '{"max_generators": 12, "max_constraints": 3, "elimination": "propagation"}'
+    common = ["x", "--filters", "czsmf", "--systems", "spring_damper", "--trials", "3",
+              "--steps", "3", "--noises", "vertex", "--log", str(log)]
+    for extra in ([], ["--filter-kwargs", caps]):
+        monkeypatch.setattr("sys.argv", common + extra)
+        assert script.main() == 0
+    rows = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [r["filter"] for r in rows] == ["CZSMF", 'CZSMF ' + json.dumps(json.loads(caps),
+                                                                          sort_keys=True)]
+    assert rows[0]["sets"] != rows[1]["sets"]  # the caps changed the filter
+    assert all(r["violations"] == 0 and r["pairs"] == 3 * 4 for r in rows)
+    with pytest.raises(ValueError, match="--filter-kwargs: not JSON"):
+        script._filter_kwargs("{max_generators: 12}")
+    with pytest.raises(ValueError, match="--filter-kwargs: expected a JSON object"):
+        script._filter_kwargs("[12]")

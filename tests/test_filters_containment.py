@@ -2,7 +2,7 @@
 
 Each case is ONE batch of simulated trajectories (vertex noise = vertices of the noise boxes /
 boundary points of ellipsoids, redrawn every step). The horizon is cut to fit the test budget;
-the full audit (1000 trajectories x the papers' horizons) is examples/filters_audit.py, its
+the full audit (1000 trajectories x the papers' horizons) is benchmarks/filters_audit.py, its
 table in docs/filters.md. Systems with Gaussian noise (radar) have no guaranteed bound and are
 skipped.
 """
