@@ -24,6 +24,12 @@ not depend on the thread count.
 
 A system with a size argument is given as ``NAME:N`` (``oscillator_chain:16`` is
 ``systems.get("oscillator_chain", n=16)``; its rows are named the same way).
+
+Filters are built with their defaults; ``--filter-kwargs JSON`` passes keyword arguments to
+every audited filter (e.g. CZSMF's caps), and the filter column names them:
+
+    python benchmarks/filters_audit.py --filters czsmf --systems bilinear \
+        --filter-kwargs '{"max_generators": 30, "max_constraints": 5, "elimination": "propagation"}'
 """
 
 from __future__ import annotations
