@@ -124,7 +124,7 @@ def _audit_script():
     return mod
 
 
-def test_audit_script_filter_kwargs(tmp_path, monkeypatch, capsys):
+def test_audit_script_filter_kwargs(tmp_path, monkeypatch):
     """``--filter-kwargs`` reaches the filter (other caps: other sets), names the row, and a
     bad value is a one-line error naming the option."""
     script = _audit_script()
