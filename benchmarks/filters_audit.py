@@ -125,12 +125,10 @@ def merge(path: str) -> int:
 
 def _system(spec: str):
     """``NAME`` or ``NAME:N`` (the system's size argument ``n``) -> the built-in system."""
-    name, _, size = spec.partition(":")
-    if not size:
-        return systems.get(name)
-    if not size.isdigit() or int(size) < 1:
-        raise ValueError(f"--systems: expected NAME or NAME:N with N >= 1, got {spec!r}")
-    return systems.get(name, n=int(size))
+    try:
+        return systems.get(spec)
+    except ValueError as exc:
+        raise ValueError(f"--systems: {str(exc).removeprefix('name: ')}") from None
 
 
 def _filter_kwargs(text: str | None) -> dict:

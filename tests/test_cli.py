@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -82,6 +83,13 @@ def test_randomness_has_a_seed_option(capsys):
         (["audit", "--system", "bilinear", "--filter", "hsnsmf", "--trials", "0"],
          ["--trials", "must be >= 1"]),
         (["audit", "--system", "bilinear"], ["--filter", "required"]),
+        (["audit", "--system", "oscillator_chain:x", "--filter", "hsnsmf"],
+         ["--system", "NAME:N", "'oscillator_chain:x'"]),
+        (["audit", "--system", "oscillator_chain:0", "--filter", "hsnsmf"],
+         ["--system", "N >= 1"]),
+        (["audit", "--system", "vdp:4", "--filter", "hsnsmf"], ["--system", "'vdp'",
+                                                               "no size argument"]),
+        (["tune", "--system", "vdp:4"], ["--system", "no size argument"]),
         (["tune", "--system", "nope"], ["--system", "'nope'"]),
         (["tune", "--filter", "nope"], ["--filter", "'nope'"]),
         (["tune", "--epochs", "0"], ["--epochs", "must be >= 1"]),
@@ -175,3 +183,16 @@ def test_console_process_exit_code_and_stderr():
         "diffsmf audit: error: --system: unknown system 'nope'; choose from "
         + str(sorted(diffsmf.systems.names()))
     ]
+
+
+def test_audit_sized_system_and_czsmf(capsys):
+    """``--system NAME:N`` audits the sized built-in; CZSMF counts as a guaranteed filter."""
+    argv = ["audit", "--system", "oscillator_chain:4", "--trials", "2", "--steps", "3",
+            "--noise", "vertex", "--quiet"]
+    assert main([*argv, "--filter", "hsnsmf", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out.strip())
+    assert (rep["system"], rep["filter"], rep["pairs"]) == ("oscillator_chain(n=4)", "HSNSMF", 8)
+    assert main([*argv, "--filter", "czsmf"]) == 0
+    out = capsys.readouterr().out
+    assert "CZSMF on oscillator_chain(n=4)" in out
+    assert "guaranteed filters (cdsmf, czsmf, esmf, hsnsmf, mszm)" in out

@@ -39,6 +39,28 @@ def test_simulates_finite_over_horizon(name, noise):
     assert sys.measurement_noise.contains(tr.y - sys.h(tr.x[:, 1:])).all()
 
 
+def test_sized_name_spec():
+    """``get("NAME:N")`` is ``get("NAME", n=N)``; bad specs name the problem."""
+    a = ds.systems.get("oscillator_chain:4", dt=0.02)
+    b = ds.systems.get("oscillator_chain", n=4, dt=0.02)
+    assert (a.n, a.m, a.name) == (b.n, b.m, b.name) == (4, 2, "oscillator_chain(n=4)")
+    x = torch.linspace(-0.3, 0.4, 4, dtype=torch.float64)
+    torch.testing.assert_close(a.f(x), b.f(x), rtol=0, atol=0)
+    for spec, kw, match in [
+        ("oscillator_chain:", {}, "NAME:N with N >= 1"),
+        ("oscillator_chain:0", {}, "NAME:N with N >= 1"),
+        ("oscillator_chain:2.5", {}, "NAME:N with N >= 1"),
+        ("oscillator_chain:4", {"n": 4}, "gives the size and so does n=4"),
+        ("vdp:3", {}, "system 'vdp' has no size argument"),
+        ("nope:3", {}, "unknown system 'nope'"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            ds.systems.get(spec, **kw)
+        with pytest.raises(ValueError, match=match):
+            ds.systems.check_name(spec, **kw)
+    ds.systems.check_name("oscillator_chain:16")  # valid: no error, nothing built
+
+
 def test_bilinear_paper_values():
     sys = ds.systems.get("bilinear")
     x = torch.tensor([[0.4, -0.3]])

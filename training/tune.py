@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = TuneConfig()
     a = parser.add_argument
     a("--config", default=None, help="TOML file of options (command-line values win)")
-    a("--system", default=d.system, help="built-in system name (ds.systems.names())")
+    a("--system", default=d.system,
+      help="built-in system name (ds.systems.names()); NAME:N for a sized system")
     a("--filter", default=d.filter, help="filter name (ds.filters.by_name)")
     a("--epochs", type=int, default=d.epochs)
     a("--batch-size", type=int, default=d.batch_size)
@@ -94,10 +95,10 @@ def _check_config(cfg: TuneConfig) -> None:
     """One ``ValueError`` naming the option for each user error in a run configuration."""
     import diffsmf as ds
 
-    if cfg.system not in ds.systems.names():
-        raise ValueError(
-            f"--system: unknown system {cfg.system!r}; choose from {ds.systems.names()}"
-        )
+    try:
+        ds.systems.check_name(cfg.system)
+    except ValueError as exc:
+        raise ValueError(f"--system: {str(exc).removeprefix('name: ')}") from None
     try:
         ds.filters.by_name(cfg.filter)
     except ValueError:

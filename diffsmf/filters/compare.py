@@ -20,7 +20,7 @@ from diffsmf.systems.system import System, Trajectory
 
 __all__ = ["compare", "demo", "format_table", "run_filters"]
 
-GUARANTEED = {"HSNSMF", "MSZM", "CDSMF", "ESMF"}
+GUARANTEED = {"HSNSMF", "MSZM", "CDSMF", "ESMF", "CZSMF"}
 
 
 def _build(system: System, filters: dict[str, SetFilter] | list[str]) -> dict[str, SetFilter]:

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 
 from diffsmf.systems.system import System, Trajectory
 
-__all__ = ["System", "Trajectory", "get", "names", "register"]
+__all__ = ["System", "Trajectory", "check_name", "get", "names", "register"]
 
 _REGISTRY: dict[str, Callable[..., System]] = {}
 
@@ -34,8 +35,39 @@ def names() -> list[str]:
 
 
 def get(name: str, **kwargs) -> System:
-    """A fresh instance of the built-in system ``name`` (see :func:`names`)."""
+    """A fresh instance of the built-in system ``name`` (see :func:`names`).
+
+    ``name`` may carry the size argument of a sized system as ``"NAME:N"``
+    (``get("oscillator_chain:16")`` is ``get("oscillator_chain", n=16)``), the spelling of the
+    command line (``diffsmf audit --system oscillator_chain:16``) and of the benchmarks.
+
+    Raises:
+        ValueError: see :func:`check_name`.
+    """
+    factory, size = _parse(name, kwargs)
+    return factory(**kwargs) if size is None else factory(n=size, **kwargs)
+
+
+def check_name(name: str, **kwargs) -> None:
+    """Raise the ``ValueError`` that :func:`get` would raise for ``name``, without building the
+    system: an unknown name, a size that is not an integer >= 1, a size given twice
+    (``"NAME:N"`` and ``n=``), or a size for a system without one. The message starts with
+    ``"name: "`` (command lines replace it with the option's name)."""
+    _parse(name, kwargs)
+
+
+def _parse(name: str, kwargs: dict) -> tuple[Callable[..., System], int | None]:
+    """``"NAME"`` or ``"NAME:N"`` -> (factory, size or None), checked."""
     _load_builtins()
-    if name not in _REGISTRY:
-        raise ValueError(f"name: unknown system {name!r}; choose from {sorted(_REGISTRY)}")
-    return _REGISTRY[name](**kwargs)
+    base, sep, size = name.partition(":")
+    if base not in _REGISTRY:
+        raise ValueError(f"name: unknown system {base!r}; choose from {sorted(_REGISTRY)}")
+    if not sep:
+        return _REGISTRY[base], None
+    if not size.isdigit() or int(size) < 1:
+        raise ValueError(f"name: expected NAME or NAME:N with N >= 1, got {name!r}")
+    if "n" in kwargs:
+        raise ValueError(f"name: {name!r} gives the size and so does n={kwargs['n']!r}")
+    if "n" not in inspect.signature(_REGISTRY[base]).parameters:
+        raise ValueError(f"name: system {base!r} has no size argument, got {name!r}")
+    return _REGISTRY[base], int(size)
