@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -119,6 +120,10 @@ def test_tune_config_and_out_errors(capsys, tmp_path):
                     "nonsense")
     _one_line_error(capsys, ["tune", "--config", str(tmp_path / "none.toml")], "config",
                     "no such file")
+    _one_line_error(capsys, ["tune", "--config", str(tmp_path)], "config", "is a folder")
+    if Path("/dev/null").exists():
+        _one_line_error(capsys, ["tune", "--config", "/dev/null"], "config",
+                        "not a regular file")
     weights = tmp_path / "weights.toml"
     weights.write_text("weights = {volum = 1.0}\n")
     _one_line_error(capsys, ["tune", "--config", str(weights), "--out", str(tmp_path / "w")],

@@ -70,8 +70,11 @@ class TuneConfig:
 def load_config(path: str | Path) -> dict[str, Any]:
     """Read a TOML file of :class:`TuneConfig` keys; unknown keys raise ``ValueError``."""
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise ValueError(f"config: no such file {str(p)!r}")
+    if not p.is_file():
+        kind = "a folder" if p.is_dir() else "not a regular file"
+        raise ValueError(f"config: {str(p)!r} is {kind}, not a TOML file")
     try:
         with p.open("rb") as fh:
             data = tomllib.load(fh)
