@@ -18,6 +18,11 @@
 4. Time per step at batch 1, 100 and 10,000 (``--big-steps`` steps at 10,000, after the
    warm-up steps that grow the sets to their caps; at 10,000 the warm-up runs at batch
    ``--tile-from`` 100 and is tiled).
+5. ``--parts compiled``: eager against ``filt.compile()`` (whole ``forward`` on
+   ``--compiled-steps`` uniform-noise steps of spring_damper at ``--compiled-batch``; median
+   of three runs after the first, compiled call), HSNSMF and the ``--cost-configs`` CZSMF
+   caps (default: the (30, 5) propagation caps), with the first compiled call and the mean
+   volumes of both.
 
     python benchmarks/czsmf_bench.py --steps 30 --trials 4 --seed-steps 50 --seed-trials 10
 """
@@ -204,6 +209,37 @@ def cost_table(big_steps: int, tile_from: int, keys: list[str] | None = None) ->
             print(f"| {label} | {batch} | {steps} | {dt:.4f} |", flush=True)
 
 
+def compiled_table(batch: int, steps: int, keys: list[str] | None = None) -> None:
+    """Eager vs compiled ``forward`` per step (HSNSMF and CZSMF caps), same data and run."""
+    print(f"\nEager vs compiled forward (spring_damper, uniform noise, batch {batch}, {steps} "
+          "steps; median of 3 runs after the first)\n")
+    print("| filter | eager ms/step | compiled ms/step | speed-up | first compiled call s | "
+          "mean volume eager / compiled |")
+    print("|---|---:|---:|---:|---:|---|")
+    system = ds.systems.get("spring_damper")
+    traj = system.simulate(steps=steps, batch=batch, seed=0, noise="uniform")
+    makers = [("HSNSMF", lambda: ds.filters.HSNSMF(system))]
+    makers += [(f"CZSMF {k}", lambda k=k: CZSMF(system, **CONFIGS[k]))
+               for k in keys or ["(30, 5, propagation)"]]
+    for label, make in makers:
+        eager, comp = make(), make().compile()
+        with torch.no_grad():
+            t0 = time.perf_counter()
+            rc = comp(traj.y)
+            first = time.perf_counter() - t0
+            te, tc = [], []
+            for _ in range(3):
+                t0 = time.perf_counter()
+                re_ = eager(traj.y)
+                te.append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                rc = comp(traj.y)
+                tc.append(time.perf_counter() - t0)
+        me, mc = (1e3 * float(np.median(t)) / steps for t in (te, tc))
+        print(f"| {label} | {me:.2f} | {mc:.2f} | {me / mc:.1f}x | {first:.0f} | "
+              f"{re_.volume[:, 1:].mean():.4e} / {rc.volume[:, 1:].mean():.4e} |", flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=30)
@@ -214,7 +250,10 @@ def main() -> int:
     ap.add_argument("--tile-from", type=int, default=100,
                     help="warm-up batch that is tiled to the 10,000 of the last rows (0: none)")
     ap.add_argument("--parts", nargs="*", default=["linear", "seed", "cost"],
-                    help="linear | seed | cost | chain (the n = 8 caps table, about 15 min)")
+                    help="linear | seed | cost | chain (the n = 8 caps table, about 15 min) | "
+                    "compiled (eager vs compile(); CZSMF compiles for minutes)")
+    ap.add_argument("--compiled-batch", type=int, default=100)
+    ap.add_argument("--compiled-steps", type=int, default=60)
     ap.add_argument("--chain-steps", type=int, default=50)
     ap.add_argument("--chain-trials", type=int, default=4)
     ap.add_argument("--chain-n", type=int, default=8)
@@ -230,11 +269,13 @@ def main() -> int:
         seed_table(args.seed_steps, args.seed_trials)
     if "chain" in args.parts:
         chain_table(args.chain_steps, args.chain_trials, args.chain_n)
+    bad = [k for k in args.cost_configs or [] if k not in CONFIGS]
+    if bad:
+        ap.error(f"--cost-configs: unknown {bad}; choose from {list(CONFIGS)}")
     if "cost" in args.parts:
-        bad = [k for k in args.cost_configs or [] if k not in CONFIGS]
-        if bad:
-            ap.error(f"--cost-configs: unknown {bad}; choose from {list(CONFIGS)}")
         cost_table(args.big_steps, args.tile_from, args.cost_configs)
+    if "compiled" in args.parts:
+        compiled_table(args.compiled_batch, args.compiled_steps, args.cost_configs)
     return 0
 
 
