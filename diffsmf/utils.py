@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 __all__ = [
+    "is_int",
     "Positive",
     "StrictlyPositive",
     "check_strictly_positive",
@@ -25,6 +26,11 @@ __all__ = [
     "traced",
     "tracing",
 ]
+
+
+def is_int(value: object) -> bool:
+    """``value`` is a Python ``int`` and not a ``bool`` (``True`` is not a count or a size)."""
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def tracing() -> bool:

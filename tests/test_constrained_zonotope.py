@@ -374,6 +374,10 @@ def test_bad_arguments():
         Z.reduce_generators(2)
     with pytest.raises(ValueError, match="k"):
         Z.reduce_constraints(-1)
+    with pytest.raises(ValueError, match="q: must be an integer"):  # a bool is not a count
+        Z.reduce_generators(True)
+    with pytest.raises(ValueError, match="k: must be an integer"):
+        Z.reduce_constraints(False)
     with pytest.raises(ValueError, match="x"):
         Z.contains(torch.zeros(3))
     with pytest.raises(ValueError, match="halfwidth"):

@@ -434,6 +434,12 @@ def test_bad_arguments():
         CZSMF(system, stirling_step=-1.0)
     with pytest.raises(ValueError, match="y"):
         CZSMF(system)(torch.zeros(2, 3, 5))
+    for key, value in [("lp_iters", True), ("max_constraints", True), ("lp_iters", 2.0),
+                       ("elimination", None)]:  # a bool is not a count
+        with pytest.raises(ValueError, match=key):
+            CZSMF(system, **{key: value})
+    with pytest.raises(ValueError, match="max_generators"):
+        CZSMF(system, max_generators=True, max_constraints=0)
 
 
 def test_by_name_and_initial_set():

@@ -72,6 +72,8 @@ def test_by_name_and_result_shapes():
         by_name("nope")
     with pytest.raises(ValueError, match="order"):
         MSZM(sys, order=0)
+    with pytest.raises(ValueError, match="order"):
+        MSZM(sys, order=True)  # a bool is not an order
     with pytest.raises(ValueError, match="stirling_step"):
         HSNSMF(sys, stirling_step=-1.0)
 

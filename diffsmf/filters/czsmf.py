@@ -51,7 +51,7 @@ from diffsmf.sets.base import ConvexSet, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, tracing
+from diffsmf.utils import Positive, is_int, tracing
 
 __all__ = ["CZSMF"]
 
@@ -124,13 +124,13 @@ class CZSMF(SetFilter):
         if (max_generators is None) != (max_constraints is None):
             raise ValueError("max_generators: give both caps or None for both (no reduction)")
         if max_constraints is not None and (
-            not isinstance(max_constraints, int) or max_constraints < 0
+            not is_int(max_constraints) or max_constraints < 0
         ):
             raise ValueError(
                 f"max_constraints: must be an integer >= 0 or None, got {max_constraints!r}"
             )
         if max_generators is not None and (
-            not isinstance(max_generators, int) or max_generators < n + max_constraints + 1
+            not is_int(max_generators) or max_generators < n + max_constraints + 1
         ):
             raise ValueError(
                 f"max_generators: must be an integer >= n + max_constraints + 1 = "
@@ -138,7 +138,7 @@ class CZSMF(SetFilter):
             )
         if reduce_method not in ("girard", "combastel"):
             raise ValueError(f"reduce_method: unknown {reduce_method!r} (girard | combastel)")
-        if not isinstance(lp_iters, int) or lp_iters < 0:
+        if not is_int(lp_iters) or lp_iters < 0:
             raise ValueError(f"lp_iters: must be an integer >= 0, got {lp_iters!r}")
         C.register_stirling_step(self, stirling_step, n)
         C.register_remainder_margin(self, remainder_margin, n)

@@ -47,7 +47,7 @@ from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive
+from diffsmf.utils import Positive, is_int
 
 __all__ = ["MSZM"]
 
@@ -94,7 +94,7 @@ class MSZM(SetFilter):
     ) -> None:
         super().__init__(system, **kw)
         C.check_initial_set("initial_set", initial_set, system.n)
-        if not isinstance(order, int) or order < 1:
+        if not is_int(order) or order < 1:
             raise ValueError(f"order: must be an integer >= 1, got {order!r}")
         C.register_stirling_step(self, stirling_step, system.n)
         C.register_remainder_margin(self, remainder_margin, system.n)

@@ -27,6 +27,7 @@ from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
 from diffsmf.sets.czono_lp import LP_ITERS, LP_TOL, box_lp, support_value
+from diffsmf.utils import is_int
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
@@ -568,7 +569,7 @@ class ConstrainedZonotope(ConvexSet):
         interval hull (sum over axes of width / zonotope width, ``2 n`` LPs per candidate,
         one batched solve) wins. Choices are detached.
         """
-        if not isinstance(k, int) or k < 0:
+        if not is_int(k) or k < 0:
             raise ValueError(f"k: must be an integer >= 0, got {k!r}")
         if heuristic not in ("hull", "lp", "propagation"):
             raise ValueError(f"heuristic: unknown {heuristic!r} (hull | lp | propagation)")
@@ -625,7 +626,7 @@ class ConstrainedZonotope(ConvexSet):
         The choice of the kept generators is made without gradient.
         """
         n, m, k = self.dim, self.num_generators, self.num_constraints
-        if not isinstance(q, int) or q < n + k:
+        if not is_int(q) or q < n + k:
             raise ValueError(f"q: must be an integer >= n + k = {n + k}, got {q!r}")
         if method not in ("girard", "combastel"):
             raise ValueError(f"method: unknown reduction {method!r} (girard | combastel)")
