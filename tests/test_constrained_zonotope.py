@@ -374,6 +374,9 @@ def test_bad_arguments():
         Z.reduce_generators(2)
     with pytest.raises(ValueError, match="k"):
         Z.reduce_constraints(-1)
+    for bad in ([1.0, 2.0], None, torch.zeros(2)):
+        with pytest.raises(ValueError, match="S: expected a diffsmf set"):
+            CZ.from_set(bad)
     with pytest.raises(ValueError, match="q: must be an integer"):  # a bool is not a count
         Z.reduce_generators(True)
     with pytest.raises(ValueError, match="k: must be an integer"):
@@ -490,3 +493,18 @@ def test_box_lp_chunked_batch(monkeypatch):
             assert -r.fun - 1e-12 <= float(bound[i, j]) <= -r.fun + 1e-9
     assert torch.allclose(bound, whole, rtol=0, atol=1e-8)
     assert (xi.abs() <= 1).all() and (x.abs() < 1).all()
+
+
+def test_sample_of_an_empty_set_is_nan():
+    """An empty element samples NaN (never points outside it); the others stay inside."""
+    G, A = torch.eye(2).expand(2, 2, 2), torch.ones(2, 1, 2)
+    Z = CZ(torch.zeros(2, 2), G, A, torch.tensor([[5.0], [0.5]]))  # xi1 + xi2 = 5: empty
+    assert Z.is_empty().tolist() == [True, False]
+    gen = torch.Generator().manual_seed(0)
+    for pts in (Z.sample(16, gen), Z.sample_extreme(16, gen)):
+        assert pts.shape == (2, 16, 2)
+        assert torch.isnan(pts[0]).all()
+        inside = pts[1]
+        assert torch.isfinite(inside).all()
+        assert (inside.abs() <= 1 + 1e-9).all()
+        torch.testing.assert_close(inside.sum(-1), torch.full((16,), 0.5, dtype=inside.dtype))

@@ -173,12 +173,18 @@ class ConstrainedZonotope(ConvexSet):
         [-1, 1]^n`` intersected with its interval hull, Scott 2016 eq. 13, inflated by 1e-9
         relative for rounding); outer (interval hull) for any other bounded set.
 
-        Raises ``ValueError`` for an unbounded set (Strip, infinite Interval).
+        Raises ``ValueError`` for an unbounded set (Strip, infinite Interval) or an ``S`` that
+        is not a diffsmf set.
         """
         from diffsmf.sets.ellipsoid import Ellipsoid
         from diffsmf.sets.interval import Interval
         from diffsmf.sets.strip import Strip
 
+        if not isinstance(S, ConvexSet):
+            raise ValueError(
+                f"S: expected a diffsmf set (Interval, Zonotope, Ellipsoid, ...), got "
+                f"{type(S).__name__}"
+            )
         if isinstance(S, ConstrainedZonotope):
             return S
         if isinstance(S, Strip):
@@ -451,23 +457,27 @@ class ConstrainedZonotope(ConvexSet):
         return self._intersect_strips(a.unsqueeze(-2), mid.unsqueeze(-1), half.unsqueeze(-1))
 
     # ------------------------------------------------------------------ sampling
-    def _interior_xi(self, iters: int = LP_ITERS) -> Tensor:
+    def _interior_xi(self, iters: int = LP_ITERS) -> tuple[Tensor, Tensor]:
         """A point ``xi [..., m]`` of ``{A xi = b} cap [-1, 1]^m`` near its analytic centre
-        (interior-point iterate with zero objective, then projected onto ``A xi = b``)."""
+        (interior-point iterate with zero objective, then projected onto ``A xi = b``) and
+        ``found [...]``: False where the set is certified empty (the LP's Farkas bound, as
+        :meth:`is_empty`) or the projected point left the box by more than 1e-9."""
         A, b = self.A.detach(), self.b.detach()
         g = A.new_zeros(*self.batch_shape, self.num_generators)
-        _, _, _, xi = box_lp(g, A, b, iters, None)
+        bound, _, _, xi = box_lp(g, A, b, iters, None)
         if self.num_constraints:
             r = b - (A * xi.unsqueeze(-2)).sum(-1)
             xi = xi + (torch.linalg.pinv(A) @ r.unsqueeze(-1)).squeeze(-1)
-        return xi
+        found = (bound >= 0) & (xi.abs() <= 1 + 1e-9).all(-1)
+        return xi, found
 
     def _hit_and_run(
         self, k: int, steps: int, generator: torch.Generator | None, last_to_boundary: bool
     ) -> Tensor:
         m = self.num_generators
         with torch.no_grad():
-            xi = self._interior_xi().unsqueeze(-2).expand(*self.batch_shape, k, m)
+            xi0, found = self._interior_xi()
+            xi = xi0.unsqueeze(-2).expand(*self.batch_shape, k, m)
             A = self.A.detach()
             eye = torch.eye(m, dtype=self.dtype, device=self.device)
             P = (
@@ -509,13 +519,15 @@ class ConstrainedZonotope(ConvexSet):
                 else:
                     t = t_lo + u * (t_hi - t_lo)
                 xi = (xi + t.unsqueeze(-1) * v).clamp(-1, 1)
+            xi = torch.where(found[..., None, None], xi, torch.full_like(xi, float("nan")))
         return self._c.unsqueeze(-2) + xi @ self.generators.mT
 
     def sample(self, k: int, generator: torch.Generator | None = None, steps: int = 20) -> Tensor:
         """``k`` points of the set by ``steps`` hit-and-run moves in the ``xi`` polytope from an
         interior point -> ``[..., k, n]`` (approximately uniform in ``xi``; inside up to the
-        ~1e-12 residual of ``A xi = b``). Not meaningful for an empty set (see
-        :meth:`is_empty`). The points carry gradients w.r.t. center and generators."""
+        ~1e-12 residual of ``A xi = b``). An element whose set is empty (certified as by
+        :meth:`is_empty`, or no point of ``A xi = b`` found in the box) gets NaN points, never
+        points outside it. The points carry gradients w.r.t. center and generators."""
         return self._hit_and_run(k, steps, generator, last_to_boundary=False)
 
     def sample_extreme(self, k: int, generator: torch.Generator | None = None) -> Tensor:
