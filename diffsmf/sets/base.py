@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.utils import tracing
+from diffsmf.utils import is_int, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
@@ -57,12 +57,25 @@ def as_tensor(name: str, value: Any, *, like: Tensor | None = None, min_dim: int
     return t
 
 
+def as_vector(name: str, value: Any, like: Tensor, dim: int) -> Tensor:
+    """Vector(s) ``value [..., dim]`` (points, directions, offsets) as a tensor like ``like``;
+    ``ValueError`` naming ``name`` for NaN or a last dimension other than ``dim``."""
+    v = as_tensor(name, value, like=like, min_dim=1)
+    if v.shape[-1] != dim:
+        raise ValueError(f"{name}: expected [..., {dim}], got {tuple(v.shape)}")
+    return v
+
+
 def as_offset(b: Any, like: Tensor, dim: int) -> Tensor:
     """Offset vector ``b [..., dim]`` of a translation or affine map, validated against ``like``."""
-    b = as_tensor("b", b, like=like, min_dim=1)
-    if b.shape[-1] != dim:
-        raise ValueError(f"b: expected [..., {dim}], got {tuple(b.shape)}")
-    return b
+    return as_vector("b", b, like, dim)
+
+
+def check_count(name: str, k: Any) -> int:
+    """``k`` as a count (an ``int`` >= 0, not a ``bool``), else ``ValueError`` naming ``name``."""
+    if not is_int(k) or k < 0:
+        raise ValueError(f"{name}: must be an integer >= 0, got {k!r}")
+    return k
 
 
 def check_finite(name: str, t: Tensor) -> Tensor:

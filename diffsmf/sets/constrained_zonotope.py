@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
+from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_count, check_finite
 from diffsmf.sets.czono_lp import LP_ITERS, LP_TOL, box_lp, support_value
 from diffsmf.utils import is_int
 
@@ -528,10 +528,12 @@ class ConstrainedZonotope(ConvexSet):
         ~1e-12 residual of ``A xi = b``). An element whose set is empty (certified as by
         :meth:`is_empty`, or no point of ``A xi = b`` found in the box) gets NaN points, never
         points outside it. The points carry gradients w.r.t. center and generators."""
+        k, steps = check_count("k", k), check_count("steps", steps)
         return self._hit_and_run(k, steps, generator, last_to_boundary=False)
 
     def sample_extreme(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` boundary points (the last hit-and-run move goes to the end of its chord)."""
+        k = check_count("k", k)
         return self._hit_and_run(k, 20, generator, last_to_boundary=True)
 
     # ------------------------------------------------------------------ reduction

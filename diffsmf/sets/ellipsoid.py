@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_tensor, check_finite, where
+from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count, check_finite, where
 from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -113,7 +113,7 @@ class Ellipsoid(ConvexSet):
 
     def mahalanobis2(self, x: Tensor) -> Tensor:
         """``(x - c)' S^-1 (x - c)`` via a triangular solve -> ``[...]`` (x broadcasts)."""
-        x = as_tensor("x", x, like=self.center_)
+        x = as_vector("x", x, self.center_, self.dim)
         d = (x - self.center_).unsqueeze(-1)
         L = self.cholesky()
         batch = torch.broadcast_shapes(d.shape[:-2], L.shape[:-2])
@@ -129,7 +129,7 @@ class Ellipsoid(ConvexSet):
 
     def support(self, d: Tensor) -> Tensor:
         """``h(d) = d.c + sqrt(d' S d)`` -> ``[...]``."""
-        d = as_tensor("d", d, like=self.center_)
+        d = as_vector("d", d, self.center_, self.dim)
         q = (d.unsqueeze(-2) @ self.shape @ d.unsqueeze(-1)).squeeze(-1).squeeze(-1)
         return (d * self.center_).sum(-1) + torch.sqrt(q.clamp(min=0.0))
 
@@ -183,6 +183,7 @@ class Ellipsoid(ConvexSet):
 
     def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` uniform points inside -> ``[*batch_shape, k, n]``."""
+        k = check_count("k", k)
         u = self._unit_ball(k, generator, boundary=False)
         L = self.cholesky().unsqueeze(-3)
         return self.center_.unsqueeze(-2) + (L @ u.unsqueeze(-1)).squeeze(-1)
@@ -192,6 +193,7 @@ class Ellipsoid(ConvexSet):
 
         Pulled inside by the relative factor ``1 - 1e-13`` so that rounding never puts them
         outside the ellipsoid itself."""
+        k = check_count("k", k)
         u = self._unit_ball(k, generator, boundary=True) * (1.0 - 1e-13)
         L = self.cholesky().unsqueeze(-3)
         return self.center_.unsqueeze(-2) + (L @ u.unsqueeze(-1)).squeeze(-1)

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_tensor
+from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count
 from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -404,12 +404,12 @@ class Interval(ConvexSet):
 
     def contains(self, x: Tensor, atol: float = 1e-9) -> Tensor:
         """``lower - atol <= x <= upper + atol`` for all components -> bool ``[...]``."""
-        x = as_tensor("x", x, like=self.lower)
+        x = as_vector("x", x, self.lower, self.dim)
         return ((x >= self.lower - atol) & (x <= self.upper + atol)).all(-1)
 
     def support(self, d: Tensor) -> Tensor:
         """h(d) = sum_i max(d_i lower_i, d_i upper_i) (= d.c + |d|.r) -> ``[...]``."""
-        d = as_tensor("d", d, like=self.lower)
+        d = as_vector("d", d, self.lower, self.dim)
         return torch.maximum(d * self.lower, d * self.upper).sum(-1)
 
     def interval_hull(self) -> Interval:
@@ -445,6 +445,7 @@ class Interval(ConvexSet):
 
     def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` uniform points in the box -> ``[*batch_shape, k, n]``."""
+        k = check_count("k", k)
         lo, hi = self.lower.unsqueeze(-2), self.upper.unsqueeze(-2)
         shape = (*self.batch_shape, k, self.dim)
         u = torch.rand(shape, generator=generator, dtype=self.dtype, device=self.device)
@@ -452,6 +453,7 @@ class Interval(ConvexSet):
 
     def sample_extreme(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` random corners of the box -> ``[*batch_shape, k, n]``."""
+        k = check_count("k", k)
         lo, hi = self.lower.unsqueeze(-2), self.upper.unsqueeze(-2)
         shape = (*self.batch_shape, k, self.dim)
         u = torch.rand(shape, generator=generator, dtype=self.dtype, device=self.device)

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
+from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -92,7 +92,7 @@ class Parallelotope(ConvexSet):
 
     def support(self, d: Tensor) -> Tensor:
         """h(d) = d.c + ||T' d||_1; ``d [..., n]`` -> ``[...]``."""
-        d = as_tensor("d", d, like=self._c, min_dim=1)
+        d = as_vector("d", d, self._c, self.dim)
         return (d * self._c).sum(-1) + (d.unsqueeze(-1) * self.T).sum(-2).abs().sum(-1)
 
     def interval_hull(self) -> Interval:
@@ -177,6 +177,7 @@ class Parallelotope(ConvexSet):
 
     def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` points uniform in P -> ``[..., k, n]``."""
+        k = check_count("k", k)
         u = torch.rand(
             (*self.batch_shape, k, self.dim),
             dtype=self.dtype,
@@ -187,6 +188,7 @@ class Parallelotope(ConvexSet):
 
     def sample_extreme(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` random vertices ``c + T s`` -> ``[..., k, n]``."""
+        k = check_count("k", k)
         u = torch.rand(
             (*self.batch_shape, k, self.dim),
             dtype=self.dtype,

@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_tensor
+from diffsmf.sets.base import ConvexSet, as_tensor, as_vector
 from diffsmf.utils import tracing
 
 __all__ = ["Strip"]
@@ -105,7 +105,7 @@ class Strip(ConvexSet):
 
     def contains(self, x: Tensor, atol: float = 1e-9) -> Tensor:
         """``|normal . x - offset| <= halfwidth + atol`` -> bool ``[...]``."""
-        x = as_tensor("x", x, like=self.normal)
+        x = as_vector("x", x, self.normal, self.dim)
         return ((self.normal * x).sum(-1) - self.offset).abs() <= self.halfwidth + atol
 
     def residual(self, x: Tensor) -> Tensor:
@@ -114,7 +114,7 @@ class Strip(ConvexSet):
 
     def support(self, d: Tensor) -> Tensor:
         """``t offset + |t| halfwidth`` if ``d = t normal`` (to 1e-12 relative), else ``inf``."""
-        d = as_tensor("d", d, like=self.normal)
+        d = as_vector("d", d, self.normal, self.dim)
         a = self.normal
         aa = (a * a).sum(-1)
         t = (d * a).sum(-1) / aa

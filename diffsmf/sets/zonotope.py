@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_finite
+from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.utils import tracing
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -198,7 +198,7 @@ class Zonotope(ConvexSet):
     # ------------------------------------------------------------------ set API
     def support(self, d: Tensor) -> Tensor:
         """h(d) = d.c + sum_j |d.g_j|; ``d [..., n]`` -> ``[...]``."""
-        d = as_tensor("d", d, like=self._c, min_dim=1)
+        d = as_vector("d", d, self._c, self.dim)
         dG = (d.unsqueeze(-1) * self.generators).sum(-2)  # [..., m]
         return (d * self._c).sum(-1) + dG.abs().sum(-1)
 
@@ -261,11 +261,13 @@ class Zonotope(ConvexSet):
 
     def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` points ``c + G xi``, xi uniform in the cube -> ``[..., k, n]`` (inside)."""
+        k = check_count("k", k)
         xi = _uniform((*self.batch_shape, k, self.num_generators), self._c, generator)
         return self._c.unsqueeze(-2) + xi @ self.generators.transpose(-1, -2)
 
     def sample_extreme(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` points ``c + G s`` with random sign vectors s (vertex candidates)."""
+        k = check_count("k", k)
         u = _uniform((*self.batch_shape, k, self.num_generators), self._c, generator)
         s = torch.where(u >= 0, 1.0, -1.0).to(self._c.dtype)
         return self._c.unsqueeze(-2) + s @ self.generators.transpose(-1, -2)
