@@ -125,10 +125,8 @@ def merge(path: str) -> int:
 
 def _system(spec: str):
     """``NAME`` or ``NAME:N`` (the system's size argument ``n``) -> the built-in system."""
-    try:
-        return systems.get(spec)
-    except ValueError as exc:
-        raise ValueError(f"--systems: {str(exc).removeprefix('name: ')}") from None
+    systems.check_name(spec, option="--systems")
+    return systems.get(spec)
 
 
 def _filter_kwargs(text: str | None) -> dict:

@@ -295,10 +295,7 @@ def main(args: argparse.Namespace) -> int:
     from diffsmf import filters, systems
     from diffsmf.filters.compare import GUARANTEED
 
-    try:
-        systems.check_name(args.system)
-    except ValueError as exc:
-        raise ValueError(f"--system: {str(exc).removeprefix('name: ')}") from None
+    systems.check_name(args.system, option="--system")
     try:
         cls = filters.by_name(args.filter)
     except ValueError:

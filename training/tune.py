@@ -95,10 +95,7 @@ def _check_config(cfg: TuneConfig) -> None:
     """One ``ValueError`` naming the option for each user error in a run configuration."""
     import diffsmf as ds
 
-    try:
-        ds.systems.check_name(cfg.system)
-    except ValueError as exc:
-        raise ValueError(f"--system: {str(exc).removeprefix('name: ')}") from None
+    ds.systems.check_name(cfg.system, option="--system")
     try:
         ds.filters.by_name(cfg.filter)
     except ValueError:

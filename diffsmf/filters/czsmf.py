@@ -47,7 +47,7 @@ from diffsmf.filters.base import (
     bounded_result,
 )
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
-from diffsmf.sets.base import ConvexSet, stack, where
+from diffsmf.sets.base import ConvexSet, check_count, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -138,8 +138,7 @@ class CZSMF(SetFilter):
             )
         if reduce_method not in ("girard", "combastel"):
             raise ValueError(f"reduce_method: unknown {reduce_method!r} (girard | combastel)")
-        if not is_int(lp_iters) or lp_iters < 0:
-            raise ValueError(f"lp_iters: must be an integer >= 0, got {lp_iters!r}")
+        check_count("lp_iters", lp_iters)
         C.register_stirling_step(self, stirling_step, n)
         C.register_remainder_margin(self, remainder_margin, n)
         self.max_generators = max_generators

@@ -583,8 +583,7 @@ class ConstrainedZonotope(ConvexSet):
         interval hull (sum over axes of width / zonotope width, ``2 n`` LPs per candidate,
         one batched solve) wins. Choices are detached.
         """
-        if not is_int(k) or k < 0:
-            raise ValueError(f"k: must be an integer >= 0, got {k!r}")
+        check_count("k", k)
         if heuristic not in ("hull", "lp", "propagation"):
             raise ValueError(f"heuristic: unknown {heuristic!r} (hull | lp | propagation)")
         return self._reduce_constraints(k, heuristic)[0]

@@ -48,26 +48,28 @@ def get(name: str, **kwargs) -> System:
     return factory(**kwargs) if size is None else factory(n=size, **kwargs)
 
 
-def check_name(name: str, **kwargs) -> None:
+def check_name(name: str, option: str = "name", **kwargs) -> None:
     """Raise the ``ValueError`` that :func:`get` would raise for ``name``, without building the
     system: an unknown name, a size that is not an integer >= 1, a size given twice
     (``"NAME:N"`` and ``n=``), or a size for a system without one. The message starts with
-    ``"name: "`` (command lines replace it with the option's name)."""
-    _parse(name, kwargs)
+    ``option`` (a command line passes its option, e.g. ``"--system"``)."""
+    _parse(name, kwargs, option)
 
 
-def _parse(name: str, kwargs: dict) -> tuple[Callable[..., System], int | None]:
-    """``"NAME"`` or ``"NAME:N"`` -> (factory, size or None), checked."""
+def _parse(
+    name: str, kwargs: dict, option: str = "name"
+) -> tuple[Callable[..., System], int | None]:
+    """``"NAME"`` or ``"NAME:N"`` -> (factory, size or None), checked; errors name ``option``."""
     _load_builtins()
     base, sep, size = name.partition(":")
     if base not in _REGISTRY:
-        raise ValueError(f"name: unknown system {base!r}; choose from {sorted(_REGISTRY)}")
+        raise ValueError(f"{option}: unknown system {base!r}; choose from {sorted(_REGISTRY)}")
     if not sep:
         return _REGISTRY[base], None
     if not size.isdigit() or int(size) < 1:
-        raise ValueError(f"name: expected NAME or NAME:N with N >= 1, got {name!r}")
+        raise ValueError(f"{option}: expected NAME or NAME:N with N >= 1, got {name!r}")
     if "n" in kwargs:
-        raise ValueError(f"name: {name!r} gives the size and so does n={kwargs['n']!r}")
+        raise ValueError(f"{option}: {name!r} gives the size and so does n={kwargs['n']!r}")
     if "n" not in inspect.signature(_REGISTRY[base]).parameters:
-        raise ValueError(f"name: system {base!r} has no size argument, got {name!r}")
+        raise ValueError(f"{option}: system {base!r} has no size argument, got {name!r}")
     return _REGISTRY[base], int(size)
