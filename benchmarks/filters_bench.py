@@ -6,9 +6,14 @@ slopes, DC remainder at the parallelotope vertices with alpha from the exact Hes
 the spring-damper model, Theorem 2 box sum, Chisci minimal outer parallelotope over the
 generator bases, seed 000 eq. 30-41 strip update).
 
-Runtime is capped: each (filter, batch) cell runs ``--steps`` steps (default 10; fewer for
-batch 10,000) and the per-trajectory numpy loop runs at most ``--max-numpy`` trajectories, its
-rate at larger batches being extrapolated (it is linear in the batch; stated in the table).
+Runtime is capped: each (filter, batch) cell runs ``--steps`` steps (default 10; a fifth of
+them for the eager filters above batch 1,000) and the per-trajectory numpy loop runs at most
+``--max-numpy`` trajectories, its rate at larger batches being extrapolated (it is linear in
+the batch; stated in the table). The compiled rows always run all ``--steps`` steps: a
+compiled ``forward`` checks Dynamo's guards in full on its first two steps only (see
+``SetFilter.forward``), and over two steps that start-up weighed on the rate at batch
+10,000 (HSNSMF, one thread, two audits on the machine: 165,892 trajectory-steps/s over 2
+steps, 191,406 over 20).
 
     python benchmarks/filters_bench.py [--steps 10] [--batches 1 100 10000] [--compiled]
     python benchmarks/filters_bench.py --scaling [--dims 2 4 8 16 32]
@@ -225,7 +230,7 @@ def main() -> None:
     system = systems.get("spring_damper")
     rows = []
     for batch in args.batches:
-        steps = args.steps if batch <= 1000 else max(2, args.steps // 5)
+        steps = args.steps if batch <= 1000 else max(2, args.steps // 5)  # eager rows
         ref, extrap = _time_numpy(system, batch, steps, args.max_numpy)
         variants = [(n, False, False) for n in args.filters]
         if args.compiled:
@@ -233,10 +238,11 @@ def main() -> None:
             if batch == 1:  # the online fast path: one filt.step call per measurement
                 variants += [(n, True, True) for n in args.compiled_filters]
         for name, comp, online in variants:
-            rate, tc = _time_torch(name, system, batch, steps, compiled=comp, online=online)
+            T = args.steps if comp else steps
+            rate, tc = _time_torch(name, system, batch, T, compiled=comp, online=online)
             mode = ", online streaming step" if online else ""
             label = f"{name} (compiled{mode})" if comp else name
-            rows.append((label, batch, steps, rate, ref, extrap))
+            rows.append((label, batch, T, rate, ref, extrap))
             print(
                 f"{label:<30} B={batch:<6} {rate:12.0f} traj-steps/s   numpy HSNSMF {ref:10.0f}"
                 f"{' (extrapolated)' if extrap else ''}   ratio {rate / ref:8.2f}"
