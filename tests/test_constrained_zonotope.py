@@ -100,6 +100,47 @@ def test_empty_sets_certified():
     assert not random_cz(30, 2, 8, 3, seed=6).is_empty().any()
 
 
+def test_small_empty_sets_certified():
+    """Few generators and constraints, infeasible by a margin (HiGHS: infeasible): every one is
+    certified empty. The 1-D ``xi = 5`` was not before stop 29: a corrector step with every
+    ``dz_j, dw_j > 0`` got a negative length and left the interior."""
+    g = torch.Generator().manual_seed(11)
+    cases = [(torch.tensor([[1.0]]), torch.tensor([5.0]))]
+    for k, m in [(1, 1), (1, 2), (2, 2), (1, 3), (2, 3)]:
+        for _ in range(10):
+            A = torch.randn(k, m, generator=g)
+            xi = torch.sign(torch.randn(m, generator=g)) * (1.1 + torch.rand(m, generator=g))
+            cases.append((A, A @ xi))
+    checked = 0
+    for A, b in cases:
+        m = A.shape[1]
+        r = linprog(np.zeros(m), A_eq=A.numpy(), b_eq=b.numpy(), bounds=[(-1, 1)] * m,
+                    method="highs")
+        # infeasible with a margin: the box scaled by 0.98 around xi = 0 still misses
+        r2 = linprog(np.zeros(m), A_eq=A.numpy(), b_eq=b.numpy(), bounds=[(-1.02, 1.02)] * m,
+                     method="highs")
+        if r.status != 2 or r2.status != 2:
+            continue
+        Z = CZ(torch.zeros(1), torch.ones(1, m), A, b)
+        assert bool(Z.is_empty()), (A, b)
+        checked += 1
+    assert checked >= 20
+
+
+def test_step_lengths_never_negative():
+    """``min(1, tau / r)``: 1 where nothing blocks (r <= 0, -0.0 included), never negative."""
+    from diffsmf.sets.czono_lp import _TAU, _dual_step, _primal_step
+
+    one = torch.ones(1, 3)
+    assert _dual_step(one, one, one, one).item() == 1.0  # every dz, dw > 0: r < 0
+    assert _primal_step(torch.zeros(1, 3), one, one).item() == 1.0  # dx = 0: r = 0
+    assert _primal_step(-torch.zeros(1, 3), one, one).item() == 1.0  # r = -0.0
+    half = torch.full((1, 3), 0.5)
+    # blocking: z + a dz > 0 needs a < 0.5 / 1 -> tau * 0.5
+    assert _dual_step(half, one, -one, one).item() == pytest.approx(_TAU * 0.5, rel=1e-15)
+    assert _primal_step(torch.full((1, 3), 4.0), one, one).item() == pytest.approx(_TAU / 4)
+
+
 def test_tight_constraints_single_point():
     """Constraints that pin xi to a vertex of the box: the set is one point."""
     m = 4

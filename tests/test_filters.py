@@ -233,6 +233,36 @@ def test_nan_raises_and_skip_nan_skips(cls):
     torch.testing.assert_close(res.center[1], ref.center[1])
 
 
+@pytest.mark.parametrize(
+    "name", ["hsnsmf", "mszm", "cdsmf", "esmf", "ekf", "czsmf", "combined"]
+)
+def test_eager_update_and_step_check_y(name):
+    """``update`` / ``step`` (eager) refuse a measurement that would broadcast (``[1, m]``,
+    ``[B]``, ``[B, 2m]``) or holds inf, naming ``y``; before, HSNSMF, MSZM, CDSMF and CZSMF
+    returned a plausible set, ``consistent`` True, for each of these."""
+    sys = quadratic_system()
+    traj = sys.simulate(steps=2, batch=3, seed=1)
+    filt = by_name(name)(sys)
+    st = filt.predict(filt.initial_state(batch=3), traj.u[:, 0])
+    y = traj.y[:, 0]  # [3, 1]
+    bad = {
+        "[1, m]": y[:1],
+        "[B]": y[:, 0],
+        "[B, 2m]": y.repeat(1, 2),
+    }
+    for yb in bad.values():
+        with pytest.raises(ValueError, match=r"^y: expected shape \[3, 1\]"):
+            filt.update(st, yb)
+        with pytest.raises(ValueError, match=r"^y: expected shape \[3, 1\]"):
+            filt.step(filt.initial_state(batch=3), traj.u[:, 0], yb)
+    with pytest.raises(ValueError, match="^y: contains inf"):
+        filt.update(st, torch.full_like(y, float("inf")))
+    # a list or a float32 tensor of the right shape is converted to the system's float64
+    for yc, yd in ((y.tolist(), y), (y.float(), y.float().double())):
+        out, ref = filt.update(st, yc), filt.update(st, yd)
+        torch.testing.assert_close(out.set.center, ref.set.center, rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("cls", GUARANTEED, ids=lambda c: c.__name__)
 def test_inconsistent_measurement_keeps_prediction(cls):
     sys = quadratic_system()

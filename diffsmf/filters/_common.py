@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.base import MAX_SET_RADIUS, FilterState, SetFilter
-from diffsmf.sets.base import ConvexSet, align, where
+from diffsmf.sets.base import ConvexSet, align, check_nonempty, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
 
@@ -298,9 +298,11 @@ def remainder_box(state_set: ConvexSet, extras: dict) -> Interval:
 
 
 def check_initial_set(name: str, S: ConvexSet | None, n: int) -> None:
-    """Validate an ``initial_set`` override."""
+    """Validate an ``initial_set`` override (a non-empty set of dim ``n``, batch shape ``[]``)."""
     if S is not None and (not isinstance(S, ConvexSet) or S.dim != n or S.batch_shape != ()):
         raise ValueError(f"{name}: must be a diffsmf set of dim {n} with empty batch shape")
+    if S is not None:
+        check_nonempty(name, S)
 
 
 def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:

@@ -354,18 +354,30 @@ class SetFilter(nn.Module):
 
     def __init_subclass__(cls, **kw: Any) -> None:
         """Every subclass's ``predict`` validates ``u`` against the system first
-        (:meth:`~diffsmf.systems.System.check_input`: missing, wrong width, NaN raise)."""
+        (:meth:`~diffsmf.systems.System.check_input`: missing, wrong width, NaN raise), and a
+        subclass's own ``update`` validates ``y`` (:meth:`_check_update_y`), as the base
+        ``update`` does."""
         super().__init_subclass__(**kw)
         raw = cls.__dict__.get("predict")
-        if raw is None or getattr(raw, "_checks_u", False):
-            return
+        if raw is not None and not getattr(raw, "_checks_u", False):
 
-        @functools.wraps(raw)
-        def predict(self: SetFilter, state: FilterState, u: Tensor | None = None) -> FilterState:
-            return raw(self, state, self._check_u(u, state))
+            @functools.wraps(raw)
+            def predict(
+                self: SetFilter, state: FilterState, u: Tensor | None = None
+            ) -> FilterState:
+                return raw(self, state, self._check_u(u, state))
 
-        predict._checks_u = True  # type: ignore[attr-defined]
-        cls.predict = predict  # type: ignore[method-assign]
+            predict._checks_u = True  # type: ignore[attr-defined]
+            cls.predict = predict  # type: ignore[method-assign]
+        raw_update = cls.__dict__.get("update")
+        if raw_update is not None and not getattr(raw_update, "_checks_y", False):
+
+            @functools.wraps(raw_update)
+            def update(self: SetFilter, state: FilterState, y: Tensor) -> FilterState:
+                return raw_update(self, state, self._check_update_y(y, state))
+
+            update._checks_y = True  # type: ignore[attr-defined]
+            cls.update = update  # type: ignore[method-assign]
 
     def __init__(
         self,
@@ -481,7 +493,9 @@ class SetFilter(nn.Module):
     def update(self, state: FilterState, y: Tensor) -> FilterState:
         """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) are skipped.
 
-        Ends with the boundedness guard (:meth:`guard`)."""
+        ``y`` is validated first (:meth:`_check_update_y`: exactly ``[B, m]``, no inf). Ends
+        with the boundedness guard (:meth:`guard`)."""
+        y = self._check_update_y(y, state)
         bad = torch.isnan(y).any(-1)
         if not tracing():
             if not bad.any():
@@ -532,6 +546,16 @@ class SetFilter(nn.Module):
                 keep = b.reshape(b.shape + (1,) * (v.dim() - b.dim()))
                 extras[k] = torch.where(keep, v, init.extras[k])
         return new.replace(set=safe, extras=extras)
+
+    def _check_update_y(self, y: Any, state: FilterState) -> Tensor:
+        """``y`` of an eager :meth:`update` as a tensor of the system's dtype on the state's
+        device, of shape exactly ``[*B, m]`` (``B`` the state's batch shape: a ``[1, m]`` or
+        ``[B]`` measurement is refused, not broadcast); inf raises, NaN raises unless
+        ``skip_nan``. Skipped while tracing (``forward`` and :meth:`step` check ``y`` before
+        a compiled call)."""
+        if tracing():
+            return y
+        return self._check_step_y(y, state, self.system.m, self.system.x0_set.dtype)
 
     def _check_u(self, u: Tensor | None, state: FilterState) -> Tensor | None:
         """``u [B, p]`` validated by the system (skipped while tracing for torch.compile)."""

@@ -85,6 +85,25 @@ def check_finite(name: str, t: Tensor) -> Tensor:
     return t
 
 
+def check_nonempty(name: str, S: Any) -> None:
+    """Raise ``ValueError`` naming ``name`` when the set ``S`` (or an element of its batch) is
+    certified empty (``S.is_empty()``; eager only, one LP for a constrained zonotope).
+
+    Only an :class:`~diffsmf.sets.Interval` with ``lower > upper`` or a
+    :class:`~diffsmf.sets.ConstrainedZonotope` whose constraints ``A xi = b`` have no solution
+    in the box can be empty; a filter started from, or driven by, an empty set has no state to
+    bound and would report plausible-looking sets. Sets without ``is_empty`` pass."""
+    is_empty = getattr(S, "is_empty", None)
+    if is_empty is None or tracing():
+        return
+    if bool(is_empty().any()):
+        raise ValueError(
+            f"{name}: is empty (a {type(S).__name__} that holds no point"
+            + (": its constraints A xi = b have no solution with |xi|_inf <= 1)"
+               if hasattr(S, "num_constraints") else ")")
+        )
+
+
 class ConvexSet:
     """Abstract batched convex set in R^n.
 

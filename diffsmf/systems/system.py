@@ -23,7 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.base import ConvexSet, check_nonempty
 
 __all__ = ["System", "Trajectory"]
 
@@ -98,6 +98,7 @@ class System(nn.Module):
             raise ValueError("x0_set: must be a diffsmf set")
         if len(x0_set.batch_shape) != 0:
             raise ValueError("x0_set: must have an empty batch shape")
+        check_nonempty("x0_set", x0_set)
         self.f = f
         self.h = h
         self.x0_set = x0_set
@@ -109,6 +110,8 @@ class System(nn.Module):
         ):
             if s is not None and (not isinstance(s, ConvexSet) or s.dim != d):
                 raise ValueError(f"{label}: must be a diffsmf set of dim {d}")
+            if s is not None:
+                check_nonempty(label, s)
         self.process_noise = process_noise
         self.measurement_noise = measurement_noise
         self.parameters = parameters
