@@ -6,6 +6,7 @@ import contextlib
 import functools
 import importlib.util
 import math
+import numbers
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,8 +30,9 @@ __all__ = [
 
 
 def is_int(value: object) -> bool:
-    """``value`` is a Python ``int`` and not a ``bool`` (``True`` is not a count or a size)."""
-    return isinstance(value, int) and not isinstance(value, bool)
+    """``value`` is an integer (a Python ``int`` or a numpy integer: ``numbers.Integral``) and
+    not a ``bool`` (``True`` is not a count or a size)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def tracing() -> bool:

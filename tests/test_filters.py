@@ -263,6 +263,20 @@ def test_eager_update_and_step_check_y(name):
         torch.testing.assert_close(out.set.center, ref.set.center, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize(
+    "name", ["hsnsmf", "mszm", "cdsmf", "esmf", "ekf", "czsmf", "combined"]
+)
+def test_initial_state_batch_checked(name):
+    """``initial_state(batch=...)``: a count or None; -1, True, 2.5 raise naming ``batch``
+    (before: raw expand errors, or ``True`` taken as 1)."""
+    filt = by_name(name)(quadratic_system())
+    for bad in (-1, True, 2.5, "2"):
+        with pytest.raises(ValueError, match="^batch: must be an integer >= 0"):
+            filt.initial_state(batch=bad)
+    assert filt.initial_state(batch=np.int64(3)).consistent.shape == (3,)
+    assert filt.initial_state().consistent.shape == (1,)
+
+
 @pytest.mark.parametrize("cls", GUARANTEED, ids=lambda c: c.__name__)
 def test_inconsistent_measurement_keeps_prediction(cls):
     sys = quadratic_system()

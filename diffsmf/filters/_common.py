@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from diffsmf.filters.base import MAX_SET_RADIUS, FilterState, SetFilter
+from diffsmf.filters.base import MAX_SET_RADIUS, FilterState, SetFilter, state_batch
 from diffsmf.sets.base import ConvexSet, align, check_nonempty, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -307,7 +307,7 @@ def check_initial_set(name: str, S: ConvexSet | None, n: int) -> None:
 
 def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:
     """``S`` (batch shape ``[]``) broadcast to ``[batch]`` (default 1)."""
-    return S.expand(1 if batch is None else batch)
+    return S.expand(state_batch(batch))
 
 
 def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: int) -> None:

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.filters._direct import CaptureError, DirectSteps, config_key
-from diffsmf.sets.base import ConvexSet, align, stack, where
+from diffsmf.sets.base import ConvexSet, align, check_count, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
 from diffsmf.utils import (
@@ -106,6 +106,12 @@ class FilterResult:
     @property
     def covariance(self) -> Tensor | None:
         return self.extras.get("covariance")
+
+
+def state_batch(batch: Any) -> int:
+    """The ``batch`` argument of ``initial_state``: ``None`` -> 1, else an ``int >= 0`` (not
+    a ``bool``); anything else raises ``ValueError`` naming ``batch``."""
+    return 1 if batch is None else check_count("batch", batch)
 
 
 def _check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> Tensor:
@@ -477,7 +483,7 @@ class SetFilter(nn.Module):
     def initial_state(self, batch: int | None = None) -> FilterState:
         """State at k = 0 (the system's initial set), batch shape ``[batch]``."""
         x0 = self.system.x0_set
-        b = 1 if batch is None else batch
+        b = state_batch(batch)
         return FilterState(
             set=x0.expand(b), consistent=torch.ones(b, dtype=torch.bool, device=x0.device)
         )

@@ -28,7 +28,13 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.filters.base import FilterResult, FilterState, SetFilter, bounded_result
+from diffsmf.filters.base import (
+    FilterResult,
+    FilterState,
+    SetFilter,
+    bounded_result,
+    state_batch,
+)
 from diffsmf.linearize.statistical import _check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
 from diffsmf.sets.ellipsoid import Ellipsoid, outer_sum_shape, unit_ball_volume
@@ -233,7 +239,7 @@ class CombinedFilter(SetFilter):
     # ------------------------------------------------------------------ contract
     def initial_state(self, batch: int | None = None) -> FilterState:
         """``F(a_0, S_0) = x0_set`` and ``P_0 = initial_cov``, batch ``[batch]``."""
-        b = 1 if batch is None else batch
+        b = state_batch(batch)
         n = self.system.n
         return FilterState(
             set=self._x0.expand(b),

@@ -141,8 +141,8 @@ class CZSMF(SetFilter):
         check_count("lp_iters", lp_iters)
         C.register_stirling_step(self, stirling_step, n)
         C.register_remainder_margin(self, remainder_margin, n)
-        self.max_generators = max_generators
-        self.max_constraints = max_constraints
+        self.max_generators = None if max_generators is None else int(max_generators)
+        self.max_constraints = None if max_constraints is None else int(max_constraints)
         self.reduce_method = reduce_method
         C.register_remainder(self, "dc-vertices" if remainder == "dc" else remainder, n)
         self.rescale = rescale

@@ -16,7 +16,7 @@ from torch import Tensor
 
 from diffsmf import linalg
 from diffsmf.filters import _common as C
-from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.filters.base import FilterState, SetFilter, state_batch
 from diffsmf.sets.base import ConvexSet
 from diffsmf.systems.system import System
 from diffsmf.utils import tracing
@@ -66,7 +66,7 @@ class EKF(SetFilter):
 
     def initial_state(self, batch: int | None = None) -> FilterState:
         hull = self._x0.interval_hull()
-        b = 1 if batch is None else batch
+        b = state_batch(batch)
         x = hull.center.expand(b, -1)
         P = torch.diag_embed(hull.radius**2 / 3).expand(b, -1, -1)
         return self._state(x, P, torch.ones(b, dtype=torch.bool))

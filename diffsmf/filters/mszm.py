@@ -99,7 +99,7 @@ class MSZM(SetFilter):
         C.register_stirling_step(self, stirling_step, system.n)
         C.register_remainder_margin(self, remainder_margin, system.n)
         C.register_remainder(self, remainder, system.n)
-        self.order = order
+        self.order = int(order)
         self.reduce_method = reduce_method
         self.strip_method = strip_method
         self._x0 = C.as_zonotope(initial_set if initial_set is not None else system.x0_set)

@@ -75,7 +75,7 @@ def check_count(name: str, k: Any) -> int:
     """``k`` as a count (an ``int`` >= 0, not a ``bool``), else ``ValueError`` naming ``name``."""
     if not is_int(k) or k < 0:
         raise ValueError(f"{name}: must be an integer >= 0, got {k!r}")
-    return k
+    return int(k)
 
 
 def check_finite(name: str, t: Tensor) -> Tensor:
