@@ -24,7 +24,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.base import ConvexSet, as_vector
+from diffsmf.utils import is_int
 
 __all__ = ["AuditReport", "add_arguments", "containment", "gauge", "main", "paper_steps"]
 
@@ -101,7 +102,7 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
     from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
 
     S = S.detach()
-    x = x.detach()
+    x = as_vector("x", x, S.center, S.dim).detach()
     c = S.center
     if isinstance(S, Interval):
         r = S.radius.clamp_min(1e-300)
@@ -180,8 +181,16 @@ def containment(
         :class:`AuditReport` over the audited trajectories. ``mean_volume`` averages over
         trajectories and steps 1..T.
     """
-    if trials < 1:
-        raise ValueError(f"trials: must be >= 1, got {trials}")
+    if not is_int(trials) or trials < 1:
+        raise ValueError(f"trials: must be an integer >= 1, got {trials!r}")
+    if steps is not None and (not is_int(steps) or steps < 1):
+        raise ValueError(f"steps: must be an integer >= 1 or None, got {steps!r}")
+    if not is_int(first):
+        raise ValueError(f"first: must be an integer, got {first!r}")
+    if count is not None and not is_int(count):
+        raise ValueError(f"count: must be an integer or None, got {count!r}")
+    if not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and 0 <= tol < 1):
+        raise ValueError(f"tol: must be a number in [0, 1) (relative gauge tolerance), got {tol!r}")
     if not 0 <= first < trials:
         raise ValueError(f"first: must be in 0..{trials - 1} (trials = {trials}), got {first}")
     count = trials - first if count is None else count

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -110,6 +111,31 @@ def test_partial_audits_add_up_to_the_whole():
         audit.containment(filt, system, trials=7, steps=2, first=7)
     with pytest.raises(ValueError, match="count"):
         audit.containment(filt, system, trials=7, steps=2, first=3, count=5)
+
+
+def test_containment_and_simulate_arguments_named():
+    """A negative ``tol`` made every pair a violation (12 / 12 outside, worst distance 0);
+    ``trials=True`` reached ``sample`` and was reported as ``k``; ``steps=2.5`` raised a raw
+    TypeError; ``gauge`` with points of the wrong dimension a raw broadcasting error."""
+    system = systems.get("spring_damper")
+    filt = filters.HSNSMF(system)
+    for kw, name in (
+        ({"tol": -1.0}, "tol"), ({"tol": 1.5}, "tol"), ({"trials": True}, "trials"),
+        ({"trials": 2.0}, "trials"), ({"steps": 0}, "steps"), ({"steps": 2.5}, "steps"),
+        ({"first": 0.5}, "first"), ({"count": 1.0}, "count"),
+    ):
+        args = {"trials": 3, "steps": 2, **kw}
+        with pytest.raises(ValueError, match=f"^{name}: must be"):
+            audit.containment(filt, system, **args)
+    for kw, name in (({"steps": 2.5}, "steps"), ({"batch": True}, "batch"),
+                     ({"batch": 0}, "batch"), ({"steps": -1}, "steps")):
+        with pytest.raises(ValueError, match=f"^{name}: must be an integer >= 1"):
+            system.simulate(**{"steps": 2, "batch": 1, **kw})
+    box = system.x0_set.interval_hull()
+    with pytest.raises(ValueError, match=r"^x: expected \[\.\.\., 2\]"):
+        audit.gauge(box, torch.zeros(3, 3))
+    # numpy integers are integers
+    assert audit.containment(filt, system, trials=np.int64(2), steps=np.int64(2)).pairs == 6
 
 
 def _audit_script():

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.sets.base import ConvexSet, check_nonempty
+from diffsmf.utils import is_int
 
 __all__ = ["System", "Trajectory"]
 
@@ -251,8 +252,10 @@ class System(nn.Module):
         """
         if noise not in ("uniform", "vertex"):
             raise ValueError(f"noise: expected 'uniform' or 'vertex', got {noise!r}")
-        if steps < 1 or batch < 1:
-            raise ValueError("steps, batch: must be positive")
+        for label, v in (("steps", steps), ("batch", batch)):
+            if not is_int(v) or v < 1:
+                raise ValueError(f"{label}: must be an integer >= 1, got {v!r}")
+        steps, batch = int(steps), int(batch)
         if u is not None or (self.n_inputs > 0 and self.inputs is None):
             u_given = self.check_input(u, (batch, steps))
         else:
