@@ -185,19 +185,17 @@ def containment(
         raise ValueError(f"trials: must be an integer >= 1, got {trials!r}")
     if steps is not None and (not is_int(steps) or steps < 1):
         raise ValueError(f"steps: must be an integer >= 1 or None, got {steps!r}")
-    if not is_int(first):
-        raise ValueError(f"first: must be an integer, got {first!r}")
-    if count is not None and not is_int(count):
-        raise ValueError(f"count: must be an integer or None, got {count!r}")
     if not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and 0 <= tol < 1):
         raise ValueError(f"tol: must be a number in [0, 1) (relative gauge tolerance), got {tol!r}")
-    if not 0 <= first < trials:
-        raise ValueError(f"first: must be in 0..{trials - 1} (trials = {trials}), got {first}")
-    count = trials - first if count is None else count
-    if not 1 <= count <= trials - first:
+    if not is_int(first) or not 0 <= first < trials:
         raise ValueError(
-            f"count: must be in 1..{trials - first} (trajectories {first}..{trials - 1} of "
-            f"{trials}), got {count}"
+            f"first: must be an integer in 0..{trials - 1} (trials = {trials}), got {first!r}"
+        )
+    count = trials - first if count is None else count
+    if not is_int(count) or not 1 <= count <= trials - first:
+        raise ValueError(
+            f"count: must be an integer in 1..{trials - first} (trajectories {first}.."
+            f"{trials - 1} of {trials}), got {count!r}"
         )
     system = filt.system if system is None else system
     steps = paper_steps(system) if steps is None else steps
