@@ -47,6 +47,12 @@ MODEL = textwrap.dedent(
 
     def not_a_system():
         return 42
+
+    def make_branchy():
+        s = make_system()
+        return ds.System(lambda x, u, th=None: s.f(x, u) * torch.where(x > 0, 1.0, 1.0), s.h,
+                         s.x0_set, s.process_noise, s.measurement_noise, n_inputs=1,
+                         name="branchy")
     """
 )
 
@@ -219,6 +225,7 @@ def test_data_errors_are_one_line(case, capsys, data, outputs, inputs, expect):
         ("{d}/broken.py:make_system", ["--model", "importing", "NameError"]),
         ("{d}/log.csv:make_system", ["--model", "not a Python file"]),
         ("{d}/my_model.py:make_autonomous", ["--inputs", "has no inputs"]),
+        ("{d}/my_model.py:make_branchy", ["interval jets", "comparison", "smooth"]),
     ],
 )
 def test_model_errors_are_one_line(case, capsys, spec, expect):

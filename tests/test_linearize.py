@@ -146,6 +146,36 @@ def test_unsupported_op_raises_naming_it():
         interval_hessian(lambda x: x.abs(), Interval(-torch.ones(2), torch.ones(2)))
 
 
+@pytest.mark.parametrize(
+    "fn, match",
+    [
+        (lambda x: 0.9 * x.detach(), "'detach' is not supported"),
+        (lambda x: x.float(), "'float' is not supported"),
+        (lambda x: x.mul_(0.9), "'mul_' is not supported"),
+        (lambda x: x * torch.where(x > 0, 1.0, -1.0), "comparison of state-dependent values"),
+        (lambda x: x if x[..., 0] else -x, "truth value"),
+        (lambda x: torch.clamp(x, 0.0, 1.0), "'clamp' is not supported"),
+    ],
+)
+def test_model_errors_in_jets_are_user_errors(fn, match):
+    """What a model may not do in jets raises a JetError (ValueError: one line in the CLI)."""
+    from diffsmf.linearize import JetError
+
+    box = Interval(torch.zeros(2), torch.ones(2))
+    with pytest.raises(JetError, match=match) as info:
+        interval_hessian(fn, box)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, NotImplementedError)
+    assert "smooth composition of torch operations" in str(info.value)
+    x = jet_eval(lambda z: z, box)
+    assert not hasattr(x, "detach") and not hasattr(x, "__array__")  # hasattr still works
+
+
+def test_domain_errors_say_how_far_the_set_leaves_the_domain():
+    with pytest.raises(ValueError, match=r"log needs lower >= 0, its argument reaches -0\.5"):
+        interval_hessian(lambda x: torch.log(x), Interval(torch.tensor([-0.5, 1.0]),
+                                                          torch.tensor([1.0, 2.0])))
+
+
 def _system_fns(sys):
     u = sys.input_at(0, 1)
     th = sys.theta_nominal

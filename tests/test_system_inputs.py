@@ -51,6 +51,22 @@ def test_f_and_h_are_checked_at_construction():
         ds.System(lambda x, u, th=None: x, lambda x: x @ torch.ones(3, 1), X0)
 
 
+def test_f_and_h_must_be_finite_and_differentiable_at_construction():
+    """NaN at the centre of X0, numpy inside the model, in-place updates of x: named at once."""
+    X0 = ds.Interval([0.0, 0.0], [1.0, 1.0])
+    h1 = lambda x: x[..., :1]  # noqa: E731
+    with pytest.raises(ValueError, match=r"^f: returned NaN or inf at the centre of x0_set"):
+        ds.System(lambda x, u, th=None: torch.log(x - 2.0), h1, X0)
+    with pytest.raises(ValueError, match=r"^h: returned NaN or inf .*h\(c\) = \[inf\]"):
+        ds.System(lambda x, u, th=None: x, lambda x: 1.0 / (x[..., :1] - 0.5), X0)
+    with pytest.raises(ValueError, match=r"^f: autograd cannot differentiate f .*numpy"):
+        ds.System(lambda x, u, th=None: x + torch.as_tensor(np.sin(x.numpy())), h1, X0)
+    with pytest.raises(ValueError, match=r"^f: autograd cannot differentiate f"):
+        ds.System(lambda x, u, th=None: x.mul_(0.9), h1, X0)
+    with pytest.raises(ValueError, match=r"^h: its Jacobian is NaN or inf"):
+        ds.System(lambda x, u, th=None: x, lambda x: torch.sqrt(x[..., :1] - 0.5), X0)
+
+
 @pytest.mark.parametrize("bad", [-1, 1.5, True, "2"])
 def test_n_inputs_must_be_a_nonnegative_int(bad):
     with pytest.raises(ValueError, match="^n_inputs"):

@@ -1,7 +1,7 @@
 """Linearisation: point Jacobians (autograd, Stirling), interval jets and remainder bounds."""
 
 from diffsmf.linearize.jacobians import hessian, jacobian, stirling_jacobian
-from diffsmf.linearize.jets import Jet, interval_hessian, interval_jacobian, jet_eval
+from diffsmf.linearize.jets import Jet, JetError, interval_hessian, interval_jacobian, jet_eval
 from diffsmf.linearize.remainders import (
     AUTO_VERTEX_MAX_N,
     REMAINDERS,
@@ -19,6 +19,7 @@ __all__ = [
     "AUTO_VERTEX_MAX_N",
     "REMAINDERS",
     "Jet",
+    "JetError",
     "dc_remainder",
     "diagonal_shift",
     "hessian",

@@ -15,7 +15,10 @@ argument can take. Supported: ``+ - * /``, powers, ``exp log sqrt sin cos tanh s
 square reciprocal abs atan2`` (abs only away from 0 for Hessians, atan2 away from its cut),
 indexing, ``torch.stack/cat``,
 ``sum``, ``@`` / ``F.linear`` with constant matrices, mixing with constant tensors, numbers.
-Anything else raises ``NotImplementedError`` naming the operation.
+Anything else raises :class:`JetError` (a ``NotImplementedError`` and a ``ValueError``) naming
+the operation: an unsupported torch function, a tensor method or attribute jets do not have
+(``.detach()``, ``.numpy()``, ``.float()``, in-place ``.mul_()``), or a comparison of
+state-dependent values (``x > 0``: a branch, which the remainder bounds cannot follow).
 """
 
 from __future__ import annotations
@@ -30,7 +33,36 @@ from torch import Tensor
 
 from diffsmf.sets.interval import Interval
 
-__all__ = ["Jet", "interval_hessian", "interval_jacobian", "jet_eval"]
+__all__ = ["Jet", "JetError", "interval_hessian", "interval_jacobian", "jet_eval"]
+
+#: What a model function may use, said in every :class:`JetError`.
+SUPPORTED = (
+    "supported: + - * / **, exp log sqrt sin cos tanh sigmoid atan atan2 square reciprocal abs, "
+    "indexing, stack, cat, sum, matmul / linear with constant matrices"
+)
+
+
+class JetError(NotImplementedError, ValueError):
+    """A model function (``f`` or ``h``) uses something interval jets cannot enclose.
+
+    The guaranteed remainders evaluate ``f`` and ``h`` over a whole box in interval-jet
+    arithmetic (value, gradient and Hessian enclosures), so they must be smooth compositions of
+    the supported operations. A ``ValueError`` (a user error: the CLI prints one line) and a
+    ``NotImplementedError`` (what unsupported operations raised before).
+    """
+
+
+class _JetAttributeError(JetError, AttributeError):
+    """A tensor method or attribute a :class:`Jet` does not have (keeps ``hasattr`` working)."""
+
+
+def _model_hint(what: str) -> str:
+    return (
+        f"interval jets: {what}. The guaranteed remainders evaluate the model (f, h) over the "
+        f"whole set in interval-jet arithmetic, so it must be a smooth composition of torch "
+        f"operations on its argument ({SUPPORTED}; no numpy, .detach(), dtype casts, in-place "
+        f"operations or branches on the state)"
+    )
 
 Const = Tensor | Interval | float | int
 
@@ -141,6 +173,23 @@ class Jet:
 
     def __repr__(self) -> str:
         return f"Jet(shape={tuple(self.shape)}, n={self.n}, order={self.order})"
+
+    def __getattr__(self, name: str) -> Any:
+        """Only called for names a Jet lacks: a tensor method the model used on its argument."""
+        if name.startswith("__"):
+            raise AttributeError(name)
+        raise _JetAttributeError(_model_hint(f"the tensor method or attribute {name!r} is not "
+                                             "supported"))
+
+    def _compare(self, other: Any) -> Any:
+        raise JetError(_model_hint("a comparison of state-dependent values (a branch such as "
+                                   "x > 0, torch.where, clamp) is not supported"))
+
+    __lt__ = __le__ = __gt__ = __ge__ = _compare
+
+    def __bool__(self) -> bool:
+        raise JetError(_model_hint("the truth value of a state-dependent value (if x: ...) is "
+                                   "not defined"))
 
     def _const(self, c: Const) -> Jet:
         """Lift a constant (tensor, number or Interval) to a jet with zero derivatives."""
@@ -268,8 +317,9 @@ class Jet:
         lo, hi = self.val.lower, self.val.upper
         straddle = (lo < 0) & (hi > 0)
         if self.order == 2 and bool(straddle.detach().any()):
-            raise NotImplementedError(
-                "abs: interval Hessian of |q| is undefined where q's range contains 0"
+            raise JetError(
+                "abs: interval Hessian of |q| is undefined where q's range contains 0 (the "
+                "model is not smooth over the set)"
             )
         one = torch.ones_like(lo)
         d1 = Interval(torch.where(lo >= 0, one, -one), torch.where(hi <= 0, -one, one))
@@ -291,11 +341,7 @@ class Jet:
         impl = _TABLE.get(func)
         if impl is None:
             name = getattr(func, "__name__", repr(func))
-            raise NotImplementedError(
-                f"interval jets: torch operation {name!r} is not supported (supported: + - * / "
-                "**, exp log sqrt sin cos tanh sigmoid atan atan2 square reciprocal abs, indexing, "
-                "stack, cat, sum, matmul / linear with constant matrices)"
-            )
+            raise JetError(_model_hint(f"torch operation {name!r} is not supported"))
         return impl(*args, **(kwargs or {}))
 
 
@@ -327,7 +373,7 @@ def _chain(a: Jet, v: Interval, d1: Interval, d2: Interval | None) -> Jet:
 
 def _as_matrix(A: Any, like: Tensor) -> Tensor:
     if isinstance(A, (Jet, Interval)):
-        raise NotImplementedError("interval jets: matmul supports constant (tensor) matrices only")
+        raise JetError("interval jets: matmul supports constant (tensor) matrices only")
     return torch.as_tensor(A, dtype=like.dtype, device=like.device)
 
 
@@ -335,7 +381,7 @@ def _matmul(x: Jet, A: Any) -> Jet:
     """``x @ A`` with ``x [..., m]`` and a constant ``A [m, k]`` or ``[m]``."""
     A = _as_matrix(A, x.val.lower)
     if A.dim() > 2:
-        raise NotImplementedError("interval jets: x @ A needs a 1-D or 2-D constant A")
+        raise JetError("interval jets: x @ A needs a 1-D or 2-D constant A")
     At = A.mT if A.dim() == 2 else A  # [k, m] or [m]
     n = x.n
     grad = At @ x.grad  # [..., k, n]
@@ -351,7 +397,7 @@ def _rmatmul(A: Any, x: Jet) -> Jet:
     """``A @ x`` with a constant ``A [k, m]`` and an unbatched jet ``x [m]``."""
     A = _as_matrix(A, x.val.lower)
     if x.ndim != 1:
-        raise NotImplementedError("interval jets: A @ x needs a 1-D x; write x @ A.T instead")
+        raise JetError("interval jets: A @ x needs a 1-D x; write x @ A.T instead")
     return _matmul(x, A.mT if A.dim() == 2 else A)
 
 
@@ -409,7 +455,7 @@ def _atan2(y: Any, x: Any) -> Jet:
     ypos = y.val.lower > 0
     yneg = y.val.upper < 0
     if not bool((xpos | ypos | yneg).all()):
-        raise NotImplementedError("atan2: the box meets the branch cut (x <= 0, y = 0)")
+        raise JetError("atan2: the box meets the branch cut (x <= 0, y = 0)")
     h = math.pi / 2
     inf = torch.full_like(lo, math.inf)
     half_pi = Interval(torch.nextafter(torch.full_like(lo, h), -inf),
@@ -435,7 +481,7 @@ def _binary(name: str, rname: str, swap: bool = False) -> Callable[..., Any]:
 
     def f(x: Any, y: Any, *args: Any, **kwargs: Any) -> Any:
         if args or kwargs:
-            raise NotImplementedError(f"interval jets: extra arguments {args} {kwargs}")
+            raise JetError(f"interval jets: extra arguments {args} {kwargs}")
         return op(y, x) if swap else op(x, y)
 
     return f

@@ -353,7 +353,9 @@ class Interval(ConvexSet):
 
     def log1p(self) -> Interval:
         if bool((self.lower.detach() < -1).any()):
-            raise ValueError("x: log1p needs lower >= -1 (interval leaves the domain)")
+            low = float(self.lower.detach().min())
+            raise ValueError(f"x: log1p needs lower >= -1, its argument reaches {low:.6g} "
+                             "(interval leaves the domain)")
         return _monotone(self, torch.log1p, 2)
 
     def expm1(self) -> Interval:
@@ -661,7 +663,9 @@ def _check_domain(x: Interval, name: str, strict: bool) -> None:
     bad = (x.lower <= 0) if strict else (x.lower < 0)
     if bool(bad.detach().any()):
         rel = ">" if strict else ">="
-        raise ValueError(f"x: {name} needs lower {rel} 0 (interval leaves the domain)")
+        low = float(x.lower.detach().min())
+        raise ValueError(f"x: {name} needs lower {rel} 0, its argument reaches {low:.6g} "
+                         "(interval leaves the domain)")
 
 
 def _monotone(

@@ -23,6 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from diffsmf.linearize.jacobians import jacobian
 from diffsmf.sets.base import ConvexSet, check_nonempty
 from diffsmf.utils import is_int
 
@@ -145,6 +146,7 @@ class System(nn.Module):
                 f"f: must map x [..., {self.n}] to [..., {self.n}] with torch ops; on x [1, "
                 f"{self.n}] it returned {got}"
             )
+        _check_model_call("f", lambda z: self.f(z, u, th), x, out)
 
     @property
     def theta_nominal(self) -> Tensor | None:
@@ -319,7 +321,30 @@ def _output_dim(h: Callable[[Tensor], Tensor], c: Tensor) -> int:
             f"h: must map x [..., n] to [..., m] (keep the last dim, e.g. x[..., :1] rather than "
             f"x[..., 0]); on x [1, {c.shape[-1]}] it returned {got}"
         )
+    _check_model_call("h", h, c.detach().unsqueeze(0), y)
     return int(y.shape[-1])
+
+
+def _check_model_call(name: str, fn: Callable[[Tensor], Tensor], x: Tensor, out: Tensor) -> None:
+    """``fn(x)`` (``out``, ``[1, k]``) must be finite and differentiable by autograd at ``x``.
+
+    Every filter linearises ``f`` and ``h`` with autograd (:func:`~diffsmf.linearize.jacobian`),
+    so a model written with numpy, ``.item()`` or ``.tolist()`` fails there; say so once, when
+    the system is built, naming the function.
+    """
+    where = f"at the centre of x0_set ({name}(c) = {out.detach().reshape(-1).tolist()})"
+    if not bool(torch.isfinite(out).all()):
+        raise ValueError(f"{name}: returned NaN or inf {where}")
+    try:
+        J = jacobian(fn, x)
+    except Exception as exc:  # the user's function: say which call failed
+        raise ValueError(
+            f"{name}: autograd cannot differentiate {name} {where} ({type(exc).__name__}: {exc});"
+            " the filters linearise the model with autograd, so write it with torch operations"
+            " (no numpy, .item() or .tolist())"
+        ) from exc
+    if not bool(torch.isfinite(J).all()):
+        raise ValueError(f"{name}: its Jacobian is NaN or inf {where}")
 
 
 def _infer_n_inputs(schedule: Callable[[int], Tensor] | None, n_inputs: int | None) -> int:
