@@ -129,6 +129,49 @@ def test_statistical_linearization_gradients(axes):
     assert torch.isfinite(S2.grad).all()
 
 
+@pytest.mark.parametrize("axes", ["principal", "symmetric"])
+def test_statistical_linearization_degenerate_shape(axes):
+    """A collapsed direction (rank-deficient or zero shape) gives a finite fit, exact on the
+    ellipsoid's range; before the axis floor it was 0 / 0 = NaN."""
+    g = torch.Generator().manual_seed(5)
+    A0, b0, c = torch.randn(2, 3, generator=g), torch.randn(2, generator=g), torch.randn(3)
+    L = torch.randn(3, 2, generator=g)
+    S = L @ L.T  # rank 2
+    A, b = statistical_linearization(lambda x: x @ A0.T + b0, c, S, axes=axes)
+    assert torch.isfinite(A).all() and torch.isfinite(b).all()
+    torch.testing.assert_close(A @ L, A0 @ L, rtol=0, atol=1e-9)  # exact on range(S)
+    torch.testing.assert_close(A @ c + b, A0 @ c + b0, rtol=0, atol=1e-9)
+    torch.testing.assert_close(A, A0, rtol=0, atol=1e-3)  # the floored axis: finite slope
+    A, b = statistical_linearization(torch.sin, c, torch.zeros(3, 3), axes=axes)
+    assert torch.isfinite(A).all()
+    torch.testing.assert_close(A @ c + b, torch.sin(c), rtol=0, atol=1e-12)
+
+
+def test_noise_free_collapse_stays_finite_and_consistent():
+    """No noise of either kind: the mean set collapses onto the true state (observable
+    system). Before, the gain became 0 / 0 and the filter raised 'center: contains NaN'."""
+    sys, M = _linear_system(bounded=False, gaussian=False, seed=4)
+    traj = sys.simulate(12, batch=3, seed=1)
+    res = _run(CombinedFilter(sys, initial_cov=M["P0"]), traj.y)
+    assert torch.isfinite(res.center).all() and torch.isfinite(res.sets.shape).all()
+    assert res.bounded.all() and res.consistent.all()
+    torch.testing.assert_close(res.center[:, -1], traj.x[:, -1], rtol=0, atol=1e-8)
+    assert ((res.lower - 1e-8 <= traj.x) & (traj.x <= res.upper + 1e-8)).all()
+    assert (res.upper - res.lower)[:, -1].max() < 1e-8  # collapsed onto the true state
+    assert res.sets.contains(traj.x).all()  # flat ellipsoids: Cholesky with a rounding ridge
+
+
+def test_guard_flags_a_nan_ellipsoid_instead_of_raising():
+    sys, M = _linear_system(gaussian=False, seed=3)
+    filt = CombinedFilter(sys, initial_cov=M["P0"])
+    st = filt.initial_state(2)
+    c = st.set.center.clone()
+    c[1, 0] = float("nan")
+    out = filt.guard(st.replace(set=Ellipsoid._make(c, st.set.shape)))
+    assert out.bounded.tolist() == [True, False]
+    assert torch.isfinite(out.set.center).all()
+
+
 def test_statistical_linearization_bad_input():
     c, S = torch.zeros(2), torch.eye(2)
     with pytest.raises(ValueError, match="levels"):

@@ -372,3 +372,24 @@ def test_intersect_measurement_square_h_singular_element_gradients():
     torch.logdet(out.shape).sum().backward()
     assert torch.isfinite(H.grad).all() and torch.isfinite(R.grad).all()
     assert (H.grad[0] != 0).any()  # the regular element's two-sided update depends on H
+
+
+def test_contains_degenerate_shape_matches_least_squares():
+    """A singular PSD shape (a flat ellipsoid) used to raise from Cholesky; now a point is in
+    it iff d = x - c = L u with |u| <= 1 (min-norm u by numpy lstsq), up to ~1e-9 off-plane."""
+    g = torch.Generator().manual_seed(2)
+    L = torch.randn(3, 2, generator=g, dtype=torch.float64)
+    c = torch.randn(3, generator=g, dtype=torch.float64)
+    E = Ellipsoid._make(c, L @ L.T)
+    u = 1.3 * torch.randn(200, 2, generator=g, dtype=torch.float64)
+    off = torch.randn(200, 3, generator=g, dtype=torch.float64)
+    off[:100] = 0.0  # on the plane
+    off[100:] *= 1e-3
+    x = c + u @ L.T + off
+    got = E.contains(x).numpy()
+    d = (x - c).numpy()
+    sol, *_ = np.linalg.lstsq(L.numpy(), d.T, rcond=None)
+    resid = np.linalg.norm(L.numpy() @ sol - d.T, axis=0)
+    ref = (np.linalg.norm(sol, axis=0) <= 1 + 1e-9) & (resid <= 1e-12)
+    np.testing.assert_array_equal(got, ref)
+    assert 20 < ref.sum() < 100  # both answers occur

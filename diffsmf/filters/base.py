@@ -533,18 +533,23 @@ class SetFilter(nn.Module):
         so that no NaN reaches the rest of the batch) and it stays flagged. Branch-free.
         """
         S = state.set
-        hull = S.interval_hull()
         ok = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
         for t in S._tensors():
             ok = ok & torch.isfinite(t.detach()).flatten(len(S.batch_shape)).all(-1)
+        b0 = state.bounded & ok if state.bounded is not None else ok
+        init = self.initial_state(batch=int(b0.shape[0]) if b0.dim() else None)
+        ref = init.set
+        same = type(ref) is type(S) and ref.batch_shape == S.batch_shape
+        if same:
+            S_a, ref_a = align([S, ref])
+        # eager hulls check their fields, so take the hull of a NaN set's placeholder (the
+        # element is flagged by ``ok`` already); traced code has no checks and keeps S
+        hull = (where(ok, S_a, ref_a) if same and not tracing() else S).interval_hull()
         ok = ok & (hull.radius.detach() <= MAX_SET_RADIUS).all(-1)
         new = state.and_bounded(ok)
         b = new.bounded
-        init = self.initial_state(batch=int(b.shape[0]) if b.dim() else None)
-        ref = init.set
-        if type(ref) is not type(S) or ref.batch_shape != S.batch_shape:
+        if not same:
             return new
-        S_a, ref_a = align([S, ref])
         safe = where(b, S_a, ref_a)
         extras = dict(new.extras)
         for k, v in new.extras.items():

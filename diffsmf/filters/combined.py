@@ -290,7 +290,8 @@ class CombinedFilter(SetFilter):
         W = R if self.gain == "kalman" else E
         mm = linalg.matmul
         HG = mm(H, G)
-        K = linalg.solve(_sym(mm(HG, H.mT) + W), HG).mT  # eq. 44: G H' (H G H' + W)^-1
+        Sy = _ridged(_sym(mm(HG, H.mT) + W), 1e-12, torch.finfo(a.dtype).tiny ** 0.25)
+        K = linalg.solve(Sy, HG).mT  # eq. 44: G H' (H G H' + W)^-1
         a_new = a + mm(K, nu.unsqueeze(-1)).squeeze(-1)  # eq. 57 (= eq. 45 for linear h)
         I_KH = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device) - mm(K, H)
         S_new = outer_sum_shape(
@@ -299,21 +300,25 @@ class CombinedFilter(SetFilter):
         P_new = _sym(mm(mm(I_KH, P), I_KH.mT) + mm(mm(K, R), K.mT))  # eq. 47 in Joseph form
         return FilterState(
             set=Ellipsoid._make(a_new, S_new),
-            consistent=self._consistent(nu, H, S, E),
+            consistent=self._consistent(nu, H, S, E, y),
             extras={"covariance": P_new},
         )
 
-    def _consistent(self, nu: Tensor, H: Tensor, S: Tensor, E: Tensor) -> Tensor:
+    def _consistent(self, nu: Tensor, H: Tensor, S: Tensor, E: Tensor, y: Tensor) -> Tensor:
         """Is ``y`` in the (linearised) predicted output set ``H F(a, S) + F(e_c, E)``?
 
         Only decided when the measurement has no Gaussian part (a Gaussian error is unbounded,
         so no measurement is then inconsistent). For nonlinear ``h`` the test uses the fitted
-        ``H`` and is approximate.
+        ``H`` and is approximate. A (nearly) singular output shape (no noise and a collapsed
+        set) gets a ridge of ``1e-9`` times its largest entry plus ``(1e-9 (1 + max|y|))^2``:
+        an innovation that is zero up to rounding is consistent there.
         """
         if self._gaussian_meas:
             return torch.ones(nu.shape[:-1], dtype=torch.bool, device=nu.device)
         mm = linalg.matmul
         Sy = outer_sum_shape(_sym(mm(mm(H, S), H.mT)), E, "trace")
+        slack = (1e-9 * (1.0 + y.detach().abs().amax(-1))) ** 2
+        Sy = _ridged(Sy, 1e-9, slack)
         d2 = mm(nu.unsqueeze(-2), linalg.solve(Sy, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)
         return d2 <= 1.0 + 1e-9
 
@@ -333,6 +338,27 @@ class CombinedFilter(SetFilter):
             CombinedResult, states, sets, sets.center, hull.lower, hull.upper, volume,
             {"covariance": cov},
         )
+
+
+#: A PSD matrix counts as singular below this fraction of Hadamard's bound ``det <= prod(diag)``.
+SINGULAR_RATIO = 1e-12
+
+
+def _ridged(M: Tensor, rel: float, floor: Tensor | float) -> Tensor:
+    """``M [..., m, m]`` (PSD) plus ``(rel * max diag + floor) I`` where it is (nearly) singular.
+
+    ``K = G H' (H G H' + W)^-1`` (eq. 44) is 0 / 0 for outputs that neither the set nor the
+    noise spreads: no noise and a set collapsed onto a level set of ``h``. The bounded-noise
+    update (eq. 44-46) is an outer bound for *any* gain, so a ridge there keeps the guarantee
+    and gives the limit gain (0 for an output with a zero row). A regular matrix (``det`` above
+    ``SINGULAR_RATIO`` times the product of its diagonal) gets exact zeros added: the same
+    bits as before.
+    """
+    d = torch.diagonal(M, dim1=-2, dim2=-1)
+    near = linalg.det(M) <= SINGULAR_RATIO * d.prod(-1)
+    delta = torch.where(near, rel * d.amax(-1) + floor, torch.zeros_like(d[..., 0]))
+    eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
+    return M + delta.unsqueeze(-1).unsqueeze(-1) * eye
 
 
 def _diag_sqrt(M: Tensor) -> Tensor:

@@ -35,7 +35,7 @@ class _SqrtmPSD(torch.autograd.Function):
     @staticmethod
     def forward(ctx, S: Tensor) -> Tensor:  # type: ignore[override]
         evals, V = linalg.eigh(S)  # closed form for n <= 2
-        s = evals.clamp_min(0).sqrt()
+        s = _axis_lengths(evals)
         ctx.save_for_backward(s, V)
         return linalg.matmul(V * s.unsqueeze(-2), V.mT)
 
@@ -78,11 +78,32 @@ class _EighSafe(torch.autograd.Function):
         return 0.5 * (g + g.mT)
 
 
+#: Shortest semi-axis used by the fit, relative to the longest (see :func:`_axis_lengths`).
+AXIS_FLOOR = 1e-12
+
+
+def _axis_lengths(evals: Tensor) -> Tensor:
+    """Semi-axis lengths ``sqrt(l_i)`` ``[..., n]``, raised to ``AXIS_FLOOR`` times the longest.
+
+    A degenerate ellipsoid (a collapsed direction, e.g. after an exact measurement: V = {0})
+    has a zero semi-axis; the fit's ``A = G M^-1`` would then be 0 / 0. On such an axis the
+    points are spread by the floor instead, which gives the slope of ``fn`` there (any finite
+    slope would do: ``A`` only acts on the ellipsoid's range). Lengths above the floor, i.e.
+    every non-degenerate ellipsoid, are unchanged bit for bit. An all-zero shape gets the
+    smallest normal number's square root, so ``A`` stays finite.
+    """
+    s = evals.clamp_min(0).sqrt()
+    tiny = torch.finfo(s.dtype).tiny ** 0.5
+    floor = (AXIS_FLOOR * s.amax(-1, keepdim=True)).clamp_min(tiny)
+    return torch.where(s > floor, s, floor)
+
+
 def _axes_matrix(shape: Tensor, axes: str) -> Tensor:
-    """Matrix M ``[..., n, n]`` whose columns are the semi-axes used (``S = M M'``)."""
+    """Matrix M ``[..., n, n]`` whose columns are the semi-axes used (``S = M M'``, up to the
+    floor of :func:`_axis_lengths` on degenerate axes)."""
     if axes == "principal":  # principal semi-axes sqrt(l_i) v_i (Morrell & Stirling)
         evals, V = _EighSafe.apply(shape)
-        return V * evals.clamp_min(0).sqrt().unsqueeze(-2)
+        return V * _axis_lengths(evals).unsqueeze(-2)
     return _SqrtmPSD.apply(shape)  # columns of S^(1/2): boundary points, smooth in S
 
 

@@ -112,10 +112,28 @@ class Ellipsoid(ConvexSet):
         return math.log(unit_ball_volume(self.dim)) + self.log_det_half()
 
     def mahalanobis2(self, x: Tensor) -> Tensor:
-        """``(x - c)' S^-1 (x - c)`` via a triangular solve -> ``[...]`` (x broadcasts)."""
+        """``(x - c)' S^-1 (x - c)`` via a triangular solve -> ``[...]`` (x broadcasts).
+
+        A degenerate shape (positive semidefinite, singular: a collapsed direction, as in the
+        combined filter's mean set without noise) uses ``S + delta I`` with ``delta = n eps
+        (1 + max diag S)``, just above the rounding noise of a singular matrix's zero
+        eigenvalues: a point off the ellipsoid's plane by ``t`` gets about ``t^2 / delta``, so
+        points within about ``sqrt(delta)`` (1.5e-7 for n = 2, max diag S = 1) of it are
+        accepted. A non-degenerate shape is unaffected. A shape that is not even positive
+        semidefinite to that tolerance raises.
+        """
         x = as_vector("x", x, self.center_, self.dim)
         d = (x - self.center_).unsqueeze(-1)
-        L = self.cholesky()
+        L, info = torch.linalg.cholesky_ex(self.shape)
+        if not tracing() and bool((info != 0).any()):
+            S = self.shape
+            eps = torch.finfo(S.dtype).eps
+            delta = self.dim * eps * (1.0 + torch.diagonal(S, dim1=-2, dim2=-1).amax(-1))
+            eye = torch.eye(self.dim, dtype=S.dtype, device=S.device)
+            L_reg, info_reg = torch.linalg.cholesky_ex(S + delta[..., None, None] * eye)
+            if bool((info_reg != 0).any()):
+                raise ValueError("shape: not positive semidefinite (Cholesky failed)")
+            L = torch.where((info != 0)[..., None, None], L_reg, L)
         batch = torch.broadcast_shapes(d.shape[:-2], L.shape[:-2])
         n = self.dim
         z = torch.linalg.solve_triangular(
