@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_vector
-from diffsmf.utils import is_int
+from diffsmf.utils import HIGHS_OPTIONS, is_int
 
 __all__ = ["AuditReport", "add_arguments", "containment", "gauge", "main", "paper_steps"]
 
@@ -86,7 +86,7 @@ def _zonotope_gauge_lp(c: np.ndarray, G: np.ndarray, x: np.ndarray) -> float:
     A_eq = np.hstack([G, np.zeros((n, 1))])
     res = linprog(
         cost, A_ub=A_ub, b_ub=np.zeros(2 * m), A_eq=A_eq, b_eq=x - c,
-        bounds=[(None, None)] * m + [(0, None)], method="highs",
+        bounds=[(None, None)] * m + [(0, None)], method="highs", options=HIGHS_OPTIONS,
     )
     return float(res.x[-1]) if res.status == 0 else float("inf")
 

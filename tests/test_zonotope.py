@@ -104,6 +104,21 @@ def test_contains_matches_lp_oracle(n, m):
     assert ours.any() and (~ours).any()
 
 
+def test_lp_membership_fallback_is_exact_to_atol():
+    """The LP fallback of ``contains`` (rank-deficient zonotopes in 3-D) verifies HiGHS's
+    point: with HiGHS's default tolerance a point 5e-8 outside was accepted at atol 1e-9."""
+    from diffsmf.sets.zonotope import _lp_contains
+
+    G = torch.tensor([[1.0, 0.5, 0.2], [0.0, 1.0, 0.3], [1.0, 1.5, 0.5]])  # rank 2
+    vertex = G @ torch.ones(3)
+    for eps, inside in [(5e-8, False), (5e-9, False), (5e-10, True), (0.0, True)]:
+        x = vertex + torch.tensor([eps, 0.0, 0.0])
+        assert _lp_contains(torch.zeros(3), G, x, 1e-9) is inside, eps
+    Z = ds.Zonotope(torch.zeros(3), G)
+    assert Z.contains(torch.stack([vertex, vertex + torch.tensor([5e-8, 0, 0])])).tolist() == [
+        True, False]
+
+
 def test_support_and_interval_hull_exact():
     Z = rand_zono(3, 5, seed=7)
     V = all_vertices(Z)

@@ -37,7 +37,7 @@ from torch import Tensor
 
 from diffsmf.utils import tracing
 
-__all__ = ["LP_ITERS", "LP_TOL", "box_lp", "dual_bound", "support_value"]
+__all__ = ["LP_ITERS", "LP_TOL", "box_lp", "dual_bound", "feasible_residual", "support_value"]
 
 #: Interior-point iterations per LP (the most eagerly, exactly this many while tracing). With the
 #: purified vertex dual, Mehrotra's method reaches <= 4e-11 relative error (median 5e-13) on
@@ -369,3 +369,38 @@ def support_value(
     lag = (g * xi).sum(-1) - (lam * ((A * xi.unsqueeze(-2)).sum(-1) - b)).sum(-1)
     lag = torch.where(torch.isfinite(lag), lag, torch.zeros_like(lag))
     return dc + bound + margin + (lag - lag.detach())
+
+
+def _residual(L: Tensor, r: Tensor, xi: Tensor) -> Tensor:
+    """``max_i |(L xi - r)_i|`` -> ``[...]``."""
+    return ((L * xi.unsqueeze(-2)).sum(-1) - r).abs().amax(-1)
+
+
+def feasible_residual(
+    L: Tensor, r: Tensor, x: Tensor, sweeps: int = 30, rounds: int = 3
+) -> Tensor:
+    """Smallest ``max |L xi - r|`` over box points ``|xi|_inf <= 1`` found from ``x`` -> ``[...]``.
+
+    Polishes the interior-point iterate ``x [..., m]`` of a feasibility LP ``L xi = r`` in the
+    box (``L [..., k, m]``, ``r [..., k]``) toward an exactly feasible point, for certificates
+    of membership: when the feasible set is a single point on the box's boundary (a state
+    reached by extreme, vertex noise) the interior-point iterates stall about 1e-8 away from it.
+    Two cheap steps, each point checked: ``sweeps`` alternating projections onto the affine
+    set (one pseudo-inverse per LP) and the box, then ``rounds`` active-set steps (the
+    coordinates at a bound stay there, the others take the least-squares correction). Returns
+    the least residual met, ``x``'s own included, each evaluated on a point of the box; any
+    value is an upper bound of the true least residual (detached, eager).
+    """
+    best = _residual(L, r, x)
+    P = torch.linalg.pinv(L)  # [..., m, k]
+    z = x
+    for _ in range(sweeps):
+        res = (L * z.unsqueeze(-2)).sum(-1) - r
+        z = (z - (P * res.unsqueeze(-2)).sum(-1)).clamp(-1.0, 1.0)
+        best = torch.minimum(best, _residual(L, r, z))
+    for _ in range(rounds):
+        free = (z.abs() < 1.0 - 1e-9).to(L.dtype).unsqueeze(-2)
+        res = r - (L * z.unsqueeze(-2)).sum(-1)
+        z = (z + (torch.linalg.pinv(L * free) * res.unsqueeze(-2)).sum(-1)).clamp(-1.0, 1.0)
+        best = torch.minimum(best, _residual(L, r, z))
+    return best

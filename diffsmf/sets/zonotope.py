@@ -24,7 +24,7 @@ from torch import Tensor
 
 from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
-from diffsmf.utils import tracing
+from diffsmf.utils import HIGHS_OPTIONS, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -773,5 +773,8 @@ def _lp_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> bool:
     A = np.block([[Gn, -ones], [-Gn, -ones]])
     b = np.concatenate([r, -r])
     bounds = [(-1.0, 1.0)] * m + [(0, None)]
-    res = linprog(cost, A_ub=A, b_ub=b, bounds=bounds, method="highs")
-    return bool(res.status == 0 and res.fun <= atol)
+    res = linprog(cost, A_ub=A, b_ub=b, bounds=bounds, method="highs", options=HIGHS_OPTIONS)
+    if res.status != 0:
+        return False
+    xi = np.clip(res.x[:m], -1.0, 1.0)  # verify HiGHS's point: the residual itself decides
+    return bool(np.abs(Gn @ xi - r).max(initial=0.0) <= atol)
