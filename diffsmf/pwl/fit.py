@@ -226,7 +226,10 @@ def _eps_tensor(eps: Any, p: int) -> Tensor:
     if e.numel() == 1:
         e = e.expand(p).clone()
     if e.shape != (p,) or not bool((e > 0).all()) or not torch.isfinite(e).all():
-        raise ValueError(f"eps: expected a positive number or {p} positive numbers, got {eps}")
+        raise ValueError(
+            f"eps: expected a positive number or one per output ({p} output"
+            f"{'s' if p != 1 else ''}), got {eps}"
+        )
     return e
 
 
