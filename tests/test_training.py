@@ -207,6 +207,14 @@ def test_tune_parameter_selection_and_bad_input(data):
         tune(f, traj, validation=1.5, epochs=1, progress=False)
     with pytest.raises(ValueError, match="trajectories"):
         tune(f, "abc", epochs=1, progress=False)
+    with pytest.raises(ValueError, match=r"^trajectories: no data \(y \[N, T, m\] = \[0,"):
+        tune(f, Data(traj.y[:0]), epochs=1, progress=False)  # was a KeyError('loss')
+    with pytest.raises(ValueError, match=r"^validation: no data"):
+        tune(f, traj, validation=Data(traj.y[:0]), epochs=1, progress=False)
+    for kw, name in ((dict(epochs=0), "epochs"), (dict(batch_size=2.5), "batch_size"),
+                     (dict(patience=-1), "patience"), (dict(val_every=True), "val_every")):
+        with pytest.raises(ValueError, match=f"^{name}: must be a positive integer"):
+            tune(f, traj, progress=False, **{"epochs": 1, **kw})
 
 
 def test_cli_with_toml_config_writes_outputs(tmp_path):

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from diffsmf.filters.base import SetFilter
+from diffsmf.utils import is_int
 from training import ddp
 from training.losses import LossWeights, filter_with_predictions, total_loss
 from training.windows import WindowCache, windowed_loss
@@ -278,6 +279,13 @@ def _tie_grads(groups: dict[tuple[str, ...], list[nn.Parameter]]) -> None:
             p.grad = total.expand_as(p).clone()
 
 
+def _nonempty(label: str, data: Data) -> Data:
+    """``data`` with at least one trajectory of at least one step (else a ValueError)."""
+    if data.y.dim() != 3 or data.y.shape[0] == 0 or data.y.shape[1] == 0:
+        raise ValueError(f"{label}: no data (y [N, T, m] = {list(data.y.shape)}; need N, T >= 1)")
+    return data
+
+
 def _split(data: Data, validation: Any, seed: int) -> tuple[Data, Data | None]:
     if validation is None:
         return data, None
@@ -368,15 +376,19 @@ def tune(
     Under ``torch.distributed`` each global mini-batch is sharded over the processes and the
     gradients are summed, so K processes follow the single-process trajectory.
     """
-    if epochs < 1 or batch_size < 1 or val_every < 1 or patience < 1:
-        raise ValueError("epochs, batch_size, val_every, patience: must be positive")
+    for label, v in (("epochs", epochs), ("batch_size", batch_size), ("val_every", val_every),
+                     ("patience", patience)):
+        if not is_int(v) or v < 1:
+            raise ValueError(f"{label}: must be a positive integer, got {v!r}")
     if not isinstance(compile, bool):
         raise ValueError(f"compile: expected True or False, got {compile!r}")
     t0 = time.perf_counter()
     if compile and getattr(filt, "_compiled_step", None) is None:
         filt.compile()
     weights = weights or LossWeights()
-    data, val = _split(as_data(trajectories), validation, seed)
+    data, val = _split(_nonempty("trajectories", as_data(trajectories)), validation, seed)
+    if val is not None:
+        _nonempty("validation", val)
     cont, cons = _loss_flags(loss, data.x is not None)
     chosen, skipped = resolve_params(filt, params)
     groups = _tie_groups(tie, chosen)
