@@ -67,6 +67,15 @@ def test_f_and_h_must_be_finite_and_differentiable_at_construction():
         ds.System(lambda x, u, th=None: x, lambda x: torch.sqrt(x[..., :1] - 0.5), X0)
 
 
+def test_parameters_must_be_one_set():
+    X0 = ds.Interval([0.0, 0.0], [1.0, 1.0])
+    f = lambda x, u, th=None: 0.9 * x  # noqa: E731
+    for bad, match in (([0.1, 0.2], "list"), (torch.tensor([0.1]), "Tensor"),
+                       (ds.Interval(torch.zeros(2, 1), torch.ones(2, 1)), "empty batch shape")):
+        with pytest.raises(ValueError, match=f"^parameters: .*{match}"):
+            ds.System(f, lambda x: x[..., :1], X0, parameters=bad)
+
+
 @pytest.mark.parametrize("bad", [-1, 1.5, True, "2"])
 def test_n_inputs_must_be_a_nonnegative_int(bad):
     with pytest.raises(ValueError, match="^n_inputs"):

@@ -116,6 +116,16 @@ class System(nn.Module):
                 check_nonempty(label, s)
         self.process_noise = process_noise
         self.measurement_noise = measurement_noise
+        if parameters is not None:
+            if not isinstance(parameters, ConvexSet):
+                raise ValueError(
+                    "parameters: must be a diffsmf set of parameter vectors (e.g. "
+                    f"ds.Interval(lower, upper)), got {type(parameters).__name__}"
+                )
+            if len(parameters.batch_shape) != 0:
+                raise ValueError("parameters: must have an empty batch shape, got "
+                                 f"{list(parameters.batch_shape)}")
+            check_nonempty("parameters", parameters)
         self.parameters = parameters
         self.inputs = _as_schedule("inputs", inputs)
         self.n_inputs = _infer_n_inputs(self.inputs, n_inputs)
