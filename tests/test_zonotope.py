@@ -119,6 +119,39 @@ def test_lp_membership_fallback_is_exact_to_atol():
         True, False]
 
 
+def test_lp_membership_batched_in_torch_matches_highs():
+    """n = 6 with 40 generators has C(40, 5) = 658,008 facet candidates: the LP path. Its
+    batched torch certificate (then HiGHS for what torch leaves) against HiGHS's distance at
+    feasibility 1e-10: inside (distance <= 1e-12) is accepted, 1e-6 outside is refused."""
+    from diffsmf.sets import zonotope as zmod
+
+    Z = rand_zono(6, 40, seed=31)
+    g = torch.Generator().manual_seed(2)
+    d = torch.randn(80, 6, generator=g)
+    vertex = torch.sign(d @ Z.generators) @ Z.generators.T  # support points (vertices) - c
+    u = 10 ** (-5 + 4 * torch.rand(80, 1, generator=g))  # 1e-5 .. 0.1
+    scale = torch.cat([1 - u[:40], torch.ones(10, 1), 1 + u[50:]])  # inside, on, outside
+    x = Z.center + scale * vertex
+    calls = []
+    orig = zmod._torch_lp_contains
+    zmod._torch_lp_contains = lambda *a: calls.append(1) or orig(*a)
+    try:
+        got = Z.contains(x).numpy()
+    finally:
+        zmod._torch_lp_contains = orig
+    assert calls  # the batched path ran
+    c, G = Z.center.numpy(), Z.generators.numpy()
+    dist = np.array([
+        linprog(np.r_[np.zeros(40), 1.0],
+                A_ub=np.block([[G, -np.ones((6, 1))], [-G, -np.ones((6, 1))]]),
+                b_ub=np.r_[p - c, c - p], bounds=[(-1, 1)] * 40 + [(0, None)], method="highs",
+                options={"primal_feasibility_tolerance": 1e-10}).fun
+        for p in x.numpy()
+    ])
+    assert got[dist <= 1e-12].all() and not got[dist >= 1e-6].any()
+    assert (dist <= 1e-12).sum() >= 50 and (dist >= 1e-6).sum() >= 25
+
+
 def test_support_and_interval_hull_exact():
     Z = rand_zono(3, 5, seed=7)
     V = all_vertices(Z)

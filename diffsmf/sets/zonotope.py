@@ -280,9 +280,14 @@ class Zonotope(ConvexSet):
         the axes and the generators themselves (for degenerate zonotopes). This is exact when
         the zonotope is full-dimensional or n <= 2 (every facet of a full-dimensional
         zonotope is spanned by n-1 generators). For rank-deficient zonotopes in n >= 3 D or
-        more than ``MAX_VOLUME_SUBSETS`` facet candidates it falls back to a feasibility LP
-        per point (scipy ``linprog``; not differentiable, slower). Tolerance: ``atol`` in
-        distance units.
+        more than ``MAX_VOLUME_SUBSETS`` facet candidates it falls back to the feasibility LP
+        ``x - c = G xi``, ``|xi|_inf <= 1`` for the points no half-space found excludes:
+        batched in torch first (:func:`~diffsmf.sets.czono_lp.box_lp` and
+        :func:`~diffsmf.sets.czono_lp.feasible_residual`, as in
+        :meth:`ConstrainedZonotope.contains`), then scipy HiGHS per point for what torch left
+        uncertified; either way True needs a box point whose residual ``|G xi - (x - c)|_inf``
+        is at most ``atol`` (not differentiable). Tolerance: ``atol`` in distance units; with
+        the LP, a point within about 1e-8 of the boundary may be refused.
         """
         x = as_tensor("x", x, like=self._c, min_dim=1)
         if x.shape[-1] != self.dim:
@@ -747,14 +752,43 @@ def _zonotope_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> Tensor:
     tol = atol + 1e-12 * (h.abs() + (D @ c.unsqueeze(-1)).squeeze(-1).abs())
     ok = (dx.abs() <= h + tol).all(-1)
     if lp_needed is not None:
-        lp_b = lp_needed.expand(batch)
+        # the half-spaces found are valid ones, so a point they exclude is outside; the
+        # others are decided by the feasibility LP, batched in torch first (a certificate:
+        # the residual of a box point), then by HiGHS for what torch left uncertified
+        lp_b = lp_needed.expand(batch) & ok
         if lp_b.any():
             ok = ok.clone()
+            idx = lp_b.nonzero()
             cb, Gb, xb = c.expand(*batch, n), G.expand(*batch, n, m), x.expand(*batch, n)
-            for i in lp_b.nonzero():
-                ii = tuple(i.tolist())
-                ok[ii] = _lp_contains(cb[ii], Gb[ii], xb[ii], atol)
+            certified = _torch_lp_contains(cb, Gb, xb, idx, atol)
+            for i, cert in zip(idx.tolist(), certified.tolist()):
+                ii = tuple(i)
+                ok[ii] = cert or _lp_contains(cb[ii], Gb[ii], xb[ii], atol)
     return ok
+
+
+#: points per chunk of the batched membership LPs (bounds the memory of ``[N, n, m]``)
+LP_POINTS_PER_CHUNK = 1024
+
+
+def _torch_lp_contains(c: Tensor, G: Tensor, x: Tensor, idx: Tensor, atol: float) -> Tensor:
+    """Certified ``x in c + G [-1, 1]^m`` (to ``atol``, max-norm) for the points ``idx [N, d]``
+    of the batch -> bool ``[N]`` (False: not certified). The interior-point feasibility LP of
+    :func:`~diffsmf.sets.czono_lp.box_lp`, then :func:`~diffsmf.sets.czono_lp.feasible_residual`
+    on what it left, as in :meth:`ConstrainedZonotope.contains` (no constraints here)."""
+    from diffsmf.sets.czono_lp import LP_ITERS, box_lp, feasible_residual
+
+    out = []
+    for s in range(0, idx.shape[0], LP_POINTS_PER_CHUNK):
+        ii = tuple(idx[s : s + LP_POINTS_PER_CHUNK].T)
+        L, r = G[ii], x[ii] - c[ii]  # [N, n, m], [N, n]
+        _, _, _, xi = box_lp(torch.zeros_like(L[:, 0, :]), L, r, LP_ITERS, None)
+        ok = ((L * xi.unsqueeze(-2)).sum(-1) - r).abs().amax(-1) <= atol
+        if not bool(ok.all()):
+            bad = ~ok
+            ok[bad] = feasible_residual(L[bad], r[bad], xi[bad]) <= atol
+        out.append(ok)
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=G.device)
 
 
 def _lp_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> bool:
