@@ -536,8 +536,7 @@ class SetFilter(nn.Module):
         ok = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
         for t in S._tensors():
             ok = ok & torch.isfinite(t.detach()).flatten(len(S.batch_shape)).all(-1)
-        b0 = state.bounded & ok if state.bounded is not None else ok
-        init = self.initial_state(batch=int(b0.shape[0]) if b0.dim() else None)
+        init = self.initial_state(batch=int(ok.shape[0]) if ok.dim() else None)
         ref = init.set
         same = type(ref) is type(S) and ref.batch_shape == S.batch_shape
         if same:
