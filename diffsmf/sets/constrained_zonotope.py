@@ -26,8 +26,8 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_count, check_finite
-from diffsmf.sets.czono_lp import LP_ITERS, LP_TOL, box_lp, feasible_residual, support_value
-from diffsmf.utils import HIGHS_OPTIONS, is_int, tracing
+from diffsmf.sets.czono_lp import LP_ITERS, LP_TOL, box_lp, certify_feasible, support_value
+from diffsmf.utils import HIGHS_OPTIONS, is_int
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
@@ -284,15 +284,7 @@ class ConstrainedZonotope(ConvexSet):
             raise ValueError(f"x: expected [..., {self.dim}], got {tuple(x.shape)}")
         with torch.no_grad():
             L, r = self._membership_lp(x.detach())
-            # all iterations: the iterate's residual must meet ``atol`` (a feasibility LP has
-            # no gap to stop on, and an early stop would leave boundary points uncertified)
-            _, _, _, xi = box_lp(torch.zeros_like(L[..., 0, :]), L, r, iters, None)
-            ok = ((L * xi.unsqueeze(-2)).sum(-1) - r).abs().amax(-1) <= atol
-            if not tracing() and not bool(ok.all()):  # polish the uncertified ones
-                bad = ~ok
-                ok = ok.clone()
-                ok[bad] = feasible_residual(L[bad], r[bad], xi[bad]) <= atol
-            return ok
+            return certify_feasible(L, r, atol, iters)
 
     def excludes(self, x: Tensor, iters: int = LP_ITERS) -> Tensor:
         """Certified non-membership of ``x [..., n]`` -> bool ``[...]`` (a Farkas certificate

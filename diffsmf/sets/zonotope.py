@@ -24,6 +24,7 @@ from torch import Tensor
 
 from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
+from diffsmf.sets.czono_lp import certify_feasible
 from diffsmf.utils import HIGHS_OPTIONS, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -773,21 +774,13 @@ LP_POINTS_PER_CHUNK = 1024
 
 def _torch_lp_contains(c: Tensor, G: Tensor, x: Tensor, idx: Tensor, atol: float) -> Tensor:
     """Certified ``x in c + G [-1, 1]^m`` (to ``atol``, max-norm) for the points ``idx [N, d]``
-    of the batch -> bool ``[N]`` (False: not certified). The interior-point feasibility LP of
-    :func:`~diffsmf.sets.czono_lp.box_lp`, then :func:`~diffsmf.sets.czono_lp.feasible_residual`
-    on what it left, as in :meth:`ConstrainedZonotope.contains` (no constraints here)."""
-    from diffsmf.sets.czono_lp import LP_ITERS, box_lp, feasible_residual
-
-    out = []
-    for s in range(0, idx.shape[0], LP_POINTS_PER_CHUNK):
-        ii = tuple(idx[s : s + LP_POINTS_PER_CHUNK].T)
-        L, r = G[ii], x[ii] - c[ii]  # [N, n, m], [N, n]
-        _, _, _, xi = box_lp(torch.zeros_like(L[:, 0, :]), L, r, LP_ITERS, None)
-        ok = ((L * xi.unsqueeze(-2)).sum(-1) - r).abs().amax(-1) <= atol
-        if not bool(ok.all()):
-            bad = ~ok
-            ok[bad] = feasible_residual(L[bad], r[bad], xi[bad]) <= atol
-        out.append(ok)
+    of the batch -> bool ``[N]`` (False: not certified), by
+    :func:`~diffsmf.sets.czono_lp.certify_feasible` in chunks of ``LP_POINTS_PER_CHUNK``."""
+    out = [
+        certify_feasible(G[ii], x[ii] - c[ii], atol)  # L [N, n, m], r [N, n]
+        for ii in (tuple(idx[s : s + LP_POINTS_PER_CHUNK].T)
+                   for s in range(0, idx.shape[0], LP_POINTS_PER_CHUNK))
+    ]
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.bool, device=G.device)
 
 
