@@ -22,9 +22,12 @@ __all__ = [
     "Positive",
     "StrictlyPositive",
     "check_strictly_positive",
+    "fix_dynamo_matmul",
     "inv_softplus",
     "load_object",
+    "materialize",
     "register_positive",
+    "retain_freed_memory",
     "traced",
     "tracing",
 ]
@@ -49,6 +52,95 @@ def tracing() -> bool:
 
 
 _TRACED = False  # set by traced()
+
+
+#: glibc ``mallopt`` parameters set by :func:`retain_freed_memory`.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_RETAINED = False
+
+
+def retain_freed_memory(trim: int = 512 << 20, mmap: int = 64 << 20) -> bool:
+    """Keep freed heap memory in the process instead of returning it to the OS (glibc only).
+
+    A compiled filter step at a large batch allocates its buffers afresh on every call
+    (megabytes at B = 10,000). glibc serves blocks above its mmap threshold with fresh pages and
+    trims freed memory above its trim threshold, so every call page-faults its buffers in again,
+    and the kernel zeroes each page: 6,500 faults and about a quarter of the step's time
+    (HSNSMF, B = 10,000, one thread). This raises the mmap threshold to ``mmap`` bytes and the
+    trim threshold to ``trim`` bytes (``mallopt``, the same as the environment variables
+    ``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_``), process-wide: the process keeps
+    up to ``trim`` bytes of freed memory for reuse. Called by ``SetFilter.compile()``
+    (``retain_memory=False`` skips it). Idempotent; returns True if the settings are in effect
+    (False on a C library without ``mallopt``, e.g. macOS or musl).
+    """
+    global _RETAINED
+    if _RETAINED:
+        return True
+    if sys.platform != "linux":
+        return False
+    import ctypes
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    ok = libc.mallopt(_M_MMAP_THRESHOLD, int(mmap)) == 1
+    ok = libc.mallopt(_M_TRIM_THRESHOLD, int(trim)) == 1 and ok
+    _RETAINED = ok
+    return ok
+
+
+_MATMUL_FIXED = False
+
+
+def fix_dynamo_matmul() -> bool:
+    """Make ``torch.compile`` trace ``x @ A`` correctly for an Interval or a Jet ``x``.
+
+    Dynamo (torch 2.13) sends a binary operator whose left operand is a non-tensor object with
+    ``__torch_function__`` to the tensor's *reflected* method with the operands swapped, and its
+    table of reflected methods leaves out ``@``: ``x @ A`` reached ``__torch_function__`` as
+    ``Tensor.__matmul__(A, x)``, i.e. ``A @ x``. That failed for jets and could silently compute
+    ``A @ x`` for intervals of matching shapes. This adds the missing ``Tensor.__rmatmul__``
+    entry. Called by ``SetFilter.compile()``; call it before ``torch.compile`` of your own code
+    that multiplies intervals or jets with ``@``. Idempotent; False if this torch has no such
+    table (then there is nothing to fix or it cannot be fixed here).
+    """
+    global _MATMUL_FIXED
+    if _MATMUL_FIXED:
+        return True
+    import operator
+
+    try:
+        from torch._dynamo.variables import builtin
+    except ImportError:
+        return False
+    populate = getattr(builtin, "populate_builtin_to_tensor_fn_map", None)
+    table = getattr(builtin, "BUILTIN_TO_TENSOR_RFN_MAP", None)
+    if populate is None or not isinstance(table, dict):
+        return False
+    populate()
+    table.setdefault(operator.matmul, torch.Tensor.__rmatmul__)
+    _MATMUL_FIXED = True
+    return True
+
+
+def materialize(x: Tensor) -> Tensor:
+    """``x`` itself; while traced for Inductor, a hint to compute it once into a buffer.
+
+    Inductor inlines a cheap elementwise producer into every consumer, and a consumer that
+    broadcasts it (a ``[p, v]`` table built from ``[p]`` and ``[v]`` factors) then recomputes it
+    for every element of the table. Forcing the stride order realises the buffer (no copy if
+    the strides already match). Applied only without autograd recording on ``x`` (the prim has
+    no derivative); in eager mode it returns ``x`` unchanged.
+    """
+    if not tracing() or x.requires_grad:
+        return x
+    import torch._inductor.inductor_prims  # noqa: F401  (registers the prim)
+
+    return torch.ops.prims.inductor_force_stride_order(x, x.stride())
 
 
 @contextlib.contextmanager

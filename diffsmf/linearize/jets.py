@@ -338,7 +338,10 @@ class Jet:
     def __torch_function__(
         cls, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None
     ) -> Any:
-        impl = _TABLE.get(func)
+        if getattr(func, "__name__", None) == "__rmatmul__":  # by name: see fix_dynamo_matmul
+            impl = _TABLE[torch.Tensor.__rmatmul__]
+        else:
+            impl = _TABLE.get(func)
         if impl is None:
             name = getattr(func, "__name__", repr(func))
             raise JetError(_model_hint(f"torch operation {name!r} is not supported"))

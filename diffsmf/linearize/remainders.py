@@ -26,7 +26,7 @@ from diffsmf.linearize.jacobians import jacobian
 from diffsmf.linearize.jets import Jet, interval_jacobian, jet_eval
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval, interval_eval
-from diffsmf.utils import tracing
+from diffsmf.utils import materialize, tracing
 
 __all__ = [
     "AUTO_LAGRANGE_MAX_N",
@@ -290,13 +290,13 @@ def _dc_lower(
     lower = ((grad_c * dv.unsqueeze(-2)).sum(-1) - qv).amin(0)  # p = c: r(c) = q(c) = 0
     if grad_v is None:
         return lower
-    g1v = rv + qv  # [N, ..., k]
-    grad_g1 = grad_v + 2 * W * dv.unsqueeze(-2)  # [N, ..., k, n]
+    g1v = materialize(rv + qv)  # [N, ..., k]
+    grad_g1 = materialize(grad_v + 2 * W * dv.unsqueeze(-2))  # [N, ..., k, n]
     N = dv.shape[0]
     step = max(1, _TANGENT_ELEMS // max(1, grad_g1.numel()))
     for p0 in range(0, N, step):
         sl = slice(p0, p0 + step)
-        diff = dv.unsqueeze(0) - dv[sl].unsqueeze(1)  # [p, v] -> v - p
+        diff = materialize(dv.unsqueeze(0) - dv[sl].unsqueeze(1))  # [p, v] -> v - p
         tang = g1v[sl].unsqueeze(1) + (grad_g1[sl].unsqueeze(1) * diff.unsqueeze(-2)).sum(-1)
         lower = torch.maximum(lower, (tang - qv.unsqueeze(0)).amin(1).amax(0))
     return lower

@@ -352,7 +352,7 @@ class Interval(ConvexSet):
         return _monotone(self, torch.nn.functional.softplus, 2, clamp_min=0.0)
 
     def log1p(self) -> Interval:
-        if bool((self.lower.detach() < -1).any()):
+        if not tracing() and bool((self.lower.detach() < -1).any()):  # traced: NaN, flagged
             low = float(self.lower.detach().min())
             raise ValueError(f"x: log1p needs lower >= -1, its argument reaches {low:.6g} "
                              "(interval leaves the domain)")
@@ -528,7 +528,10 @@ class Interval(ConvexSet):
         cls, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None
     ) -> Any:
         kwargs = kwargs or {}
-        impl = _TORCH_IMPL.get(func)
+        if getattr(func, "__name__", None) == "__rmatmul__":  # by name: see fix_dynamo_matmul
+            impl = _TORCH_IMPL[torch.Tensor.__rmatmul__]
+        else:
+            impl = _TORCH_IMPL.get(func)
         if impl is None:
             return NotImplemented
         return impl(*args, **kwargs)
@@ -616,7 +619,7 @@ def _div(a: Interval, b: Interval) -> Interval:
     sd = torch.where(nonzero, d, one)
     q = torch.stack(torch.broadcast_tensors(a.lower / sc, a.lower / sd, a.upper / sc, a.upper / sd))
     direct = Interval._make(_down(q.amin(0)), _up(q.amax(0)))
-    if bool(nonzero.all()):
+    if not tracing() and bool(nonzero.all()):
         return direct
     ext = _mul(a, _recip(b))
     nz = torch.broadcast_to(nonzero, direct.shape)
@@ -660,6 +663,8 @@ def _pow(x: Interval, p: Any) -> Interval:
 
 
 def _check_domain(x: Interval, name: str, strict: bool) -> None:
+    if tracing():  # no host sync: out of the domain, the bounds are NaN and the filters flag them
+        return
     bad = (x.lower <= 0) if strict else (x.lower < 0)
     if bool(bad.detach().any()):
         rel = ">" if strict else ">="

@@ -25,7 +25,7 @@ from torch import Tensor
 from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.sets.czono_lp import certify_feasible
-from diffsmf.utils import HIGHS_OPTIONS, tracing
+from diffsmf.utils import HIGHS_OPTIONS, materialize, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -497,15 +497,25 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
             scale = Gd.new_full((*G.shape[:-2], 1, 1), 1e-150)
         else:
             scale = Gd.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
-        best, ok = _best_basis(Gd / scale)
-    if not tracing() and bool(ok.all()):
+        Gn = materialize(Gd / scale)
+        m = G.shape[-1]
+        if tracing() and _max_bases(n) >= math.comb(m + n, n) > math.comb(m, n):
+            # branch-free form with one search: the augmented columns are zero where G has
+            # a regular basis, and a basis with a zero column is never regular, so the search
+            # over [G, aug] picks G's own best basis there (same lexicographic order)
+            ok = _any_regular_basis(Gn)
+            best = None
+        else:
+            best, ok = _best_basis(Gn)
+    if best is not None and not tracing() and bool(ok.all()):
         return _basis_T(G, best)
     aug = torch.where(ok.reshape(*ok.shape, 1, 1), 0.0 * eye, (1e-9 * scale) * eye)
     Gaug = torch.cat([G, aug.expand(*G.shape[:-2], n, n)], -1)
     with torch.no_grad():
-        best_a, _ = _best_basis(Gaug.detach() / scale)
-    best = torch.where(ok.unsqueeze(-1), best, best_a)
-    return _basis_T(Gaug, best)
+        best_a, _ = _best_basis(materialize(Gaug.detach() / scale))
+    if best is not None:
+        best_a = torch.where(ok.unsqueeze(-1), best, best_a)
+    return _basis_T(Gaug, best_a)
 
 
 def _basis_T(G: Tensor, basis: Tensor) -> Tensor:
@@ -558,6 +568,39 @@ def _candidate_columns(G: Tensor, L: int) -> Tensor:
     return torch.cat([first, more], -1)
 
 
+def _bases(G: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The candidate bases of :func:`_best_basis`: ``(Gc [..., n, L], idx [K, n], cols)``,
+    the candidate columns, the index of each basis into them, and the candidates' indices into
+    G (None when all ``m`` columns are candidates)."""
+    n, m = G.shape[-2], G.shape[-1]
+    budget = _max_bases(n)
+    if math.comb(m, n) <= budget:
+        return G, _combinations(m, n, G.device), None
+    L = n
+    while math.comb(L + 1, n) <= budget:
+        L += 1
+    cols = _candidate_columns(G, L)
+    Gc = torch.gather(G, -1, cols.unsqueeze(-2).expand(*G.shape[:-2], n, L))
+    return Gc, _combinations(L, n, G.device), cols
+
+
+def _regular_bases(Gc: Tensor, sub: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Bases ``B [..., k, n, n]`` (columns ``sub [k, n]`` of ``Gc``), ``|det B|`` and the
+    regularity flag ``|det B| > 1e-12 x`` the Hadamard bound (product of column norms)."""
+    B = materialize(Gc[..., sub].movedim(-2, -3))  # [..., k, n, n]
+    detB = linalg.det(B).abs()
+    return B, detB, detB > 1e-12 * Gc.norm(dim=-2)[..., sub].prod(-1)
+
+
+def _any_regular_basis(G: Tensor) -> Tensor:
+    """True ``[...]`` where :func:`_best_basis` finds a regular basis (same candidates and
+    criterion, without the solves)."""
+    if G.shape[-1] < G.shape[-2]:
+        return torch.zeros(G.shape[:-2], dtype=torch.bool, device=G.device)
+    Gc, idx, _ = _bases(G)
+    return _regular_bases(Gc, idx)[2].any(-1)
+
+
 def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
     """Index ``[..., n]`` of the basis with least |det T| (ties within :data:`BASIS_TIE_RTOL`:
     the first in lexicographic order) and a validity flag ``[...]``."""
@@ -567,27 +610,15 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
         return torch.zeros(*batch, n, dtype=torch.long, device=G.device), torch.zeros(
             batch, dtype=torch.bool, device=G.device
         )
-    budget = _max_bases(n)
-    if math.comb(m, n) > budget:
-        L = n
-        while math.comb(L + 1, n) <= budget:
-            L += 1
-        cols = _candidate_columns(G, L)
-        Gc = torch.gather(G, -1, cols.unsqueeze(-2).expand(*batch, n, L))
-    else:
-        Gc, L = G, m
-    idx = _combinations(L, n, G.device)
+    Gc, idx, cols = _bases(G)
     nb = int(math.prod(batch)) or 1
     starts, step = _chunks(idx.shape[0], nb * n * (m + n))
     best_val = G.new_full(batch, float("inf"))
     best_k = torch.zeros(batch, dtype=torch.long, device=G.device)
-    colnorm = Gc.norm(dim=-2)  # [..., L]
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     for s in starts:
         sub = idx[s : s + step]
-        B = Gc[..., sub].movedim(-2, -3)  # [..., k, n, n]
-        detB = linalg.det(B).abs()
-        regular = detB > 1e-12 * colnorm[..., sub].prod(-1)  # vs the Hadamard bound
+        B, detB, regular = _regular_bases(Gc, sub)
         Bs = torch.where(regular.unsqueeze(-1).unsqueeze(-1), B, eye)
         # |det T| = |det B| prod_i sum_j |(B^-1 G)_ij| over ALL m generators
         X = linalg.solve(Bs, G.unsqueeze(-3).expand(*batch, sub.shape[0], n, m))
@@ -603,7 +634,7 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
         best_val = torch.where(better, v, best_val)
         best_k = torch.where(better, k + s, best_k)
     basis = idx[best_k]  # [..., n] indices into the candidate columns
-    if L < m:
+    if cols is not None:
         basis = torch.gather(cols, -1, basis)
     return basis, torch.isfinite(best_val)
 
