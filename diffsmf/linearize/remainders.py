@@ -355,7 +355,7 @@ def dc_remainder(
     ball = ball.unsqueeze(-1).expand_as(diag)
     W = torch.stack([ball[0], diag[0], ball[1], diag[1]])  # [4, ..., k, n]
     finite = torch.isfinite(W)
-    Wf = torch.where(finite, W, torch.zeros_like(W))
+    Wf = materialize(torch.where(finite, W, torch.zeros_like(W)))
     Vf = _front(V)  # [N, ..., n]
     tangents = V.shape[-2] <= _MAX_TANGENTS  # tangent planes at the vertices too
     cb, Vb = torch.broadcast_tensors(c.unsqueeze(0), Vf)
@@ -364,8 +364,8 @@ def dc_remainder(
     Jc = Jall[0] if tangents else Jall  # [..., k, n]
     fall = fn(pts)  # [1 + N, ..., k]
     fc, fv = fall[0], fall[1:]
-    J = Jc if J is None else J
-    dv = Vf - c  # [N, ..., n]
+    J = materialize(Jc if J is None else J)
+    dv = materialize(Vf - c)  # [N, ..., n]
     rv = fv - fc - (J * dv.unsqueeze(-2)).sum(-1)  # remainder at the vertices [N, ..., k]
     grad_c = Jc - J
     grad_v = Jall[1:] - J if tangents else None
