@@ -455,3 +455,20 @@ def test_memory_and_materialize_helpers():
     ok = retain_freed_memory()
     assert ok == (platform.system() == "Linux" and platform.libc_ver()[0] == "glibc")
     assert retain_freed_memory() == ok  # idempotent
+
+
+def test_compiled_loop_restores_the_garbage_collector(hsnsmf_eager_compiled):
+    import gc
+
+    s, filt = hsnsmf_eager_compiled
+    tr = s.simulate(steps=3, batch=2, seed=0)
+    with torch.no_grad():
+        filt(tr.y)
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with torch.no_grad():
+            filt(tr.y)
+        assert not gc.isenabled()  # left as the caller had it
+    finally:
+        gc.enable()
