@@ -506,3 +506,25 @@ def test_align_and_cat_pad_generators_and_keep_the_sets():
         cat([a, p])
     with pytest.raises(ValueError, match="at least one"):
         cat([])
+
+
+def test_planar_volume_is_exact_for_many_generators():
+    """2-D volume from the table of generator pairs: equals the subset sum and, for more pairs
+    than MAX_VOLUME_SUBSETS, the area of the convex hull of the vertices (scipy)."""
+    from scipy.spatial import ConvexHull
+
+    from diffsmf.sets.zonotope import MAX_VOLUME_SUBSETS, _combinations, _sum_abs_det
+
+    g = torch.Generator().manual_seed(5)
+    G = torch.randn(3, 2, 7, generator=g, dtype=torch.float64)
+    Z = ds.Zonotope(torch.zeros(3, 2, dtype=torch.float64), G)
+    ref = 4.0 * _sum_abs_det(G, _combinations(7, 2))
+    torch.testing.assert_close(Z.volume(), ref, rtol=1e-14, atol=0)
+    m = 300
+    assert m * (m - 1) // 2 > MAX_VOLUME_SUBSETS
+    big = ds.Zonotope(torch.zeros(2, dtype=torch.float64),
+                      torch.randn(2, m, generator=g, dtype=torch.float64))
+    area = ConvexHull(big.vertices_2d().numpy()).volume
+    assert abs(big.volume().item() - area) <= 1e-10 * area
+    empty = ds.Zonotope(torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 2, 4))
+    assert empty.volume().shape == (0,)
