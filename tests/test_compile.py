@@ -472,3 +472,23 @@ def test_compiled_loop_restores_the_garbage_collector(hsnsmf_eager_compiled):
         assert not gc.isenabled()  # left as the caller had it
     finally:
         gc.enable()
+
+
+@pytest.mark.parametrize("name", ["hsnsmf", "mszm", "cdsmf", "esmf", "czsmf", "ekf", "combined"])
+def test_forward_makes_no_reference_cycles(name):
+    """forward pauses the cyclic garbage collector inside its loop: safe only while the steps
+    make no reference cycles (which would then pile up until the loop ends)."""
+    import gc
+
+    s = ds.systems.get("vdp")
+    tr = s.simulate(steps=6, batch=2, seed=0)
+    filt = ds.filters.by_name(name)(s)
+    gc.collect()
+    gc.disable()
+    try:
+        with torch.no_grad():
+            filt(tr.y, u=tr.u)
+        filt(tr.y, u=tr.u)  # grad mode too
+        assert gc.collect() == 0
+    finally:
+        gc.enable()
