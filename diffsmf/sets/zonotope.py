@@ -105,16 +105,15 @@ def _planar_pair_area(G: Tensor) -> Tensor:
     batch = G.shape[:-2]
     m = G.shape[-1]
     a, b = a.reshape(-1, m), b.reshape(-1, m)
-    rows = max(1, _PAIR_TABLE_ELEMS // max(1, m * m))
     if a.shape[0] == 0:
         return G.new_zeros(batch)
+    rows = max(1, _PAIR_TABLE_ELEMS // max(1, m * m))
     parts = []
     for s in range(0, a.shape[0], rows):
         ai, bi = a[s : s + rows], b[s : s + rows]
         table = ai.unsqueeze(-1) * bi.unsqueeze(-2) - bi.unsqueeze(-1) * ai.unsqueeze(-2)
         parts.append(table.abs().sum((-1, -2)) * 0.5)
-    out = torch.cat(parts) if len(parts) > 1 else parts[0]
-    return out.reshape(batch)
+    return torch.cat(parts).reshape(batch)
 
 
 def _cross_normal(A: Tensor) -> Tensor:
@@ -523,31 +522,31 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
     Elements without a regular basis (rank-deficient G) get axis generators of size
     1e-9 x max|G| appended (outward); the other elements get zero columns (no change).
     """
-    n = G.shape[-2]
+    n, m = G.shape[-2], G.shape[-1]
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
+    # traced (branch-free), one search suffices when [G, aug] has few enough bases: the
+    # augmented columns are zero where G has a regular basis, and a basis with a zero column is
+    # never regular, so the search over [G, aug] picks G's own best basis there (same
+    # lexicographic order)
+    one_search = tracing() and _max_bases(n) >= math.comb(m + n, n) > math.comb(m, n)
     with torch.no_grad():
         Gd = G.detach()
-        if G.shape[-1] == 0:
+        if m == 0:
             scale = Gd.new_full((*G.shape[:-2], 1, 1), 1e-150)
         else:
             scale = Gd.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
         Gn = materialize(Gd / scale)
-        m = G.shape[-1]
-        if tracing() and _max_bases(n) >= math.comb(m + n, n) > math.comb(m, n):
-            # branch-free form with one search: the augmented columns are zero where G has
-            # a regular basis, and a basis with a zero column is never regular, so the search
-            # over [G, aug] picks G's own best basis there (same lexicographic order)
+        if one_search:
             ok = _any_regular_basis(Gn)
-            best = None
         else:
             best, ok = _best_basis(Gn)
-    if best is not None and not tracing() and bool(ok.all()):
+    if not tracing() and bool(ok.all()):
         return _basis_T(G, best)
     aug = torch.where(ok.reshape(*ok.shape, 1, 1), 0.0 * eye, (1e-9 * scale) * eye)
     Gaug = torch.cat([G, aug.expand(*G.shape[:-2], n, n)], -1)
     with torch.no_grad():
         best_a, _ = _best_basis(materialize(Gaug.detach() / scale))
-    if best is not None:
+    if not one_search:
         best_a = torch.where(ok.unsqueeze(-1), best, best_a)
     return _basis_T(Gaug, best_a)
 
