@@ -294,3 +294,14 @@ def test_inconsistent_measurement_keeps_prediction(cls):
     torch.testing.assert_close(res.center[0, 3], st.set.center[0])
     torch.testing.assert_close(res.volume[0, 3], st.set.volume()[0])
     assert res.sets[0, 3].contains(traj.x[0, 3])
+
+
+def test_missing_or_non_numeric_y_names_y():
+    """``y=None`` or text gives a ValueError naming ``y`` (it used to be torch's TypeError)."""
+    sys = quadratic_system()
+    filt = HSNSMF(sys)
+    for bad in (None, "abc"):
+        with pytest.raises(ValueError, match=r"^y: cannot convert"):
+            filt(bad)
+        with pytest.raises(ValueError, match=r"^y: cannot convert"):
+            filt.step(filt.initial_state(batch=1), torch.zeros(1, sys.n_inputs), bad)

@@ -251,6 +251,15 @@ def _own_code(fn: Any) -> Any:
     return types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
 
 
+def _y_tensor(y: Any, dtype: torch.dtype, device: torch.device | None) -> Tensor:
+    """``y`` as a tensor; ``ValueError`` naming ``y`` when it is None or not numeric (NaN is
+    left to the callers, which honour ``skip_nan``)."""
+    try:
+        return torch.as_tensor(y, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"y: cannot convert {type(y).__name__} to measurements ({exc})") from exc
+
+
 def _gc_paused() -> contextlib.AbstractContextManager:
     """Python's cyclic garbage collector off inside ``forward``'s time loop (restored after);
     a no-op while traced (``torch.compile`` of the whole module).
@@ -784,7 +793,7 @@ class SetFilter(nn.Module):
         ``dtype`` are passed in so that :meth:`streaming` reads them once per block."""
         c = state.consistent
         if not isinstance(y, Tensor) or y.dtype != dtype or y.device != c.device:
-            y = torch.as_tensor(y, dtype=dtype, device=c.device)
+            y = _y_tensor(y, dtype, c.device)
         if y.shape != (*c.shape, m):
             expected = [*c.shape, m]
             raise ValueError(f"y: expected shape {expected} for this state, got {list(y.shape)}")
@@ -979,7 +988,7 @@ class SetFilter(nn.Module):
 
     def _check_y(self, y: Tensor) -> Tensor:
         dt = self.system.x0_set.dtype
-        y = torch.as_tensor(y, dtype=dt) if not isinstance(y, Tensor) else y
+        y = _y_tensor(y, dt, None) if not isinstance(y, Tensor) else y
         if y.dim() == 2:
             y = y.unsqueeze(0)
         if y.dim() != 3 or y.shape[-1] != self.system.m:
