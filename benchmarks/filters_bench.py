@@ -156,8 +156,8 @@ def _time_torch(
 
     with torch.no_grad(), filt.streaming() if online else contextlib.nullcontext():
         t0 = time.perf_counter()
-        # warm-up / compile: 3 steps, since the ellipsoidal filters run their first step
-        # eagerly (it carries the initial box) and compile the step graph at the second
+        # warm-up / compile: 3 steps (CZSMF's growth phase runs eagerly; every other filter
+        # compiles its step graph at the first)
         w = min(3, steps)
         if online:
             run_online(w)

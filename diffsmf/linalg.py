@@ -17,12 +17,16 @@ for n <= 2 is the characteristic-polynomial root ``(a + d) / 2 -+ sqrt(((a - d) 
 with absolute error a few ``eps ||S||``, the same order as LAPACK's; ``eigh`` for n <= 2 adds
 the rotation angle ``theta = atan2(b, (a - d) / 2) / 2`` of the eigenvectors (Golub & Van Loan,
 *Matrix Computations*, 4th ed., sec. 8.5.2, the symmetric Schur decomposition), orthonormal to
-a few ``eps``. Every guaranteed caller
+a few ``eps``. ``cholesky`` for n <= 2 is the Cholesky-Banachiewicz recurrence that LAPACK's
+``potf2`` runs (``l11 = sqrt(a)``, ``l21 = b / l11``, ``l22 = sqrt(d - l21^2)``, backward
+stable, Higham sec. 10.1), ``solve_lower`` / ``cholesky_solve`` forward and back substitution
+(Higham sec. 8.1). Every guaranteed caller
 already pads for an error of this order (e.g. ``hessian_eig_lower_bound``: ``(8 n + 16) eps``).
 
 A singular matrix gives ``inf`` / NaN entries in ``solve`` at n <= 2 instead of LAPACK's
-exception; the callers substitute a regular matrix first (basis search) or flag the
-non-finite result (the filters' boundedness guard).
+exception (and a matrix that is not positive definite NaN entries in ``cholesky``); the
+callers substitute a regular matrix first (basis search) or flag the non-finite result (the
+filters' boundedness guard).
 """
 
 from __future__ import annotations
@@ -31,13 +35,15 @@ import torch
 from torch import Tensor
 
 __all__ = [
-    "CLOSED_FORM_MAX_N", "SMALL_MATMUL_ELEMS", "SMALL_MATMUL_MAX", "det", "eigh", "eigvalsh",
-    "matmul", "solve",
+    "CLOSED_FORM_MAX_N", "SMALL_MATMUL_ELEMS", "SMALL_MATMUL_MAX", "cholesky", "cholesky_solve",
+    "det", "eigh", "eigvalsh", "matmul", "solve", "solve_lower",
 ]
 
-#: Largest size with a closed form: ``det`` up to 3, ``solve``, ``eigvalsh`` and ``eigh`` up
-#: to 2.
-CLOSED_FORM_MAX_N = {"det": 3, "solve": 2, "eigvalsh": 2, "eigh": 2}
+#: Largest size with a closed form: ``det`` up to 3, the others up to 2.
+CLOSED_FORM_MAX_N = {
+    "det": 3, "solve": 2, "eigvalsh": 2, "eigh": 2, "cholesky": 2, "cholesky_solve": 2,
+    "solve_lower": 2,
+}
 
 
 #: ``matmul`` uses a broadcast multiply-and-sum when every dimension of the product is at most
@@ -143,3 +149,56 @@ def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
         V = torch.stack([torch.stack([-s, c], -1), torch.stack([c, s], -1)], -2)
         return eigvalsh(S), V
     return torch.linalg.eigh(S)
+
+
+def cholesky(S: Tensor) -> Tensor:
+    """Lower Cholesky factor ``L [..., n, n]`` of SPD ``S [..., n, n]`` (reads the lower
+    triangle, as LAPACK does).
+
+    Closed form up to n = 2 (no LAPACK call: it fuses under ``torch.compile``; a matrix that is
+    not positive definite gives NaN entries, no exception), else ``torch.linalg.cholesky``.
+    """
+    n = _check_square("S", S)
+    if n == 1:
+        return torch.sqrt(S)
+    if n == 2:
+        l11 = torch.sqrt(S[..., 0, 0])
+        l21 = S[..., 1, 0] / l11
+        l22 = torch.sqrt(S[..., 1, 1] - l21 * l21)
+        zero = torch.zeros_like(l11)
+        return torch.stack([torch.stack([l11, zero], -1), torch.stack([l21, l22], -1)], -2)
+    return torch.linalg.cholesky(S)
+
+
+def solve_lower(L: Tensor, B: Tensor) -> Tensor:
+    """``X = L^-1 B`` for lower-triangular ``L [..., n, n]``, ``B [..., n, k]`` (broadcast batch).
+
+    Forward substitution up to n = 2, else ``torch.linalg.solve_triangular(L, B, upper=False)``.
+    """
+    n = _check_square("L", L)
+    if B.dim() < 2 or B.shape[-2] != n:
+        raise ValueError(f"B: expected [..., {n}, k] for L [..., {n}, {n}], got {tuple(B.shape)}")
+    if n == 1:
+        return B / L
+    if n == 2:
+        x0 = B[..., 0, :] / L[..., 0, 0, None]
+        x1 = (B[..., 1, :] - L[..., 1, 0, None] * x0) / L[..., 1, 1, None]
+        return torch.stack([x0, x1], -2)
+    return torch.linalg.solve_triangular(L, B, upper=False)
+
+
+def cholesky_solve(B: Tensor, L: Tensor) -> Tensor:
+    """``X = (L L')^-1 B`` for the lower Cholesky factor ``L [..., n, n]`` and ``B [..., n, k]``
+    (argument order of ``torch.cholesky_solve``).
+
+    Forward and back substitution up to n = 2, else ``torch.cholesky_solve``.
+    """
+    n = _check_square("L", L)
+    if n > 2:
+        return torch.cholesky_solve(B, L)
+    z = solve_lower(L, B)
+    if n == 1:
+        return z / L
+    x1 = z[..., 1, :] / L[..., 1, 1, None]
+    x0 = (z[..., 0, :] - L[..., 1, 0, None] * x1) / L[..., 0, 0, None]
+    return torch.stack([x0, x1], -2)

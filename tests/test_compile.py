@@ -159,7 +159,7 @@ def test_czsmf_compiled_step_is_one_graph():
 def test_steps_per_call_one_graph_same_sets(name, system):
     """``compile(steps_per_call=2)``: forward runs 2 steps per compiled call in one graph (the
     last, shorter part on repeated y / u, its extra states dropped) and gives the eager sets;
-    CDSMF's first step (initial box in its extras) runs eagerly."""
+    CDSMF's first step (the initial box in its extras) runs in the same graph."""
     s = ds.systems.get(system)
     tr = s.simulate(steps=5, batch=2, seed=1, noise="vertex")  # 5 = 2 + 2 + 1 (+ 1 padded)
     eager = ds.filters.by_name(name)(s)
@@ -171,7 +171,7 @@ def test_steps_per_call_one_graph_same_sets(name, system):
         re = eager(tr.y, u=tr.u)
         rc = comp(tr.y, u=tr.u)
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1
-    assert len(calls) == (2 if name == "cdsmf" else 3)  # CDSMF: 1 eager step, then 2 + 2
+    assert len(calls) == 3  # 2 + 2 + 1 (+ 1 padded), CDSMF's first step included
     assert rc.lower.shape == re.lower.shape == (2, 6, s.n)
     torch.testing.assert_close(rc.lower, re.lower, rtol=1e-10, atol=1e-13)
     torch.testing.assert_close(rc.upper, re.upper, rtol=1e-10, atol=1e-13)
@@ -294,8 +294,8 @@ def test_compile_options(monkeypatch):
 @pytest.mark.parametrize("name,system", [("hsnsmf", "spring_damper"), ("cdsmf", "spring_damper")])
 def test_online_step_runs_the_compiled_step(name, system, hsnsmf_eager_compiled, monkeypatch):
     """``filt.step`` after ``compile()`` (one measurement at a time, the online fast path)
-    runs the compiled graph, not the eager step, and gives ``forward``'s eager sets; CDSMF's
-    first step (the initial box) runs eagerly and later ones compiled."""
+    runs the compiled graph, not the eager step, and gives ``forward``'s eager sets (CDSMF's
+    first step, which carries the initial box, included)."""
     s = ds.systems.get(system)
     tr = s.simulate(steps=4, batch=2, seed=1, noise="vertex")
     eager = ds.filters.by_name(name)(s)

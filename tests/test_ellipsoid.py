@@ -250,6 +250,47 @@ def test_intersect_measurement_contains_feasible_points(m):
     assert feas.any() and (F.contains(x, atol=0.0) | ~feas).all()
 
 
+def test_intersect_measurement_one_output_is_the_minimal_strip_update():
+    """m = 1, method "volume": the strip update (Fogel-Huang rho on the strip tightened to E)
+    contains every feasible sample, is no larger than any member of the eq. 36-39 family on
+    a fine rho grid (evaluated independently here, in numpy), and equals intersect_strip."""
+    E = _ell(3, (4,), seed=21)
+    g = torch.Generator().manual_seed(21)
+    H = torch.randn(4, 1, 3, generator=g)
+    R = torch.rand(4, 1, 1, generator=g) * 0.2 + 0.01
+    y = (H @ E.center.unsqueeze(-1)).squeeze(-1) + torch.tensor([[0.3], [-0.1], [0.0], [0.5]])
+    F = E.intersect_measurement(H, y, R)
+    x = _pts(E, 4000, 21)
+    r = y - (H @ x.unsqueeze(-1)).squeeze(-1)
+    feas = (r[..., 0] ** 2 <= R[..., 0, 0])
+    assert feas.any() and (F.contains(x, atol=0.0) | ~feas).all()
+    P = E.shape.numpy()
+    for b in range(4):
+        h, e = H[b, 0].numpy(), float(y[b, 0] - H[b, 0] @ E.center[b])
+        best = np.inf
+        for rho in np.linspace(1e-4, 1 - 1e-4, 4001):
+            D = rho * h @ P[b] @ h + (1 - rho) * float(R[b, 0, 0])
+            xi = 1 - rho * (1 - rho) * e * e / D
+            K = rho * P[b] @ h / D
+            S = xi / (1 - rho) * (P[b] - np.outer(K, h @ P[b]))
+            best = min(best, np.linalg.slogdet(S)[1])
+        assert float(torch.logdet(F.shape[b])) <= best + 1e-6
+    strip = ds.Strip(H[:, 0], y[:, 0], R[:, 0, 0].sqrt())
+    G = E.intersect_strip(strip)
+    torch.testing.assert_close(F.shape, G.shape, rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(F.center, G.center, rtol=1e-12, atol=1e-15)
+
+
+def test_intersect_measurement_one_output_zero_h_keeps_the_set():
+    """A zero measurement row carries no information: the set comes back unchanged (no
+    error from the strip's eager non-zero-normal check, no NaN)."""
+    E = _ell(2, (2,), seed=3)
+    F = E.intersect_measurement(torch.zeros(2, 1, 2), torch.tensor([[0.05], [0.0]]),
+                                torch.full((2, 1, 1), 0.01))
+    torch.testing.assert_close(F.shape, E.shape)
+    torch.testing.assert_close(F.center, E.center)
+
+
 # ---------------------------------------------------------------------------- covers
 def test_from_box_and_from_zonotope_cover():
     g = torch.Generator().manual_seed(0)
@@ -318,7 +359,13 @@ def test_gradcheck_intersect_ellipsoid_and_measurement():
         F = E1.intersect_measurement(H, torch.tensor([0.2]), (L2[:1, :1] ** 2), method="trace")
         return F.center, F.shape
 
-    for fn in (both, meas):
+    def meas_volume(L1, c2):  # m = 1, "volume": the strip path (Fogel-Huang closed form)
+        E1 = Ellipsoid(torch.zeros(2), L1 @ L1.mT)
+        H = c2.unsqueeze(0) + torch.tensor([[1.0, 0.0]])
+        F = E1.intersect_measurement(H, torch.tensor([0.2]), (L2[:1, :1] ** 2))
+        return F.center, F.shape
+
+    for fn in (both, meas, meas_volume):
         assert torch.autograd.gradcheck(fn, (L1, c2), fast_mode=True)
 
 

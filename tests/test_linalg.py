@@ -134,3 +134,39 @@ def test_matmul_matches_operator(shape_a, shape_b) -> None:
     # both paths: multiply-and-sum (at most SMALL_MATMUL_ELEMS products per matrix, e.g. the
     # axis points [9, 2] x [..., 2, 2], a 40-long contraction) and BLAS ([9, 8] x [8, 2])
     torch.testing.assert_close(linalg.matmul(A, B), A @ B, rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_cholesky_and_solves_match_numpy(n: int) -> None:
+    """Closed forms (n <= 2) and the LAPACK fallback (n = 3) against numpy / scipy, including
+    an ill-conditioned SPD matrix (condition 1e12)."""
+    import scipy.linalg
+
+    A = _rand(n, seed=5)
+    S = A @ A.mT + 1e-3 * torch.eye(n, dtype=A.dtype)
+    S[0] = torch.diag(torch.logspace(0, -12, n, dtype=A.dtype)) if n > 1 else S[0]
+    B = torch.randn(50, n, 3, dtype=A.dtype, generator=torch.Generator().manual_seed(6))
+    L = linalg.cholesky(S)
+    np.testing.assert_allclose(L.numpy(), np.linalg.cholesky(S.numpy()), rtol=1e-12, atol=1e-15)
+    for i in range(50):
+        Li, Bi = L[i].numpy(), B[i].numpy()
+        ref = scipy.linalg.solve_triangular(Li, Bi, lower=True)
+        np.testing.assert_allclose(linalg.solve_lower(L[i], B[i]).numpy(), ref, rtol=1e-10)
+        ref = scipy.linalg.cho_solve((Li, True), Bi)
+        np.testing.assert_allclose(linalg.cholesky_solve(B[i], L[i]).numpy(), ref, rtol=1e-9)
+
+
+def test_cholesky_not_positive_definite_is_nan_and_gradcheck() -> None:
+    """A matrix that is not positive definite gives NaN (no exception); the closed forms are
+    differentiable (gradcheck in float64)."""
+    bad = torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=torch.float64)
+    assert torch.isnan(linalg.cholesky(bad)).any()
+    A = _rand(2, batch=3, seed=7)
+    S = (A @ A.mT + torch.eye(2, dtype=A.dtype)).requires_grad_(True)
+    B = torch.randn(3, 2, 2, dtype=A.dtype, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda S: linalg.cholesky(0.5 * (S + S.mT)), (S,))
+    assert torch.autograd.gradcheck(
+        lambda S, B: linalg.cholesky_solve(B, linalg.cholesky(0.5 * (S + S.mT))), (S, B)
+    )
+    with pytest.raises(ValueError, match="B"):
+        linalg.solve_lower(torch.eye(2, dtype=A.dtype), torch.ones(3, 1, dtype=A.dtype))

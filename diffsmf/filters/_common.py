@@ -282,19 +282,36 @@ def as_ellipsoid(S: ConvexSet) -> ConvexSet:
     return as_zonotope(S).to_ellipsoid()
 
 
+#: ``state.extras`` keys of the ellipsoidal filters' initial box (private: ``collect`` does not
+#: stack ``_``-prefixed extras into the result).
+X0_LOWER, X0_UPPER = "_x0_lower", "_x0_upper"
+
+
 def remainder_box(state_set: ConvexSet, extras: dict) -> Interval:
     """Box over which an ellipsoidal filter bounds its remainders.
 
-    The interval hull of the ellipsoid, intersected at k = 0 with the hull of the *given*
-    initial set (``extras["x0_box"]``): the true x0 lies in that set, and the covering
-    ellipsoid of a box is ``sqrt(n)`` times wider per axis (it may reach a singularity of f
-    that the box does not, e.g. the fermenter's ``mu`` pole).
+    The interval hull of the ellipsoid, intersected with the box ``extras[X0_LOWER]`` /
+    ``extras[X0_UPPER]`` ``[B, n]``: at k = 0 the hull of the *given* initial set (the true x0
+    lies in that set, and the covering ellipsoid of a box is ``sqrt(n)`` times wider per axis:
+    it may reach a singularity of f that the box does not, e.g. the fermenter's ``mu`` pole),
+    from k = 1 on all of R^n (:func:`spent_initial_box`; ``max(l, -inf) = l`` exactly), so
+    that every step has the same inputs and one compiled graph serves them all.
     """
     box = state_set.interval_hull()
-    b0 = extras.get("x0_box")
-    if b0 is not None:
-        box = box.intersect(b0)
+    lo, hi = extras.get(X0_LOWER), extras.get(X0_UPPER)
+    if lo is not None and hi is not None:
+        box = box.intersect(Interval._make(lo, hi))
     return box
+
+
+def spent_initial_box(extras: dict) -> dict:
+    """The initial-box extras after the first prediction: the box of all of R^n (``[B, n]``
+    of -inf / +inf), or ``{}`` when the state carries none."""
+    out = {}
+    for key, val in ((X0_LOWER, -torch.inf), (X0_UPPER, torch.inf)):
+        if key in extras:
+            out[key] = torch.full_like(extras[key], val)
+    return out
 
 
 def check_initial_set(name: str, S: ConvexSet | None, n: int) -> None:
@@ -370,8 +387,9 @@ def register_remainder_margin(module: torch.nn.Module, value: float | Tensor, n:
 
 class EllipsoidalSetFilter(SetFilter):
     """Shared start of the ellipsoidal filters (CDSMF, ESMF): the covering ellipsoid of the
-    initial set, and its interval hull kept in ``extras["x0_box"]`` so that the first
-    remainder is bounded over (ellipsoid hull) ∩ (initial box), see :func:`remainder_box`."""
+    initial set, and its interval hull kept in ``extras[X0_LOWER]`` / ``extras[X0_UPPER]`` so
+    that the first remainder is bounded over (ellipsoid hull) ∩ (initial box), see
+    :func:`remainder_box`."""
 
     def __init__(self, system: System, initial_set: ConvexSet | None = None, **kw) -> None:
         super().__init__(system, **kw)
@@ -383,12 +401,16 @@ class EllipsoidalSetFilter(SetFilter):
     def initial_state(self, batch: int | None = None) -> FilterState:
         S = expand_state_set(self._x0, batch)
         ok = torch.ones(S.batch_shape, dtype=torch.bool)
-        return FilterState(set=S, consistent=ok, extras={"x0_box": self._x0_box})
+        shape = (*S.batch_shape, self.system.n)
+        lo, hi = self._x0_box.lower.expand(shape), self._x0_box.upper.expand(shape)
+        return FilterState(set=S, consistent=ok, extras={X0_LOWER: lo, X0_UPPER: hi})
 
 
 __all__ = [
     "ROUND_REL",
     "EllipsoidalSetFilter",
+    "X0_LOWER",
+    "X0_UPPER",
     "add_remainder_margin",
     "register_remainder",
     "register_remainder_margin",
@@ -406,6 +428,7 @@ __all__ = [
     "sanitize_remainder",
     "zonotope_prediction",
     "sequential_strip_update",
+    "spent_initial_box",
     "step_function",
     "stirling_strip_update",
     "widen",

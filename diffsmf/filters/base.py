@@ -172,10 +172,10 @@ def _contiguous(v: Any) -> Any:
 
 
 #: Compiled steps of a ``forward`` call that run Dynamo's full guard check (counted per call of
-#: the compiled function, so eager steps such as the ellipsoidal filters' first one do not
-#: count). From then on the step's inputs are the previous compiled step's outputs and
-#: same-shaped slices of ``y`` / ``u`` (the same tensor metadata as the step before, and the
-#: module does not change inside the loop), so the guards are known to pass and only those that
+#: the compiled function, so eager steps such as CZSMF's growth phase do not count). From then
+#: on the step's inputs are the previous compiled step's outputs and same-shaped slices of
+#: ``y`` / ``u`` (the same tensor metadata as the step before, and the module does not change
+#: inside the loop), so the guards are known to pass and only those that
 #: tell cached graphs apart are run (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``;
 #: about a third of a compiled B = 1 step was guard evaluation). ``forward`` resets the count.
 _GUARDED_STEPS = 2
@@ -931,8 +931,8 @@ class SetFilter(nn.Module):
 
     def _compile_ready(self, state: FilterState) -> bool:
         """Whether the compiled graph serves ``state`` (else its step runs eagerly): every
-        extra is a tensor. The ellipsoidal filters' first state carries the initial box; it
-        runs eagerly rather than compile a second graph for it."""
+        extra is a tensor (a state built by hand with another object in its extras runs
+        eagerly)."""
         return all(isinstance(v, Tensor) for v in state.extras.values())
 
     def _unflatten(self, out: tuple) -> FilterState:
@@ -980,7 +980,7 @@ class SetFilter(nn.Module):
         extras = {
             k: torch.stack([s.extras[k] for s in states], 1)
             for k in states[-1].extras
-            if all(k in s.extras for s in states)
+            if not k.startswith("_") and all(k in s.extras for s in states)
         }
         return bounded_result(
             FilterResult, states, sets, sets.center, hull.lower, hull.upper, sets.volume(), extras

@@ -115,7 +115,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         if Well is not None:  # an ellipsoidal / zonotope W as given (issue 13), not its hull
             new = scaled_minkowski_sum(new, Well, self.sum_method, self.minkowski_scale)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
-        return state.replace(set=new, extras={}).and_bounded(bounded)
+        return state.replace(set=new, extras=C.spent_initial_box(state.extras)).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Seed 000 Theorem 3 strips intersected one by one with the ellipsoid."""

@@ -140,7 +140,7 @@ class ESMF(C.EllipsoidalSetFilter):
         lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
         new = scaled_minkowski_sum(lin, Qhat, "trace", s)  # eq. 34-35
         new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
-        return state.replace(set=new, extras={}).and_bounded(bounded)
+        return state.replace(set=new, extras=C.spent_initial_box(state.extras)).and_bounded(bounded)
 
     def _observation_noise(self, y: Tensor, hc: Tensor, Rh: Interval) -> Ellipsoid:
         """Ellipsoid ``E(v', Rhat) [B, m]`` containing measurement noise + remainder of ``h``.
