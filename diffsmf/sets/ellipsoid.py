@@ -309,11 +309,10 @@ class Ellipsoid(ConvexSet):
         explicit ``rho``. An empty intersection (max over rho of
         ``rho (1 - rho) e' D^-1 e`` > 1, a concave function) returns the input unchanged.
 
-        One output (``m = 1``, ``n > 1``) with ``method="volume"``: the measurement set is the
-        strip ``|H x - y| <= sqrt(R)`` and :meth:`intersect_strip` is used (the strip
-        tightened to E's extent, the Fogel-Huang closed-form rho, exact emptiness): the same
-        family, its minimal-volume member in closed form instead of 150 evaluations of the
-        bracketing search (issue 11: two thirds of a compiled ESMF step).
+        One output (``m = 1``, ``n > 1``) with ``method="volume"``: the family's
+        minimal-volume member in closed form (Fogel-Huang, :meth:`_one_output_update`) instead
+        of about 150 evaluations of the bracketing search (issue 11: two thirds of a compiled
+        ESMF step), and emptiness decided exactly.
         """
         H = as_tensor("H", H, like=self.center_, min_dim=2)
         y = as_tensor("y", y, like=self.center_, min_dim=1)
@@ -322,10 +321,10 @@ class Ellipsoid(ConvexSet):
             raise ValueError("H: shapes of H [..., m, n], y [..., m], R [..., m, m] mismatch")
         _chol("R", _sym(R).detach())
         P, c = self.shape, self.center_
-        if H.shape[-2] == 1 and self.dim > 1 and rho is None and method == "volume":
-            return self.intersect_strip(_measurement_strip(H, y, _sym(R)))
         e = y - (H @ c.unsqueeze(-1)).squeeze(-1)
         G = _sym(H @ P @ H.mT)
+        if H.shape[-2] == 1 and self.dim > 1 and rho is None and method == "volume":
+            return self._one_output_update(_MeasFamily(P, H, G, _sym(R), e))
         square = None
         if H.shape[-2] == self.dim and rho is None:
             # square H: the two-sided update with the measurement ellipsoid (tighter: no
@@ -344,6 +343,21 @@ class Ellipsoid(ConvexSet):
             return out
         # element by element, branch-free (the same in eager and traced code)
         return where(square[1], two, out)
+
+    def _one_output_update(self, fam: _MeasFamily) -> Ellipsoid:
+        """The minimal-volume member of the eq. 36-39 family for one output (``m = 1``): the
+        Fogel-Huang closed-form rho (:func:`_fogel_huang_rho`; the family's log-volume is the
+        strip's) capped at ``1 - 1e-6`` as the search is for ``m < n``, and the exact emptiness
+        test ``|e| > sqrt(H P H') + sqrt(R)`` (the maximum over rho of
+        ``rho (1 - rho) e^2 / D(rho)`` is ``e^2 / (sqrt(G) + sqrt(R))^2``)."""
+        g, r, e = fam.G[..., 0, 0], fam.R[..., 0, 0], fam.e[..., 0]
+        g, r, e = (t.expand(fam.batch) for t in (g, r, e))
+        empty = e.detach().abs() > torch.sqrt(g.detach()) + torch.sqrt(r.detach())
+        top = 1.0 - max(1e-6, 1e4 * torch.finfo(self.dtype).eps)
+        rho_t = _fogel_huang_rho(g, r, e, self.dim).clamp(max=top)
+        rho_t = torch.where(empty, torch.zeros_like(rho_t), rho_t)
+        c2, P2 = fam.evaluate(rho_t, self.center_)
+        return self._finish(c2, P2, rho_t, empty)
 
     def _square_measurement(
         self, H: Tensor, y: Tensor, R: Tensor
@@ -525,18 +539,6 @@ def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     p0 = (p0 - _vol_condition(p0, ld) / _vol_condition_dp(p0, ld)).detach()  # Newton polish
     # differentiable Newton step: p = p0 - F(p0)/F'(p0), F' analytic (implicit function)
     return p0 - _vol_condition(p0, lam) / _vol_condition_dp(p0, lam)
-
-
-def _measurement_strip(H: Tensor, y: Tensor, R: Tensor) -> Any:
-    """``{x : (y - H x)' R^-1 (y - H x) <= 1}`` for one output (``H [..., 1, n]``, ``y [..., 1]``,
-    ``R [..., 1, 1]``) as the strip ``|H x - y| <= sqrt(R)``, without the eager checks of
-    :class:`~diffsmf.sets.strip.Strip` (a zero ``H`` is a valid measurement that carries no
-    information: :meth:`Ellipsoid.intersect_strip` returns the set or flags it empty)."""
-    from diffsmf.sets.strip import Strip
-
-    a, o, h = H[..., 0, :], y[..., 0], torch.sqrt(R[..., 0, 0])
-    batch = torch.broadcast_shapes(a.shape[:-1], o.shape, h.shape)
-    return Strip._from_tensors((a.expand(*batch, a.shape[-1]), o.expand(batch), h.expand(batch)))
 
 
 def _vol_condition_dp(p: Tensor, lam: Tensor) -> Tensor:
