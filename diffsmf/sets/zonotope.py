@@ -696,11 +696,12 @@ def _alamo_lambda(c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, metho
         q = _cofactor_normals(
             Gd, idx1
         )  # [..., K, n]: vol(lam) = 2^n (|1-p.lam| V0 + sig |q lam|_1)
-        V0 = (
-            _sum_abs_det(Gd, _combinations(m, n, G.device))
-            if m >= n
-            else Gd.new_zeros(Gd.shape[:-2])
-        )
+        if m < n:
+            V0 = Gd.new_zeros(Gd.shape[:-2])
+        elif n == 2:  # the same determinants from the pair table, no gather (issue 11)
+            V0 = _planar_pair_area(Gd)
+        else:
+            V0 = _sum_abs_det(Gd, _combinations(m, n, G.device))
     if n >= 2 and idx1.shape[0] >= n - 1:
         lam_v, ok_v = _l1_vertex(G, p, q, idx1)
         cands.append(lam_v)
