@@ -305,3 +305,17 @@ def test_missing_or_non_numeric_y_names_y():
             filt(bad)
         with pytest.raises(ValueError, match=r"^y: cannot convert"):
             filt.step(filt.initial_state(batch=1), torch.zeros(1, sys.n_inputs), bad)
+
+
+def test_mszm_stable_partition_equals_stable_sort():
+    """MSZM's zero-column partition (two running sums) is the permutation of a stable sort
+    of the zero flags, on random patterns including all-zero and all-non-zero rows."""
+    from diffsmf.filters.mszm import _stable_partition
+
+    g = torch.Generator().manual_seed(0)
+    keep = torch.rand(200, 13, generator=g) < torch.rand(200, 1, generator=g)
+    keep[0], keep[1] = False, True
+    order = torch.sort((~keep).to(torch.int8), dim=-1, stable=True).indices
+    dest = _stable_partition(keep, keep.sum(-1))
+    inverse = torch.empty_like(order).scatter_(-1, dest, torch.arange(13).expand(200, 13))
+    assert torch.equal(inverse, order)

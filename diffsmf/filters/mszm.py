@@ -123,9 +123,9 @@ class MSZM(SetFilter):
             return Z.pad_generators(q)
         with torch.no_grad():
             nonzero = (G != 0).any(-2)  # [..., M]
-            order = torch.sort((~nonzero).to(torch.int8), dim=-1, stable=True).indices
             count = nonzero.sum(-1)  # [...]
-        Gc = torch.gather(G, -1, order.unsqueeze(-2).expand_as(G))
+            dest = _stable_partition(nonzero, count)
+        Gc = torch.zeros_like(G).scatter(-1, dest.unsqueeze(-2).expand_as(G), G)
         small = Zonotope(Z.center, Gc[..., :q])  # exact where count <= q
         red = Zonotope(Z.center, Gc).reduce(self.order, method=self.reduce_method)
         return where(count > q, red.pad_generators(q), small)
@@ -159,3 +159,14 @@ class MSZM(SetFilter):
         )
         new = where(ok, self._fit(new), Z)  # inconsistent: keep the predicted set exactly
         return state.replace(set=new, consistent=ok)
+
+
+def _stable_partition(keep: Tensor, count: Tensor) -> Tensor:
+    """Destination of each column ``[..., M]`` (int64) in the stable partition that puts the
+    ``keep`` columns first, each group in its original order; ``count [...]`` the number of
+    kept columns. The permutation of a stable sort of ``~keep``, from two running sums instead
+    of a sort (an extern call under ``torch.compile``; issue 11)."""
+    k = keep.to(torch.int64)
+    first = torch.cumsum(k, -1) - 1
+    last = count.unsqueeze(-1) + torch.cumsum(1 - k, -1) - 1
+    return torch.where(keep, first, last)
