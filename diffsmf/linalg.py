@@ -72,6 +72,14 @@ def _check_square(name: str, M: Tensor) -> int:
     return M.shape[-1]
 
 
+def _check_rhs(name: str, n: int, B: Tensor) -> None:
+    """``B`` must be ``[..., n, k]`` for the ``n x n`` matrix named ``name``."""
+    if B.dim() < 2 or B.shape[-2] != n:
+        raise ValueError(
+            f"B: expected [..., {n}, k] for {name} [..., {n}, {n}], got {tuple(B.shape)}"
+        )
+
+
 def det(M: Tensor) -> Tensor:
     """Determinant ``[..., n, n] -> [...]`` (closed form up to n = 3, else ``torch.linalg.det``)."""
     n = _check_square("M", M)
@@ -94,8 +102,7 @@ def solve(A: Tensor, B: Tensor) -> Tensor:
     ``torch.linalg.solve`` (which raises for a singular ``A`` outside ``torch.compile``).
     """
     n = _check_square("A", A)
-    if B.dim() < 2 or B.shape[-2] != n:
-        raise ValueError(f"B: expected [..., {n}, k] for A [..., {n}, {n}], got {tuple(B.shape)}")
+    _check_rhs("A", n, B)
     if n == 1:
         return B / A
     if n == 2:
@@ -176,8 +183,7 @@ def solve_lower(L: Tensor, B: Tensor) -> Tensor:
     Forward substitution up to n = 2, else ``torch.linalg.solve_triangular(L, B, upper=False)``.
     """
     n = _check_square("L", L)
-    if B.dim() < 2 or B.shape[-2] != n:
-        raise ValueError(f"B: expected [..., {n}, k] for L [..., {n}, {n}], got {tuple(B.shape)}")
+    _check_rhs("L", n, B)
     if n == 1:
         return B / L
     if n == 2:

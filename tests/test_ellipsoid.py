@@ -250,7 +250,7 @@ def test_intersect_measurement_contains_feasible_points(m):
     assert feas.any() and (F.contains(x, atol=0.0) | ~feas).all()
 
 
-def test_intersect_measurement_one_output_is_the_minimal_strip_update():
+def test_intersect_measurement_one_output_is_the_minimal_family_member():
     """m = 1, method "volume": the closed-form (Fogel-Huang) member contains every feasible
     sample and is the smallest member of the eq. 36-39 family on a fine rho grid (evaluated
     independently here, in numpy), to 1e-6 in log-volume."""
@@ -275,15 +275,14 @@ def test_intersect_measurement_one_output_is_the_minimal_strip_update():
             S = xi / (1 - rho) * (P[b] - np.outer(K, h @ P[b]))
             best = min(best, np.linalg.slogdet(S)[1])
         assert best - 1e-6 <= float(torch.logdet(F.shape[b])) <= best + 1e-6
-    # the bracketing search of the other sizes (method "volume" through an explicit rho of
-    # the same family would be circular): its minimum is no smaller
+    # a fixed member of the same family (rho = 0.5) is no smaller
     G = E.intersect_measurement(H, y, R, rho=0.5)
     assert (F.volume() <= G.volume() * (1 + 1e-9)).all()
 
 
 def test_intersect_measurement_one_output_zero_h_keeps_the_set():
     """A zero measurement row carries no information: the set comes back unchanged (no
-    error from the strip's eager non-zero-normal check, no NaN)."""
+    exception, no NaN)."""
     E = _ell(2, (2,), seed=3)
     F = E.intersect_measurement(torch.zeros(2, 1, 2), torch.tensor([[0.05], [0.0]]),
                                 torch.full((2, 1, 1), 0.01))
