@@ -429,8 +429,9 @@ def test_interval_and_jet_matmul_under_compile():
 
 
 def test_traced_outer_parallelotope_matches_eager_on_degenerate_batches():
-    """The traced Chisci search runs once over [G, aug] (aug zero where G has a regular basis):
-    same T as the eager two-pass search, for regular and rank-deficient elements alike."""
+    """Traced (both branches computed, selected per element) and eager (regular elements only,
+    or the fallback basis for the batch) give the same T, for regular and rank-deficient
+    elements alike."""
     g = torch.Generator().manual_seed(3)
     G = torch.randn(6, 2, 4, generator=g, dtype=torch.float64)
     G[1] = torch.outer(torch.tensor([1.0, 2.0], dtype=torch.float64), G[1, 0])  # rank 1

@@ -238,6 +238,31 @@ def test_to_parallelotope_degenerate_is_outer_and_regular():
     assert P.contains(torch.as_tensor(all_vertices(Z))).all()
 
 
+@pytest.mark.parametrize("n", [2, 3, 4])
+def test_to_parallelotope_rank_deficient_batch_is_outer_and_regular(n):
+    """Rank-deficient elements (rank n - 1, rank 1, no generator) take the fallback basis (the
+    longest generator and axis generators): still regular and containing every vertex; the
+    regular elements of the same batch keep the minimal-volume basis of a search on their own."""
+    g = torch.Generator().manual_seed(40 + n)
+    m = n + 2
+    G = torch.randn(5, n, m, generator=g, dtype=torch.float64)
+    G[1] = torch.randn(n, n - 1, generator=g, dtype=torch.float64) @ torch.randn(
+        n - 1, m, generator=g, dtype=torch.float64)  # rank n - 1
+    G[2] = torch.outer(torch.randn(n, generator=g, dtype=torch.float64),
+                       torch.randn(m, generator=g, dtype=torch.float64))  # rank 1
+    G[3] = 0.0
+    c = torch.randn(5, n, generator=g, dtype=torch.float64)
+    P = ds.Zonotope(c, G).to_parallelotope()
+    assert (torch.linalg.matrix_rank(P.T) == n).all()
+    for b in range(5):
+        V = torch.as_tensor(all_vertices(ds.Zonotope(c[b], G[b])))
+        assert P[b].contains(V).all(), b
+    for b in (0, 4):  # regular: the same T as alone (the batch's fallback does not leak in;
+        # the batch solves against the zero-padded [G, aug], rounding may differ by an ulp)
+        alone = ds.Zonotope(c[b], G[b]).to_parallelotope()
+        torch.testing.assert_close(P.T[b], alone.T, rtol=1e-13, atol=0)
+
+
 def test_conversions_cover():
     Z = rand_zono(3, 5, seed=12)
     V = torch.as_tensor(all_vertices(Z))
