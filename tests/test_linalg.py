@@ -136,6 +136,28 @@ def test_matmul_matches_operator(shape_a, shape_b) -> None:
     torch.testing.assert_close(linalg.matmul(A, B), A @ B, rtol=1e-14, atol=1e-14)
 
 
+@pytest.mark.parametrize(
+    "shape_a,shape_b", [((5, 2, 2), (5, 2, 24)), ((4, 2), (7, 2, 2)), ((3, 6, 4), (4, 3)),
+                        ((3, 2, 8), (3, 8, 2))],
+)
+def test_traced_matmul_is_the_operator_eagerly_and_close_when_traced(shape_a, shape_b) -> None:
+    """Eagerly ``traced_matmul`` is ``@`` bit for bit (the audited sets); traced, the multiply-
+    and-sum (inner dimension <= SMALL_MATMUL_MAX) or ``@`` (the [.., 8] x [8, ..] case) agree
+    with ``@`` to rounding, and so do their gradients."""
+    g = torch.Generator().manual_seed(4)
+    A = torch.randn(*shape_a, generator=g, dtype=torch.float64, requires_grad=True)
+    B = torch.randn(*shape_b, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.equal(linalg.traced_matmul(A, B), A @ B)
+    traced = torch.compile(linalg.traced_matmul, backend="eager", fullgraph=True)
+    out = traced(A, B)
+    torch.testing.assert_close(out, A @ B, rtol=1e-14, atol=1e-14)
+    w = torch.randn(out.shape, generator=g, dtype=torch.float64)
+    ga = torch.autograd.grad((out * w).sum(), (A, B))
+    gb = torch.autograd.grad(((A @ B) * w).sum(), (A, B))
+    for x, y in zip(ga, gb):
+        torch.testing.assert_close(x, y, rtol=1e-14, atol=1e-14)
+
+
 @pytest.mark.parametrize("n", [1, 2, 3])
 def test_cholesky_and_solves_match_numpy(n: int) -> None:
     """Closed forms (n <= 2) and the LAPACK fallback (n = 3) against numpy / scipy, including

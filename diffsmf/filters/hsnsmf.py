@@ -15,6 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.filters import _common as C
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet
@@ -83,7 +84,7 @@ class HSNSMF(SetFilter):
         E, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin
         )  # eq. 14-18 (+ margin)
-        Z = C.zonotope_prediction(self, fn(c), F @ T, E)  # eq. 20-21
+        Z = C.zonotope_prediction(self, fn(c), linalg.traced_matmul(F, T), E)  # eq. 20-21
         return state.replace(set=Z.to_parallelotope()).and_bounded(bounded)  # eq. 22 (Chisci)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:

@@ -42,6 +42,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.filters import _common as C
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
@@ -147,7 +148,8 @@ class MSZM(SetFilter):
         E, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
             self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin
         )
-        Zp = C.zonotope_prediction(self, fn(c), F @ G, E)  # W's own generators (Alamo 2005)
+        FG = linalg.traced_matmul(F, G)
+        Zp = C.zonotope_prediction(self, fn(c), FG, E)  # W's own generators (Alamo 2005)
         return state.replace(set=self._fit(Zp)).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:

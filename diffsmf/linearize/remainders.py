@@ -243,7 +243,7 @@ def _extreme_points(S: ConvexSet, max_vertices: int) -> tuple[Tensor, bool]:
         if 2**m <= max_vertices:
             s = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=m)), dtype=G.dtype,
                              device=G.device)  # [2^m, m]
-            return S.center.unsqueeze(-2) + s @ G.mT, True
+            return S.center.unsqueeze(-2) + linalg.traced_matmul(s, G.mT), True
     if 2**n > max_vertices:
         raise ValueError(f"max_vertices: {max_vertices} < 2^{n} box corners")
     return S.interval_hull().vertices(), False

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
+from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.utils import tracing
 
@@ -127,7 +128,7 @@ class Parallelotope(ConvexSet):
             dtype=self.dtype,
             device=self.device,
         )
-        return self._c.unsqueeze(-2) + s @ self.T.transpose(-1, -2)
+        return self._c.unsqueeze(-2) + linalg.traced_matmul(s, self.T.transpose(-1, -2))
 
     def linear_map(self, A: Tensor, b: Tensor | None = None) -> Parallelotope | Zonotope:
         """``{A x + b}``: a Parallelotope ``(A c + b, A T)`` for square ``A [..., n, n]``

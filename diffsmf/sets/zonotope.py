@@ -571,7 +571,7 @@ def _basis_T(G: Tensor, basis: Tensor) -> Tensor:
     n = G.shape[-2]
     B = torch.gather(G, -1, basis.unsqueeze(-2).expand(*G.shape[:-1], n))
     X = linalg.solve(B, G)
-    R = G - B @ X
+    R = G - linalg.traced_matmul(B, X)
     X2 = linalg.solve(B, R)
     s = (X + X2).abs().sum(-1) + X2.abs().sum(-1)
     s = s * (1 + 8 * n * _EPS)
