@@ -91,7 +91,8 @@ def _planar_area(G: Tensor) -> Tensor:
     """``sum_{i<j} |det [g_i, g_j]|`` for 2-D generators ``G [..., 2, m]`` -> ``[...]`` in
     ``O(m log m)``: the generators flipped to the upper half plane and sorted by angle
     (detached), every ``det [g_i, g_j]`` with ``i < j`` is ``>= 0``, so the sum is
-    ``sum_j (b_j A_j - a_j B_j)`` with the exclusive prefix sums ``A_j, B_j`` of rows a, b.
+    ``sum_j (b_j A_j - a_j B_j)`` with the prefix sums ``A_j, B_j`` of rows a, b (inclusive:
+    the ``i = j`` terms cancel).
 
     Absolute rounding error a few ``m eps (sum_j |g_j|)^2``, the order of the pair table's
     (:func:`_planar_pair_area`, each ``a_i b_j - b_i a_j`` has error ``eps |g_i| |g_j|``);
@@ -101,13 +102,12 @@ def _planar_area(G: Tensor) -> Tensor:
     """
     a, b = G[..., 0, :], G[..., 1, :]
     flip = (b < 0) | ((b == 0) & (a < 0))
-    a, b = torch.where(flip, -a, a), torch.where(flip, -b, b)
+    sign = torch.where(flip, -1.0, 1.0).to(G.dtype)
+    a, b = a * sign, b * sign
     order = torch.atan2(b, a).detach().argsort(-1)  # angles in [0, pi)
     a, b = torch.gather(a, -1, order), torch.gather(b, -1, order)
-    zero = torch.zeros_like(a[..., :1])
-    A = torch.cat([zero, torch.cumsum(a, -1)[..., :-1]], -1)  # sum_{i<j} a_i
-    B = torch.cat([zero, torch.cumsum(b, -1)[..., :-1]], -1)
-    return (b * A - a * B).sum(-1).clamp_min(0.0)
+    # inclusive prefix sums: the j = i terms b_j a_j - a_j b_j cancel
+    return (b * torch.cumsum(a, -1) - a * torch.cumsum(b, -1)).sum(-1).clamp_min(0.0)
 
 
 #: Entries of the pair table per chunk in :func:`_planar_pair_area` (2 MB: stays in cache).
