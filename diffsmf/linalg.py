@@ -34,6 +34,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffsmf.utils import tracing
+
 __all__ = [
     "CLOSED_FORM_MAX_N", "SMALL_MATMUL_ELEMS", "SMALL_MATMUL_MAX", "cholesky", "cholesky_solve",
     "det", "eigh", "eigvalsh", "matmul", "solve", "solve_lower", "traced_matmul",
@@ -62,7 +64,7 @@ def matmul(A: Tensor, B: Tensor) -> Tensor:
     p, q, r = A.shape[-2], A.shape[-1], B.shape[-1]
     small = max(p, q, r) <= SMALL_MATMUL_MAX or p * q * r <= SMALL_MATMUL_ELEMS
     if small and B.shape[-2] == q:
-        return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+        return _mul_sum(A, B)
     return A @ B
 
 
@@ -76,12 +78,15 @@ def traced_matmul(A: Tensor, B: Tensor) -> Tensor:
     ``@`` bit for bit; the compiled step may differ in the last bits (another summation order,
     no FMA), as any compiled kernel may, within the rounding margins the filters add.
     """
-    from diffsmf.utils import tracing
-
     q = A.shape[-1]
     if tracing() and q <= SMALL_MATMUL_MAX and B.shape[-2] == q:
-        return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+        return _mul_sum(A, B)
     return A @ B
+
+
+def _mul_sum(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B`` as a broadcast multiply-and-sum over the inner dimension (elementwise ops)."""
+    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
 
 
 def _check_square(name: str, M: Tensor) -> int:

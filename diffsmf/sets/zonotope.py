@@ -87,10 +87,19 @@ def _sum_abs_det(G: Tensor, idx: Tensor) -> Tensor:
     return total
 
 
+def _angle_sorted(G: Tensor) -> Tensor:
+    """2-D generators ``G [..., 2, m]`` flipped to the upper half plane (``b > 0``, or ``b = 0``
+    and ``a >= 0``) and sorted by angle in ``[0, pi)`` (the order detached) -> ``[..., 2, m]``."""
+    flip = (G[..., 1, :] < 0) | ((G[..., 1, :] == 0) & (G[..., 0, :] < 0))
+    G = torch.where(flip.unsqueeze(-2), -G, G)
+    order = torch.atan2(G[..., 1, :], G[..., 0, :]).detach().argsort(-1)
+    return torch.gather(G, -1, order.unsqueeze(-2).expand_as(G))
+
+
 def _planar_area(G: Tensor) -> Tensor:
     """``sum_{i<j} |det [g_i, g_j]|`` for 2-D generators ``G [..., 2, m]`` -> ``[...]`` in
-    ``O(m log m)``: the generators flipped to the upper half plane and sorted by angle
-    (detached), every ``det [g_i, g_j]`` with ``i < j`` is ``>= 0``, so the sum is
+    ``O(m log m)``: with the generators angle-sorted in the upper half plane
+    (:func:`_angle_sorted`), every ``det [g_i, g_j]`` with ``i < j`` is ``>= 0``, so the sum is
     ``sum_j (b_j A_j - a_j B_j)`` with the prefix sums ``A_j, B_j`` of rows a, b (inclusive:
     the ``i = j`` terms cancel).
 
@@ -100,13 +109,8 @@ def _planar_area(G: Tensor) -> Tensor:
     quarter of a compiled MSZM forward at B = 10,000 (issue 11). Same subgradient as the sum
     of ``|det|`` (every term enters with its sign).
     """
-    a, b = G[..., 0, :], G[..., 1, :]
-    flip = (b < 0) | ((b == 0) & (a < 0))
-    sign = torch.where(flip, -1.0, 1.0).to(G.dtype)
-    a, b = a * sign, b * sign
-    order = torch.atan2(b, a).detach().argsort(-1)  # angles in [0, pi)
-    a, b = torch.gather(a, -1, order), torch.gather(b, -1, order)
-    # inclusive prefix sums: the j = i terms b_j a_j - a_j b_j cancel
+    Gs = _angle_sorted(G)
+    a, b = Gs[..., 0, :], Gs[..., 1, :]
     return (b * torch.cumsum(a, -1) - a * torch.cumsum(b, -1)).sum(-1).clamp_min(0.0)
 
 
@@ -384,12 +388,7 @@ class Zonotope(ConvexSet):
         """
         if self.dim != 2:
             raise ValueError(f"vertices_2d: needs a 2-D zonotope, got dim {self.dim}")
-        G = self.generators
-        flip = (G[..., 1, :] < 0) | ((G[..., 1, :] == 0) & (G[..., 0, :] < 0))
-        G = torch.where(flip.unsqueeze(-2), -G, G)
-        ang = torch.atan2(G[..., 1, :], G[..., 0, :]).detach()
-        order = ang.argsort(-1)
-        Gs = torch.gather(G, -1, order.unsqueeze(-2).expand_as(G))  # [..., 2, m]
+        Gs = _angle_sorted(self.generators)  # [..., 2, m]
         start = self._c - Gs.sum(-1)  # lowest-angle start (rightmost-bottom)
         steps = 2 * Gs.transpose(-1, -2)  # [..., m, 2]
         lower = start.unsqueeze(-2) + torch.cumsum(steps, -2)  # [..., m, 2]
