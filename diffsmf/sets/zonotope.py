@@ -114,6 +114,12 @@ def _planar_area(G: Tensor) -> Tensor:
     return (b * torch.cumsum(a, -1) - a * torch.cumsum(b, -1)).sum(-1).clamp_min(0.0)
 
 
+#: Up to this many generators a traced 2-D :meth:`Zonotope.volume` sums the pair table
+#: (:func:`_planar_pair_area`, which Inductor fuses into one loop without a sort); above, the
+#: ``O(m log m)`` sorted sum. Compiled with dynamic batch (B = 110,000, m = 24, 1 thread):
+#: hull and volume 24 ms, against 259 ms eagerly (sorted area), issue 11.
+PAIR_TABLE_MAX_M = 64
+
 #: Entries of the pair table per chunk in :func:`_planar_pair_area` (2 MB: stays in cache).
 _PAIR_TABLE_ELEMS = 262_144
 
@@ -134,7 +140,8 @@ def _planar_pair_area(G: Tensor) -> Tensor:
     a, b = a.reshape(-1, m), b.reshape(-1, m)
     if a.shape[0] == 0:
         return G.new_zeros(batch)
-    rows = max(1, _PAIR_TABLE_ELEMS // max(1, m * m))
+    # chunks bound the eager table's memory; traced, Inductor fuses the table into the sum
+    rows = a.shape[0] if tracing() else max(1, _PAIR_TABLE_ELEMS // max(1, m * m))
     parts = []
     for s in range(0, a.shape[0], rows):
         ai, bi = a[s : s + rows], b[s : s + rows]
@@ -313,6 +320,8 @@ class Zonotope(ConvexSet):
         if m < n:
             return self._c.new_zeros(self.batch_shape) + 0.0 * self.generators.sum((-1, -2))
         if n == 2:
+            if tracing() and m <= PAIR_TABLE_MAX_M:  # fused and sort-free under torch.compile
+                return 4.0 * _planar_pair_area(self.generators)
             return 4.0 * _planar_area(self.generators)
         if math.comb(m, n) > MAX_VOLUME_SUBSETS:
             box = (2 * self.generators.abs().sum(-1)).prod(-1)
