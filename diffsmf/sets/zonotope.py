@@ -311,7 +311,9 @@ class Zonotope(ConvexSet):
         """Exact volume ``2^n sum_{|S|=n} |det G_S|`` (Gover & Krikorian) -> ``[...]``.
 
         Batched over the C(m, n) subsets (in 2-D from the angle-sorted generators,
-        :func:`_planar_area`, ``O(m log m)``, exact for every m). If C(m, n) >
+        :func:`_planar_area`, ``O(m log m)``, exact for every m; while traced for
+        ``torch.compile`` and up to :data:`PAIR_TABLE_MAX_M` generators from the fused pair
+        table, :func:`_planar_pair_area`, the same sum to rounding). If C(m, n) >
         ``MAX_VOLUME_SUBSETS`` (n >= 3) the result is an *upper bound*: min(volume of the
         interval hull, volume of ``to_parallelotope()``).
         Differentiable (|det| has a subgradient at singular subsets).
