@@ -308,7 +308,7 @@ def test_missing_or_non_numeric_y_names_y():
 
 
 def test_mszm_stable_partition_equals_stable_sort():
-    """MSZM's zero-column partition (two running sums) is the permutation of a stable sort
+    """MSZM's zero-column partition (one running sum) is the permutation of a stable sort
     of the zero flags, on random patterns including all-zero and all-non-zero rows."""
     from diffsmf.filters.mszm import _stable_partition
 

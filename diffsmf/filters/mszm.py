@@ -166,9 +166,10 @@ class MSZM(SetFilter):
 def _stable_partition(keep: Tensor, count: Tensor) -> Tensor:
     """Destination of each column ``[..., M]`` (int64) in the stable partition that puts the
     ``keep`` columns first, each group in its original order; ``count [...]`` the number of
-    kept columns. The permutation of a stable sort of ``~keep``, from two running sums instead
-    of a sort (an extern call under ``torch.compile``; issue 11)."""
-    k = keep.to(torch.int64)
-    first = torch.cumsum(k, -1) - 1
-    last = count.unsqueeze(-1) + torch.cumsum(1 - k, -1) - 1
-    return torch.where(keep, first, last)
+    kept columns. The permutation of a stable sort of ``~keep``, from one running sum instead
+    of a sort (an extern call under ``torch.compile``; issue 11): with ``s_j`` the kept columns
+    up to ``j``, a kept column goes to ``s_j - 1`` and a dropped one to ``count + j - s_j``
+    (``j + 1 - s_j`` dropped columns up to ``j``)."""
+    s = torch.cumsum(keep.to(torch.int64), -1)
+    j = torch.arange(keep.shape[-1], device=keep.device)
+    return torch.where(keep, s - 1, count.unsqueeze(-1) + j - s)
