@@ -512,6 +512,13 @@ def test_compiled_forward_zonotope_hull_and_volume_match_eager():
         torch.testing.assert_close(rc.lower, re.lower, rtol=1e-12, atol=1e-15)
         torch.testing.assert_close(rc.upper, re.upper, rtol=1e-12, atol=1e-15)
     assert {"hull", "volume"} <= set(comp._compiled_functions)
+    # under a recorded gradient the hull and volume stay eager (no compiled backward for them)
+    comp2 = ds.filters.MSZM(s).compile(backend="eager")
+    tr = s.simulate(steps=2, batch=3, seed=0, noise="vertex")
+    res = comp2(tr.y)
+    res.volume[:, -1].log().sum().backward()
+    assert comp2.raw_process_noise.grad is not None
+    assert not {"hull", "volume"} & set(getattr(comp2, "_compiled_functions", {}))
 
 
 @pytest.mark.parametrize("m", [1, 2, 7, 24, 70])

@@ -1007,7 +1007,7 @@ class SetFilter(nn.Module):
         compiled graphs with a dynamic batch dimension (one each whatever B and T): in 2-D the
         traced volume sums the generator-pair table in one fused loop
         (:data:`~diffsmf.sets.zonotope.PAIR_TABLE_MAX_M`) instead of the eager angle sort, which
-        was about a third of a compiled MSZM ``forward`` at B = 10,000 (issue 11). The two
+        was about a quarter of a compiled MSZM ``forward`` at B = 10,000 (issue 11). The two
         volumes agree to a few ``m eps`` relative; the sets are untouched. Other set types
         (one batched determinant for their volume) and recorded gradients stay eager.
         """
