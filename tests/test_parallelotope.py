@@ -255,3 +255,22 @@ def test_intersect_strip_tie_is_differentiable_along_the_symmetry():
         return Q.center, Q.T, Q.volume()
 
     assert torch.autograd.gradcheck(f, (c, y, h))
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+def test_volume_closed_form_matches_lapack_batched_and_singular(n):
+    """``volume`` takes the closed-form determinant up to n = 3 (LU above): equal to numpy's
+    LAPACK determinant to rounding on a batch, 0 for a singular T (which only internal
+    constructions can hold: the public constructor rejects it)."""
+    g = torch.Generator().manual_seed(n)
+    T = torch.randn(50, n, n, dtype=torch.float64, generator=g)
+    T[0] = 0.0
+    if n > 1:
+        T[1, :, 1] = 2.0 * T[1, :, 0]  # rank n - 1
+    P = Parallelotope._make(torch.zeros(50, n, dtype=torch.float64), T)  # singular: internal
+    ref = 2.0**n * np.abs(np.linalg.det(T.numpy()))
+    scale = 2.0**n * np.prod(np.abs(T.numpy()).sum(-1), -1)  # Hadamard-type magnitude
+    np.testing.assert_allclose(P.volume().numpy(), ref, rtol=0, atol=1e-14 * scale.max())
+    assert P.volume()[0] == 0.0
+    if n > 1:
+        assert P.volume()[1].item() <= 1e-14 * scale[1]

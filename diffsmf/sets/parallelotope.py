@@ -88,8 +88,14 @@ class Parallelotope(ConvexSet):
 
     # ------------------------------------------------------------------ set API
     def volume(self) -> Tensor:
-        """``2^n |det T|`` -> ``[...]`` (seed 000)."""
-        return (2.0**self.dim) * torch.linalg.det(self.T).abs()
+        """``2^n |det T|`` -> ``[...]`` (seed 000).
+
+        The determinant in closed form up to n = 3 (:func:`diffsmf.linalg.det`; equal to
+        LAPACK's LU to rounding): 45x faster than ``torch.linalg.det`` on 110,000 2 x 2
+        matrices (0.2 vs 9 ms, one thread), which was most of a compiled HSNSMF ``forward``'s
+        time after its loop (issue 11). Not used inside a filter step.
+        """
+        return (2.0**self.dim) * linalg.det(self.T).abs()
 
     def support(self, d: Tensor) -> Tensor:
         """h(d) = d.c + ||T' d||_1; ``d [..., n]`` -> ``[...]``."""
