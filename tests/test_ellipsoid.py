@@ -439,3 +439,33 @@ def test_contains_degenerate_shape_matches_least_squares():
     ref = (np.linalg.norm(sol, axis=0) <= 1 + 1e-9) & (resid <= 1e-12)
     np.testing.assert_array_equal(got, ref)
     assert 20 < ref.sum() < 100  # both answers occur
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_volume_closed_form_matches_cholesky_and_rejects_non_pd(n):
+    """Up to n = 2 ``volume`` is ``V_n sqrt(det S)`` from the closed-form determinant: equal
+    to the Cholesky form ``V_n exp(sum log diag L)`` to rounding on a batch with a nearly
+    singular shape, differentiable (gradcheck); a shape that is not positive definite still
+    raises eagerly (the Cholesky path) and gives NaN while traced."""
+    from diffsmf.sets.ellipsoid import unit_ball_volume
+
+    g = torch.Generator().manual_seed(n)
+    A = torch.randn(40, n, n, dtype=torch.float64, generator=g)
+    S = A @ A.mT + 1e-3 * torch.eye(n, dtype=torch.float64)
+    S[0] = torch.diag(torch.tensor([1.0] + [1e-10] * (n - 1), dtype=torch.float64))
+    E = Ellipsoid(torch.zeros(40, n, dtype=torch.float64), S)
+    ref = unit_ball_volume(n) * torch.exp(E.log_det_half())
+    torch.testing.assert_close(E.volume(), ref, rtol=1e-12, atol=0.0)
+    c = torch.zeros(2, n, dtype=torch.float64)
+
+    def vol(s):
+        return Ellipsoid._make(c, s).volume()
+
+    Sg = S[1:3].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda s: vol(0.5 * (s + s.mT)), (Sg,))
+    with pytest.raises(RuntimeError):
+        vol(-S[1:3])
+    if n <= 2:
+        traced = torch.compile(vol, backend="eager", fullgraph=True)
+        assert torch.isnan(traced(-S[1:3])).all()
+        torch.testing.assert_close(traced(S[1:3]), ref[1:3], rtol=1e-12, atol=0.0)

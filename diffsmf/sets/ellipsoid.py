@@ -101,7 +101,24 @@ class Ellipsoid(ConvexSet):
 
     # ------------------------------------------------------------------ exact quantities
     def volume(self) -> Tensor:
-        """``V_n sqrt(det S)`` with ``V_n`` the unit-ball volume -> ``batch_shape``."""
+        """``V_n sqrt(det S)`` with ``V_n`` the unit-ball volume -> ``batch_shape``.
+
+        Up to n = 2 from the closed-form determinant (:func:`diffsmf.linalg.det`; 0.4 ms
+        instead of 12 ms for the Cholesky factors of 110,000 2 x 2 shapes, one thread: most of
+        an ellipsoidal filter's compiled ``forward`` after its loop, issue 11), equal to the
+        Cholesky form to rounding, when every shape is positive definite (``S_11 > 0`` and
+        ``det S > 0``); otherwise the Cholesky form, which raises for a shape that is not.
+        While traced for ``torch.compile`` (no host check) such elements give NaN.
+        """
+        if self.dim <= 2:
+            S = self.shape
+            d = linalg.det(S)
+            pd = (S[..., 0, 0] > 0) & (d > 0)
+            if tracing():
+                vol = torch.sqrt(torch.where(pd, d, torch.full_like(d, torch.nan)))
+                return unit_ball_volume(self.dim) * vol
+            if bool(pd.all()):
+                return unit_ball_volume(self.dim) * torch.sqrt(d)
         return unit_ball_volume(self.dim) * torch.exp(self.log_det_half())
 
     def log_det_half(self) -> Tensor:
