@@ -1013,13 +1013,16 @@ class SetFilter(nn.Module):
         """
         from diffsmf.sets.zonotope import Zonotope
 
-        if type(sets) is Zonotope and not torch.is_grad_enabled() and not tracing():
+        batch = sets.batch_shape
+        if (
+            type(sets) is Zonotope and batch.numel() > 1
+            and not torch.is_grad_enabled() and not tracing()
+        ):
             # two graphs: fused into one, the two reductions ran at 54 ms instead of 12 + 12
             # (B = 110,000, m = 24, 1 thread, the filter's scalar-code options)
             hull_fn = self.compiled_function("hull", _flat_hull, dynamic=None)
             volume_fn = self.compiled_function("volume", _flat_volume, dynamic=None)
-            if hull_fn is not None and volume_fn is not None and sets.batch_shape.numel() > 1:
-                batch = sets.batch_shape
+            if hull_fn is not None:  # both None when the filter is not compiled
                 fields = [t.reshape(-1, *t.shape[len(batch):]) for t in sets._tensors()]
                 for t in fields:
                     torch._dynamo.maybe_mark_dynamic(t, 0)
