@@ -35,11 +35,12 @@ from diffsmf.linearize import stirling_jacobian
 FILTERS = ("hsnsmf", "mszm")
 
 
-def _parts(filt, state, y) -> dict[str, Callable[..., tuple]]:
-    """Functions of the set's tensor fields -> tensors, one per part."""
+def _parts(filt, state, u, y) -> dict[str, Callable[..., tuple]]:
+    """Functions of the set's tensor fields -> tensors, one per part (input ``u [B, p]`` or
+    None, measurement ``y [B, m]`` of the timed step)."""
     set_type = type(state.set)
     system = filt.system
-    fn = C.step_function(system, None)
+    fn = C.step_function(system, u)
 
     def rebuild(fields: tuple) -> object:
         return state.replace(set=set_type._from_tensors(fields))
@@ -56,18 +57,18 @@ def _parts(filt, state, y) -> dict[str, Callable[..., tuple]]:
         region = S if filt.__class__.__name__ == "HSNSMF" else S.interval_hull()
         F = stirling_jacobian(fn, S.center, filt.stirling_step)
         E, _ = C.prediction_remainder(
-            system, filt.remainder_fn, fn, region, S.center, F, None, filt.remainder_margin
+            system, filt.remainder_fn, fn, region, S.center, F, u, filt.remainder_margin
         )
         return E.lower, E.upper
 
     def predict(*fields):
-        return tuple(filt.predict(rebuild(fields)).set._tensors())
+        return tuple(filt.predict(rebuild(fields), u).set._tensors())
 
     def update(*fields):
         return tuple(filt._update(rebuild(fields), y).set._tensors())
 
     def step(*fields):
-        return tuple(filt._eager_step(rebuild(fields), None, y).set._tensors())
+        return tuple(filt._eager_step(rebuild(fields), u, y).set._tensors())
 
     return dict(hull=hull, jacobian=jacobian, remainder=remainder, predict=predict,
                 update=update, step=step)
@@ -111,7 +112,7 @@ def main() -> None:
         state = filt.initial_state(batch=args.batch)
         for k in range(3):  # MSZM's sets reach their generator count
             state = filt.step(state, None if tr.u is None else tr.u[:, k], tr.y[:, k])
-        parts = _parts(filt, state, tr.y[:, 3])
+        parts = _parts(filt, state, None if tr.u is None else tr.u[:, 3], tr.y[:, 3])
         names = args.parts or list(parts)
         bad = [p for p in names if p not in parts]
         if bad:
