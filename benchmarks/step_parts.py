@@ -54,7 +54,7 @@ def _parts(filt, state, u, y) -> dict[str, Callable[..., tuple]]:
 
     def remainder(*fields):
         S = set_type._from_tensors(fields)
-        region = S if filt.__class__.__name__ == "HSNSMF" else S.interval_hull()
+        region = S if isinstance(filt, filters.HSNSMF) else S.interval_hull()
         F = stirling_jacobian(fn, S.center, filt.stirling_step)
         E, _ = C.prediction_remainder(
             system, filt.remainder_fn, fn, region, S.center, F, u, filt.remainder_margin
