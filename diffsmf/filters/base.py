@@ -267,7 +267,7 @@ def _gc_paused() -> contextlib.AbstractContextManager:
     The loop allocates Python objects every step (states, sets, and in eager mode thousands of
     tensors), which triggers the collector's scans of every tracked object in the process:
     4-5 % of a compiled step at B = 10,000 and 10-18 % of an eager step at B = 1 here. The
-    steps make no reference cycles (``tests/test_compile.py`` checks every filter), so
+    steps make no reference cycles (``tests/test_compile_models.py`` checks every filter), so
     reference counting frees everything as before; a cycle would only wait for the loop's end.
     """
     return contextlib.nullcontext() if tracing() else _gc_off()
