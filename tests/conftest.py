@@ -23,3 +23,12 @@ def _one_thread():
     with threadpool_limits(1, user_api="blas"):
         yield
     torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def fresh_dynamo():
+    """Dynamo's caches reset before and after a module (the compile tests: each module's graphs
+    and recompile counts start from nothing, whatever ran before on the worker)."""
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()

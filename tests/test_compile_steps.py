@@ -12,12 +12,7 @@ import torch
 
 import diffsmf as ds
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _fresh_dynamo():
-    torch._dynamo.reset()
-    yield
-    torch._dynamo.reset()
+pytestmark = pytest.mark.usefixtures("fresh_dynamo")
 
 
 def test_czsmf_compiled_step_is_one_graph():
