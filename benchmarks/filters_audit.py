@@ -20,7 +20,15 @@ not depend on the thread count.
 
     python benchmarks/filters_audit.py --filters czsmf --systems fermenter --noises vertex \
         --log audit.jsonl --first 300          # resumes after 3 logged chunks
+    python benchmarks/filters_audit.py --filters czsmf --systems fermenter --noises vertex \
+        --log audit.jsonl --resume             # the same, found in the log
     python benchmarks/filters_audit.py --merge audit.jsonl
+
+``--resume`` audits the first stretch of the requested trajectories (``--first`` /
+``--count``) that has no logged chunk of the same row (system, filter, noise, trials, steps,
+seed and sets fingerprint), up to the next logged chunk, so that a stopped run continues
+where its log ends without overlapping chunks; run it again to fill a later gap. One process
+per row: two processes resuming the same row would audit the same trajectories.
 
 A system with a size argument is given as ``NAME:N`` (``oscillator_chain:16`` is
 ``systems.get("oscillator_chain", n=16)``; its rows are named the same way).
@@ -86,6 +94,38 @@ def sets_fingerprint(fname: str, system, noise: str, seed: int, kw: dict | None 
     return h.hexdigest()[:12]
 
 
+ROW_KEYS = ("system", "filter", "noise", "trials", "steps", "seed", "sets")
+
+
+def logged_chunks(path: str, meta: dict) -> list[tuple[int, int]]:
+    """``(start, stop)`` of the chunks of ``meta``'s row (:data:`ROW_KEYS`) logged in ``path``
+    (none if the file does not exist), sorted."""
+    log = pathlib.Path(path)
+    if not log.exists():
+        return []
+    key = tuple(meta[k] for k in ROW_KEYS)
+    spans = set()
+    for line in log.read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            if tuple(r.get(k) for k in ROW_KEYS) == key:
+                spans.add((r["start"], r["stop"]))
+    return sorted(spans)
+
+
+def resume_range(first: int, count: int, chunks: list[tuple[int, int]]) -> tuple[int, int]:
+    """``(first, count)`` of the first stretch of ``first .. first + count - 1`` that no
+    chunk covers, up to the next chunk; ``count = 0`` when every trajectory is covered."""
+    start, end = first, first + count
+    for a, b in chunks:  # sorted by start
+        if a <= start < b:
+            start = b
+    if start >= end:
+        return start, 0
+    nxt = min((a for a, _ in chunks if a > start), default=end)
+    return start, min(nxt, end) - start
+
+
 def merge(path: str) -> int:
     """Print the table of a ``--log`` file: one row per (system, filter, noise, trials, steps,
     seed, sets fingerprint), the union of its chunks; a chunk logged twice (same first
@@ -94,8 +134,7 @@ def merge(path: str) -> int:
     for line in pathlib.Path(path).read_text().splitlines():
         if line.strip():
             r = json.loads(line)
-            key = tuple(r[k] for k in ("system", "filter", "noise", "trials", "steps", "seed",
-                                       "sets"))
+            key = tuple(r[k] for k in ROW_KEYS)
             groups.setdefault(key, {})[r["start"]] = r
     print(HEADER)
     bad = 0
@@ -168,11 +207,16 @@ def main() -> int:
                     help="audit this many trajectories (default: up to --trials)")
     ap.add_argument("--log", default=None,
                     help="append one JSON line per chunk of 100 trajectories to this file")
+    ap.add_argument("--resume", action="store_true",
+                    help="with --log: audit the first stretch of the requested trajectories "
+                    "that has no logged chunk of the same row (see above)")
     ap.add_argument("--merge", default=None, metavar="LOG",
                     help="print the table of a --log file and exit")
     args = ap.parse_args()
     if args.merge:
         return merge(args.merge)
+    if args.resume and not args.log:
+        raise ValueError("--resume: needs --log (the log to resume from)")
     torch.set_default_dtype(torch.float64)
     source = source_fingerprint() if args.log else None
     override = {k: int(v) for k, v in (s.split("=") for s in args.trials_for)}
@@ -203,10 +247,18 @@ def main() -> int:
                         with open(args.log, "a") as fh:
                             fh.write(json.dumps({**meta, **part}) + "\n")
 
+                first, count = args.first, args.count
+                todo = trials - first if count is None else count
+                if args.resume and 0 <= first < trials and 1 <= todo <= trials - first:
+                    # (bad --first / --count: left to containment's one-line errors)
+                    first, count = resume_range(first, todo, logged_chunks(args.log, meta))
+                    if count == 0:
+                        print(f"| {sname} | {label} | {noise} | all requested trajectories "
+                              f"logged in {args.log} | | | | | | |", flush=True)
+                        continue
                 rep = containment(
                     filt, system, trials, args.steps, noise, args.seed,
-                    progress=args.progress, first=args.first, count=args.count,
-                    on_chunk=on_chunk,
+                    progress=args.progress, first=first, count=count, on_chunk=on_chunk,
                 )
                 bad += rep.violations
                 print(

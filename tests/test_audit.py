@@ -170,3 +170,40 @@ def test_audit_script_filter_kwargs(tmp_path, monkeypatch):
         script._filter_kwargs("{max_generators: 12}")
     with pytest.raises(ValueError, match="--filter-kwargs: expected a JSON object"):
         script._filter_kwargs("[12]")
+
+
+def test_audit_script_resume(tmp_path, monkeypatch, capsys):
+    """``--resume`` audits the first stretch without a logged chunk of the same row, up to the
+    next logged chunk (no overlap, so the log still merges), then reports nothing left; a
+    chunk of another row (other noise) does not count; without ``--log`` it is an error."""
+    script = _audit_script()
+    log = tmp_path / "r.jsonl"
+    common = ["x", "--filters", "hsnsmf", "--systems", "spring_damper", "--trials", "5",
+              "--steps", "2", "--log", str(log)]
+
+    def run(*extra: str) -> int:
+        monkeypatch.setattr("sys.argv", common + list(extra))
+        return script.main()
+
+    def spans() -> list[tuple[str, int, int]]:
+        rows = [json.loads(line) for line in log.read_text().splitlines()]
+        return [(r["noise"], r["start"], r["stop"]) for r in rows]
+
+    assert run("--noises", "vertex", "--first", "3", "--count", "2") == 0
+    assert run("--noises", "vertex", "--resume") == 0  # the gap before the logged chunk
+    assert spans() == [("vertex", 3, 5), ("vertex", 0, 3)]
+    capsys.readouterr()
+    assert run("--noises", "vertex", "--resume") == 0
+    assert "all requested trajectories logged" in capsys.readouterr().out
+    assert run("--noises", "uniform", "--resume") == 0  # another row: all five
+    assert spans()[2:] == [("uniform", 0, 5)]
+    capsys.readouterr()
+    assert script.merge(str(log)) == 0
+    out = capsys.readouterr().out
+    assert out.count("5 x 2 (all 5, seed 2024") == 2
+    assert script.resume_range(0, 10, [(0, 2), (2, 4), (6, 8)]) == (4, 2)
+    assert script.resume_range(5, 3, [(0, 10)]) == (10, 0)
+    assert script.resume_range(0, 10, []) == (0, 10)
+    with pytest.raises(ValueError, match="--resume: needs --log"):
+        monkeypatch.setattr("sys.argv", ["x", "--resume", "--systems", "spring_damper"])
+        script.main()
