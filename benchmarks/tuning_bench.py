@@ -6,6 +6,11 @@ horizon to the learnable noise half-widths (issue 11 item 5: 200 epochs of 64 x 
 2 minutes, forward + backward at most 2x forward). Median of ``--repeats`` epochs after a
 warm-up epoch (which includes the one-off compile, printed separately). One torch thread.
 
+"forward" is the no-grad forward (``torch.no_grad()``, what filtering runs); the forward +
+backward epoch is also split into its recording forward (the forward that tuning runs, which
+saves what the backward needs) and the backward itself, so the last columns give forward +
+backward relative to that recording forward too.
+
     python benchmarks/tuning_bench.py [--batch 64] [--steps 100] [--repeats 5] [--epochs 200]
                                       [--no-eager] [--steps-per-call K [K ...]] [--tool-epochs N]
 """
@@ -22,20 +27,28 @@ from diffsmf import filters, systems
 
 
 def _epoch(filt, y: torch.Tensor, backward: bool) -> float:
+    return sum(_split_epoch(filt, y, backward))
+
+
+def _split_epoch(filt, y: torch.Tensor, backward: bool) -> tuple[float, float]:
+    """(forward s, backward s) of one epoch; the backward is 0 without ``backward``."""
     t0 = time.perf_counter()
-    if backward:
-        filt.zero_grad(set_to_none=True)
-        filt(y).volume[:, 1:].log().mean().backward()
-    else:
+    if not backward:
         with torch.no_grad():
             filt(y)
-    return time.perf_counter() - t0
+        return time.perf_counter() - t0, 0.0
+    filt.zero_grad(set_to_none=True)
+    loss = filt(y).volume[:, 1:].log().mean()
+    t1 = time.perf_counter()
+    loss.backward()
+    return t1 - t0, time.perf_counter() - t1
 
 
 def measure(
     compiled: bool, y: torch.Tensor, repeats: int, steps_per_call: int = 1
-) -> tuple[float, float, float]:
-    """(median forward s, median forward + backward s, one-off compile s) for one mode."""
+) -> tuple[float, float, float, float]:
+    """(median no-grad forward s, median forward + backward s, one-off compile s, median
+    recording forward s of the forward + backward epochs) for one mode."""
     system = systems.get("spring_damper")
     filt = filters.HSNSMF(system)
     if compiled:
@@ -45,8 +58,10 @@ def measure(
     _epoch(filt, y, True)  # warm-up: compiles the no-grad and the grad graphs
     t_compile = time.perf_counter() - t0 if compiled else 0.0
     fwd = float(np.median([_epoch(filt, y, False) for _ in range(repeats)]))
-    both = float(np.median([_epoch(filt, y, True) for _ in range(repeats)]))
-    return fwd, both, t_compile
+    split = [_split_epoch(filt, y, True) for _ in range(repeats)]
+    both = float(np.median([a + b for a, b in split]))
+    rec = float(np.median([a for a, _ in split]))
+    return fwd, both, t_compile, rec
 
 
 def measure_tool(compiled: bool, y: torch.Tensor, epochs: int) -> tuple[float, float]:
@@ -86,14 +101,14 @@ def main() -> None:
           f"{args.batch} x {args.steps}, full-horizon back-propagation\n")
     if not args.tool_only:
         print(f"| mode | forward s | forward + backward s | ratio | {args.epochs} epochs s | "
-              "one-off compile s |")
-        print("|---|---:|---:|---:|---:|---:|")
+              "one-off compile s | recording forward s | ratio to it |")
+        print("|---|---:|---:|---:|---:|---:|---:|---:|")
     modes = ([] if args.no_eager else [(False, 1)]) + [(True, k) for k in args.steps_per_call]
     for compiled, k in [] if args.tool_only else modes:
-        fwd, both, tc = measure(compiled, y, args.repeats, k)
+        fwd, both, tc, rec = measure(compiled, y, args.repeats, k)
         name = ("compiled" + (f", {k} steps per call" if k > 1 else "")) if compiled else "eager"
         print(f"| {name} | {fwd:.3f} | {both:.3f} | {both / fwd:.2f} | {args.epochs * both:.0f} | "
-              f"{tc:.0f} |", flush=True)
+              f"{tc:.0f} | {rec:.3f} | {both / rec:.2f} |", flush=True)
     if args.tool_epochs > 0:
         print(f"\n`training.loop.tune` (consistency loss, {args.batch} x {args.steps}, one batch "
               f"per epoch, no validation), mean of {args.tool_epochs} epochs:\n")
