@@ -97,20 +97,20 @@ def sets_fingerprint(fname: str, system, noise: str, seed: int, kw: dict | None 
 ROW_KEYS = ("system", "filter", "noise", "trials", "steps", "seed", "sets")
 
 
+def _log_rows(path: str) -> list[dict]:
+    """The chunk records of a ``--log`` file, one per non-blank line."""
+    lines = pathlib.Path(path).read_text().splitlines()
+    return [json.loads(line) for line in lines if line.strip()]
+
+
 def logged_chunks(path: str, meta: dict) -> list[tuple[int, int]]:
     """``(start, stop)`` of the chunks of ``meta``'s row (:data:`ROW_KEYS`) logged in ``path``
     (none if the file does not exist), sorted."""
-    log = pathlib.Path(path)
-    if not log.exists():
+    if not pathlib.Path(path).exists():
         return []
     key = tuple(meta[k] for k in ROW_KEYS)
-    spans = set()
-    for line in log.read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            if tuple(r.get(k) for k in ROW_KEYS) == key:
-                spans.add((r["start"], r["stop"]))
-    return sorted(spans)
+    mine = (r for r in _log_rows(path) if tuple(r.get(k) for k in ROW_KEYS) == key)
+    return sorted({(r["start"], r["stop"]) for r in mine})
 
 
 def resume_range(first: int, count: int, chunks: list[tuple[int, int]]) -> tuple[int, int]:
@@ -131,11 +131,8 @@ def merge(path: str) -> int:
     seed, sets fingerprint), the union of its chunks; a chunk logged twice (same first
     trajectory) counts once, the later entry; overlapping chunks are an error."""
     groups: dict[tuple, dict[int, dict]] = {}
-    for line in pathlib.Path(path).read_text().splitlines():
-        if line.strip():
-            r = json.loads(line)
-            key = tuple(r[k] for k in ROW_KEYS)
-            groups.setdefault(key, {})[r["start"]] = r
+    for r in _log_rows(path):
+        groups.setdefault(tuple(r[k] for k in ROW_KEYS), {})[r["start"]] = r
     print(HEADER)
     bad = 0
     for (sname, fname, noise, trials, steps, seed, fp), parts in groups.items():
