@@ -26,9 +26,10 @@ not depend on the thread count.
 
 ``--resume`` audits the first stretch of the requested trajectories (``--first`` /
 ``--count``) that has no logged chunk of the same row (system, filter, noise, trials, steps,
-seed and sets fingerprint), up to the next logged chunk, so that a stopped run continues
-where its log ends without overlapping chunks; run it again to fill a later gap. One process
-per row: two processes resuming the same row would audit the same trajectories.
+seed and sets fingerprint) logged by the same package source, up to the next such chunk, so
+that a stopped run continues where its log ends without overlapping chunks; run it again to
+fill a later gap. One process per row: two processes resuming the same row would audit the
+same trajectories.
 
 A system with a size argument is given as ``NAME:N`` (``oscillator_chain:16`` is
 ``systems.get("oscillator_chain", n=16)``; its rows are named the same way).
@@ -105,11 +106,14 @@ def _log_rows(path: str) -> list[dict]:
 
 def logged_chunks(path: str, meta: dict) -> list[tuple[int, int]]:
     """``(start, stop)`` of the chunks of ``meta``'s row (:data:`ROW_KEYS`) logged in ``path``
-    (none if the file does not exist), sorted."""
+    by the same package source (none if the file does not exist), sorted. A chunk of other
+    code counts as not done even when its sets are the same: the containment check itself
+    lives in the package (e.g. the reference LPs' tolerance), so a re-run must redo it."""
     if not pathlib.Path(path).exists():
         return []
-    key = tuple(meta[k] for k in ROW_KEYS)
-    mine = (r for r in _log_rows(path) if tuple(r.get(k) for k in ROW_KEYS) == key)
+    keys = (*ROW_KEYS, "source")
+    key = tuple(meta[k] for k in keys)
+    mine = (r for r in _log_rows(path) if tuple(r.get(k) for k in keys) == key)
     return sorted({(r["start"], r["stop"]) for r in mine})
 
 

@@ -175,7 +175,8 @@ def test_audit_script_filter_kwargs(tmp_path, monkeypatch):
 def test_audit_script_resume(tmp_path, monkeypatch, capsys):
     """``--resume`` audits the first stretch without a logged chunk of the same row, up to the
     next logged chunk (no overlap, so the log still merges), then reports nothing left; a
-    chunk of another row (other noise) does not count; without ``--log`` it is an error."""
+    chunk of another row (other noise) or of other package code (other source fingerprint)
+    does not count; without ``--log`` it is an error."""
     script = _audit_script()
     log = tmp_path / "r.jsonl"
     common = ["x", "--filters", "hsnsmf", "--systems", "spring_damper", "--trials", "5",
@@ -197,6 +198,11 @@ def test_audit_script_resume(tmp_path, monkeypatch, capsys):
     assert "all requested trajectories logged" in capsys.readouterr().out
     assert run("--noises", "uniform", "--resume") == 0  # another row: all five
     assert spans()[2:] == [("uniform", 0, 5)]
+    rows = [json.loads(line) for line in log.read_text().splitlines()]
+    rows[2]["source"] = "0" * 12  # as if logged by other code: not done for this code
+    log.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert run("--noises", "uniform", "--resume") == 0
+    assert spans()[3:] == [("uniform", 0, 5)]
     capsys.readouterr()
     assert script.merge(str(log)) == 0
     out = capsys.readouterr().out
