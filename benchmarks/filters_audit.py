@@ -23,6 +23,7 @@ not depend on the thread count.
     python benchmarks/filters_audit.py --filters czsmf --systems fermenter --noises vertex \
         --log audit.jsonl --resume             # the same, found in the log
     python benchmarks/filters_audit.py --merge audit.jsonl
+    python benchmarks/filters_audit.py --merge audit.jsonl --source 15ff9b4e0824  # one source
 
 ``--resume`` audits the first stretch of the requested trajectories (``--first`` /
 ``--count``) that has no logged chunk of the same row (system, filter, noise, trials, steps,
@@ -130,12 +131,16 @@ def resume_range(first: int, count: int, chunks: list[tuple[int, int]]) -> tuple
     return start, min(nxt, end) - start
 
 
-def merge(path: str) -> int:
+def merge(path: str, sources: list[str] | None = None) -> int:
     """Print the table of a ``--log`` file: one row per (system, filter, noise, trials, steps,
     seed, sets fingerprint), the union of its chunks; a chunk logged twice (same first
-    trajectory) counts once, the later entry; overlapping chunks are an error."""
+    trajectory) counts once, the later entry; overlapping chunks are an error. ``sources``:
+    only the chunks logged by these package sources (e.g. a row re-run after a change of the
+    containment check, whose earlier chunks have the same sets and overlap the new ones)."""
     groups: dict[tuple, dict[int, dict]] = {}
     for r in _log_rows(path):
+        if sources and r.get("source") not in sources:
+            continue
         groups.setdefault(tuple(r[k] for k in ROW_KEYS), {})[r["start"]] = r
     print(HEADER)
     bad = 0
@@ -213,9 +218,13 @@ def main() -> int:
                     "that has no logged chunk of the same row (see above)")
     ap.add_argument("--merge", default=None, metavar="LOG",
                     help="print the table of a --log file and exit")
+    ap.add_argument("--source", nargs="+", default=None, metavar="HASH",
+                    help="with --merge: only the chunks logged by these package sources")
     args = ap.parse_args()
+    if args.source and not args.merge:
+        raise ValueError("--source: only with --merge (which chunks to merge)")
     if args.merge:
-        return merge(args.merge)
+        return merge(args.merge, args.source)
     if args.resume and not args.log:
         raise ValueError("--resume: needs --log (the log to resume from)")
     torch.set_default_dtype(torch.float64)

@@ -204,12 +204,18 @@ def test_audit_script_resume(tmp_path, monkeypatch, capsys):
     assert run("--noises", "uniform", "--resume") == 0
     assert spans()[3:] == [("uniform", 0, 5)]
     capsys.readouterr()
+    assert script.merge(str(log), ["0" * 12]) == 0  # only the relabelled chunk
+    out = capsys.readouterr().out
+    assert out.count("5 x 2 (all 5") == 1 and "vertex" not in out
     assert script.merge(str(log)) == 0
     out = capsys.readouterr().out
     assert out.count("5 x 2 (all 5, seed 2024") == 2
     assert script.resume_range(0, 10, [(0, 2), (2, 4), (6, 8)]) == (4, 2)
     assert script.resume_range(5, 3, [(0, 10)]) == (10, 0)
     assert script.resume_range(0, 10, []) == (0, 10)
+    with pytest.raises(ValueError, match="--source: only with --merge"):
+        monkeypatch.setattr("sys.argv", ["x", "--source", "abc", "--systems", "spring_damper"])
+        script.main()
     with pytest.raises(ValueError, match="--resume: needs --log"):
         monkeypatch.setattr("sys.argv", ["x", "--resume", "--systems", "spring_damper"])
         script.main()
