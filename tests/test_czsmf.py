@@ -451,3 +451,50 @@ def test_by_name_and_initial_set():
     pts = system.x0_set.sample_extreme(200, generator=torch.Generator().manual_seed(0))
     assert float(distance_lp(S[0], pts).max()) == 0.0  # outer (HiGHS)
     assert bool(S[0].contains(pts, atol=1e-7).all())  # boundary points, certified to 1e-7
+
+
+@pytest.mark.parametrize("traced", [False, True])
+@pytest.mark.parametrize("elimination", ["hull", "propagation"])
+def test_certified_empty_update_keeps_the_predicted_set(elimination, traced, monkeypatch):
+    """An element whose update is certified empty (crossed hull bounds) is flagged
+    inconsistent and carries on with the predicted set itself (at the caps: same shape as the
+    update, no second reduction); the other elements are updated as usual. ``traced``: the
+    branch-free path that ``compile()`` traces (taken for every element, selected by
+    ``empty``)."""
+    import diffsmf.filters.czsmf as czmod
+
+    s = ds.systems.get("spring_damper")
+    tr = s.simulate(steps=6, batch=2, seed=0, noise="vertex")
+    filt = CZSMF(s, max_generators=12, max_constraints=3, elimination=elimination)
+    with torch.no_grad():
+        st = filt.initial_state(batch=2)
+        for k in range(5):
+            st = filt.step(st, None, tr.y[:, k])
+        pred = filt.predict(st)
+        assert (pred.set.num_generators, pred.set.num_constraints) == (12, 3)  # at the caps
+        normal = filt._update(pred, tr.y[:, 5])
+        hull = filt._hull
+
+        def crossed(Z):  # element 0 certified empty
+            lo, hi = hull(Z)
+            return lo, torch.where(torch.tensor([[True], [False]]), lo - 1.0, hi)
+
+        cap_hull, caps = filt._cap_hull, []
+
+        def counted(Z, box=None):  # no hull from the ranking's duals, and count the caps
+            caps.append(Z.num_constraints)
+            return cap_hull(Z, box)[0], None
+
+        monkeypatch.setattr(filt, "_hull", crossed)
+        monkeypatch.setattr(filt, "_cap_hull", counted)
+        if traced:
+            monkeypatch.setattr(czmod, "tracing", lambda: True)
+        out = filt._update(pred, tr.y[:, 5])
+    assert out.consistent.tolist() == [False, True]
+    assert caps == [3 + 1]  # one reduction (the update's), none for the fault path
+    for f_out, f_pred, f_norm in zip(out.set._tensors(), pred.set._tensors(),
+                                     normal.set._tensors()):
+        assert torch.equal(f_out[0], f_pred[0])  # the predicted set, not an outer bound of it
+        assert torch.equal(f_out[1], f_norm[1])
+    assert torch.equal(out.extras["lower"][0], pred.extras["lower"][0])
+    assert torch.equal(out.extras["upper"][0], pred.extras["upper"][0])

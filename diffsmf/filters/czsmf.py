@@ -304,20 +304,29 @@ class CZSMF(SetFilter):
         ok = ~miss & ~empty
         if skip is not None:
             ok = torch.where(skip, state.consistent, ok)
-        # certified-empty elements carry on with the predicted set, intersected with strips
-        # that contain it (same set, same shape); a rare fault path (one host sync per step;
-        # while tracing it is always taken, branch-free)
+        # certified-empty elements carry on with the predicted set; a rare fault path (one
+        # host sync per step; while tracing it is always taken, branch-free)
         if tracing() or bool(empty.any()):
-            Zf = Z._intersect_strips(a, pm, pr)
-            if self.reduces:
-                Zf = self._cap(Zf)
-            Zu = where(empty, Zf, Zu)
+            Zu = where(empty, self._fault_set(Z, Zu, a, pm, pr), Zu)
             e1 = empty.unsqueeze(-1)
             ulo, uhi = torch.where(e1, lo, ulo), torch.where(e1, hi, uhi)
         bounded = torch.isfinite(ulo).all(-1) & torch.isfinite(uhi).all(-1)
         bounded = bounded & ((uhi - ulo) <= 2 * MAX_SET_RADIUS).all(-1)
         new = FilterState(set=Zu, consistent=ok, extras={"lower": ulo, "upper": uhi})
         return new.replace(bounded=state.bounded).and_bounded(bounded)
+
+    def _fault_set(
+        self, Z: ConstrainedZonotope, Zu: ConstrainedZonotope, a: Tensor, pm: Tensor, pr: Tensor
+    ) -> ConstrainedZonotope:
+        """The predicted set ``Z`` in the shape of the updated ``Zu``: ``Z`` itself when the
+        shapes agree (at the caps, every step that ``compile()`` traces), else ``Z``
+        intersected with its containing strips ``|a_i x - pm_i| <= pr_i`` (the same set, the
+        shape of ``Zu`` before the cap) and capped like ``Zu`` (an outer bound of ``Z``)."""
+        shape = (Z.num_generators, Z.num_constraints)
+        if shape == (Zu.num_generators, Zu.num_constraints):
+            return Z
+        Zf = Z._intersect_strips(a, pm, pr)
+        return self._cap(Zf) if self.reduces else Zf
 
     def _compile_ready(self, state: FilterState) -> bool:
         """The compiled graph serves the fixed-size phase only: a step whose state set is not
