@@ -68,18 +68,21 @@ def matmul(A: Tensor, B: Tensor) -> Tensor:
     return A @ B
 
 
-def traced_matmul(A: Tensor, B: Tensor) -> Tensor:
+def traced_matmul(A: Tensor, B: Tensor, max_inner: int | None = SMALL_MATMUL_MAX) -> Tensor:
     """``A @ B`` in eager mode; while traced by ``torch.compile``, a multiply-and-sum when the
-    inner dimension is at most :data:`SMALL_MATMUL_MAX` (any outer sizes: Inductor fuses the
-    sum into the surrounding kernel instead of an extern BLAS call, which cost 1-3 ms per
-    ``[10000, 2, 2] x [10000, 2, 24]`` product, 5-14 % of a compiled HSNSMF / MSZM step).
+    inner dimension is at most ``max_inner`` (``None``: always; any outer sizes). Inductor fuses
+    the sum into the surrounding kernel instead of an extern BLAS call, which cost 1-3 ms per
+    ``[10000, 2, 2] x [10000, 2, 24]`` product, 5-14 % of a compiled HSNSMF / MSZM step; the
+    constrained-zonotope LP's normal matrix and row-vector products use ``max_inner=None``
+    (an extern batched product loops over the batch with one small BLAS call per matrix).
 
     For the set filters' hot products: their eager results (the audited sets) stay those of
     ``@`` bit for bit; the compiled step may differ in the last bits (another summation order,
     no FMA), as any compiled kernel may, within the rounding margins the filters add.
     """
     q = A.shape[-1]
-    if tracing() and q <= SMALL_MATMUL_MAX and B.shape[-2] == q:
+    fuse = max_inner is None or q <= max_inner
+    if tracing() and fuse and B.shape[-2] == q:
         return _mul_sum(A, B)
     return A @ B
 

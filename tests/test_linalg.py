@@ -8,6 +8,7 @@ import torch
 
 from diffsmf import linalg
 from diffsmf.sets.zonotope import _best_basis
+from diffsmf.utils import traced
 
 
 def _rand(n: int, batch: int = 50, seed: int = 0) -> torch.Tensor:
@@ -192,3 +193,26 @@ def test_cholesky_not_positive_definite_is_nan_and_gradcheck() -> None:
     )
     with pytest.raises(ValueError, match="B"):
         linalg.solve_lower(torch.eye(2, dtype=A.dtype), torch.ones(3, 1, dtype=A.dtype))
+
+
+@pytest.mark.parametrize("max_inner,inner,fused", [
+    (linalg.SMALL_MATMUL_MAX, 8, False), (None, 8, True), (None, 79, True), (2, 3, False),
+    (2, 2, True),
+])
+def test_traced_matmul_max_inner_picks_the_fused_product(
+    monkeypatch, max_inner, inner, fused
+) -> None:
+    """``max_inner`` bounds the inner dimension fused while traced (``None``: any, as the
+    constrained-zonotope LP's ``A D A'`` uses); eagerly it is always ``@`` bit for bit."""
+    g = torch.Generator().manual_seed(5)
+    A = torch.randn(6, 3, inner, generator=g, dtype=torch.float64)
+    B = torch.randn(6, inner, 4, generator=g, dtype=torch.float64)
+    calls = []
+    mul_sum = linalg._mul_sum
+    monkeypatch.setattr(linalg, "_mul_sum", lambda a, b: calls.append(1) or mul_sum(a, b))
+    assert torch.equal(linalg.traced_matmul(A, B, max_inner=max_inner), A @ B)
+    assert not calls
+    with traced():
+        out = linalg.traced_matmul(A, B, max_inner=max_inner)
+    assert len(calls) == int(fused)
+    torch.testing.assert_close(out, A @ B, rtol=1e-13, atol=1e-13)
