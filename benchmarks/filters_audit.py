@@ -16,7 +16,10 @@ audit), and ``--merge FILE`` prints the table from a log, each row the union of 
 and how many of the trajectories it covers. A row only merges chunks whose filter gave
 bit-identical sets on a probe (2 trajectories x 10 steps, the ``sets`` fingerprint; the
 package's source hash is logged too): run with ``OMP_NUM_THREADS=1`` so that the probe does
-not depend on the thread count.
+not depend on the thread count. The probe is short: it sees the first 10 steps only, so it
+misses a change that acts later (CZSMF's default caps are reached after 34 steps on fermenter;
+a change to the reduction at the caps keeps the fingerprint). Merge the chunks of one code
+version with ``--source HASH`` whenever the code changed between runs.
 
     python benchmarks/filters_audit.py --filters czsmf --systems fermenter --noises vertex \
         --log audit.jsonl --first 300          # resumes after 3 logged chunks
