@@ -28,7 +28,10 @@ from torch import Tensor
 from diffsmf.sets.base import ConvexSet, as_vector
 from diffsmf.utils import HIGHS_OPTIONS, is_int
 
-__all__ = ["AuditReport", "add_arguments", "containment", "gauge", "main", "paper_steps"]
+__all__ = [
+    "AuditReport", "add_arguments", "containment", "gauge", "has_gaussian_noise", "main",
+    "paper_steps",
+]
 
 TOL = 1e-9
 #: Trajectories filtered per batch with ``progress`` or ``on_chunk`` (:func:`containment`).
