@@ -186,6 +186,11 @@ def containment(
         :class:`AuditReport` over the audited trajectories. ``mean_volume`` averages over
         trajectories and steps 1..T.
     """
+    from diffsmf.filters.base import check_filter
+    from diffsmf.systems.system import check_system
+
+    check_filter("filt", filt, None if system is None else check_system("system", system))
+    system = filt.system if system is None else system
     if not is_int(trials) or trials < 1:
         raise ValueError(f"trials: must be an integer >= 1, got {trials!r}")
     if steps is not None and (not is_int(steps) or steps < 1):
@@ -202,7 +207,6 @@ def containment(
             f"count: must be an integer in 1..{trials - first} (trajectories {first}.."
             f"{trials - 1} of {trials}), got {count!r}"
         )
-    system = filt.system if system is None else system
     steps = paper_steps(system) if steps is None else steps
     if has_gaussian_noise(system) and _is_guaranteed(filt):
         warnings.warn(

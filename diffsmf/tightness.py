@@ -178,6 +178,20 @@ def _solve(
     return z, float(max(0.0, -cons(z).min()))
 
 
+def _check_args(filt: Any, system: Any, traj: Any) -> None:
+    """The filter, the system and the trajectory of :func:`inner_bounds` / :func:`tightness`,
+    each checked with a ``ValueError`` naming the argument (swapped arguments included)."""
+    from diffsmf.filters.base import check_filter
+    from diffsmf.systems.system import Trajectory, check_system
+
+    check_filter("filt", filt, check_system("system", system))
+    if not isinstance(traj, Trajectory):
+        raise ValueError(
+            "traj: must be a diffsmf Trajectory (system.simulate(...), or Trajectory(x, y, u, "
+            f"theta) for logged data), got {type(traj).__name__}"
+        )
+
+
 def inner_bounds(
     filt: Any,
     system: Any,
@@ -198,6 +212,7 @@ def inner_bounds(
     points of the boxes. A solution counts only if every constraint holds to ``feas_tol``
     (absolute, in measurement units).
     """
+    _check_args(filt, system, traj)
     n = system.n
     D = torch.eye(n, dtype=torch.float64) if directions is None else torch.as_tensor(directions)
     if D.dim() != 2 or D.shape[-1] != n:
@@ -264,6 +279,7 @@ def tightness(
     (``contains(atol)`` false: a containment failure). ``inner`` may be shared between filters
     with the same noise bounds (the feasible set does not depend on the filter).
     """
+    _check_args(filt, system, traj)
     if inner is None:
         inner = inner_bounds(
             filt, system, traj, steps, directions=directions, starts=starts, index=index, seed=seed

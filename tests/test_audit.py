@@ -167,6 +167,35 @@ def test_containment_and_simulate_arguments_named():
     assert audit.containment(filt, system, trials=np.int64(2), steps=np.int64(2)).pairs == 6
 
 
+def test_swapped_or_wrong_filter_system_and_trajectory_are_named():
+    """A Trajectory passed as the system (swapped arguments) reached ``system.process_cov``
+    and raised a raw AttributeError; a filter class (not instantiated), a system of other
+    dimensions and a System passed as the trajectory are named the same way, in the audit,
+    the tightness report and the filters' constructors."""
+    from diffsmf.tightness import inner_bounds, tightness
+
+    system = systems.get("spring_damper")
+    traj = system.simulate(steps=2, batch=1)
+    filt = filters.HSNSMF(system)
+    other = systems.get("fermenter")  # n = 3, m = 3
+    cases = [
+        (lambda: audit.containment(filt, traj), r"^system: must be a diffsmf.System, got Traj"),
+        (lambda: audit.containment(filters.HSNSMF, system), r"^filt: .* got the class HSNSMF"),
+        (lambda: audit.containment(system), r"^filt: must be a filter .* got System"),
+        (lambda: audit.containment(filt, other, trials=1), r"^system: n = 3, m = 3, but filt"),
+        (lambda: tightness(filt, traj, system, [1]), r"^system: must be a diffsmf.System"),
+        (lambda: inner_bounds(filt, system, system, [1]), r"^traj: must be a diffsmf Traj"),
+        (lambda: inner_bounds(filt, other, traj, [1]), r"^system: n = 3, m = 3"),
+        (lambda: filters.HSNSMF(traj), r"^system: must be a diffsmf.System, got Trajectory"),
+        (lambda: filters.CombinedFilter(traj), r"^system: must be a diffsmf.System"),
+    ]
+    for call, match in cases:
+        with pytest.raises(ValueError, match=match):
+            call()
+    # the same calls with the arguments in their places run
+    assert audit.containment(filt, system, trials=1, steps=2).pairs == 3
+
+
 def _audit_script():
     """``benchmarks/filters_audit.py`` as a module (a script, not part of the package)."""
     import importlib.util

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from diffsmf.filters._direct import CaptureError, DirectSteps, config_key
 from diffsmf.sets.base import ConvexSet, align, check_count, stack, where
 from diffsmf.sets.interval import Interval
-from diffsmf.systems.system import System
+from diffsmf.systems.system import System, check_system
 from diffsmf.utils import (
     Positive,
     StrictlyPositive,
@@ -38,6 +38,7 @@ __all__ = [
     "MAX_SET_RADIUS",
     "FilterResult",
     "bounded_result",
+    "check_filter",
     "FilterState",
     "SetFilter",
     "StrictlyPositive",
@@ -132,6 +133,28 @@ def _check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> T
     if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
         raise ValueError(f"{name}: half-widths must be finite and >= 0, got {v.tolist()}")
     return v.expand(dim).clone()
+
+
+def check_filter(name: str, filt: Any, system: System | None = None) -> Any:
+    """``filt`` itself, or a ``ValueError`` naming ``name`` when it is not a filter instance
+    built on a :class:`~diffsmf.systems.System` (any ``nn.Module`` with a ``system``: the set
+    filters, the EKF, the CombinedFilter, a user's own), e.g. a filter class not instantiated.
+    With ``system`` (to run the filter on data of that system): its ``n`` and ``m`` must be
+    the filter's, else the ``ValueError`` names ``system``."""
+    built = isinstance(getattr(filt, "system", None), System)
+    if not (isinstance(filt, torch.nn.Module) and built):
+        what = f"the class {filt.__name__}" if isinstance(filt, type) else type(filt).__name__
+        raise ValueError(
+            f"{name}: must be a filter built on a System (e.g. ds.filters.HSNSMF(system)), "
+            f"got {what}"
+        )
+    own = filt.system
+    if system is not None and (system.n, system.m) != (own.n, own.m):
+        raise ValueError(
+            f"system: n = {system.n}, m = {system.m}, but {name}'s system has n = {own.n}, "
+            f"m = {own.m}"
+        )
+    return filt
 
 
 def bounded_result(
@@ -444,8 +467,7 @@ class SetFilter(nn.Module):
         learn_noise: bool = True,
     ) -> None:
         super().__init__()
-        if not isinstance(system, System):
-            raise ValueError("system: must be a diffsmf.System")
+        check_system("system", system)
         self.system = system
         self.skip_nan = skip_nan
         n, m = system.n, system.m

@@ -38,7 +38,7 @@ from diffsmf.filters.base import (
 from diffsmf.linearize.statistical import _check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
 from diffsmf.sets.ellipsoid import Ellipsoid, outer_sum_shape, unit_ball_volume
-from diffsmf.systems.system import System
+from diffsmf.systems.system import System, check_system
 from diffsmf.utils import Positive, register_positive
 
 __all__ = ["CombinedFilter", "CombinedResult", "outer_sum_shape"]
@@ -162,8 +162,7 @@ class CombinedFilter(SetFilter):
         skip_nan: bool = False,
         learn_noise: bool = True,
     ) -> None:
-        if not isinstance(system, System):
-            raise ValueError("system: must be a diffsmf.System")
+        check_system("system", system)
         n, m = system.n, system.m
         D0 = (
             _cover_shape(system.process_noise, n)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable
 
-from diffsmf.systems.system import System, Trajectory
+from diffsmf.systems.system import System, Trajectory, check_system
 
-__all__ = ["System", "Trajectory", "check_name", "get", "names", "register"]
+__all__ = ["System", "Trajectory", "check_name", "check_system", "get", "names", "register"]
 
 _REGISTRY: dict[str, Callable[..., System]] = {}
 

@@ -27,7 +27,7 @@ from diffsmf.linearize.jacobians import jacobian
 from diffsmf.sets.base import ConvexSet, check_nonempty
 from diffsmf.utils import is_int
 
-__all__ = ["System", "Trajectory"]
+__all__ = ["System", "Trajectory", "check_system"]
 
 
 class Trajectory(NamedTuple):
@@ -383,3 +383,15 @@ def _check_cov(name: str, cov: Tensor | None, dim: int) -> Tensor | None:
     if not torch.allclose(c, c.mT) or torch.linalg.eigvalsh(c).min() < 0:
         raise ValueError(f"{name}: must be symmetric positive semidefinite")
     return c
+
+
+def check_system(name: str, system: object) -> System:
+    """``system`` itself, or a ``ValueError`` naming ``name`` when it is not a :class:`System`
+    (a :class:`Trajectory` passed in its place, e.g. by swapped arguments, says so)."""
+    if not isinstance(system, System):
+        hint = (" (a Trajectory: pass the System it comes from, and the trajectory where a "
+                "trajectory is asked for)") if isinstance(system, Trajectory) else ""
+        raise ValueError(
+            f"{name}: must be a diffsmf.System, got {type(system).__name__}{hint}"
+        )
+    return system
