@@ -224,7 +224,7 @@ _SMALL_Y = 64
 #: and stride checks, library calls) in C++ instead of Python; at B = 1 that code was most of
 #: a compiled step. Same sets and gradients; A/B in one process, 8 interleaved runs each
 #: (spring_damper, B = 1, 1 thread): HSNSMF 0.749 -> 0.421 ms per step, ESMF 1.707 -> 0.973,
-#: EKF 0.104 -> 0.095; cold compile times within 25 % (docs/filter_core.md).
+#: EKF 0.104 -> 0.095; cold compile times within 25 % (docs/filter_core_log.md).
 #: ``memory_planning``: the intermediate buffers of a call come from one planned pool instead
 #: of one allocation each (a 4-step CombinedFilter graph allocated 236 tensors per call). Same
 #: sets and gradients (bit for bit in the checks); A/B in one process, interleaved runs
@@ -737,7 +737,7 @@ class SetFilter(nn.Module):
         type, tensor shapes, strides, dtypes, devices, ``u`` given or not) with ``make_fx``,
         from the same branch-free code that ``torch.compile`` traces, and compiled by Inductor
         (seconds, once; reused by later blocks of the same configuration). The EKF's online
-        step at B = 1 went from 0.25 to 0.06 ms (docs/filter_core.md). The inputs are still
+        step at B = 1 went from 0.25 to 0.06 ms (docs/filter_core_log.md). The inputs are still
         validated (``y`` shape, inf / NaN; ``u`` by the system). ``forward`` called inside
         the block runs the same captured step in its loop. While autograd records (or
         with another backend) a call runs the Dynamo-compiled step and skips its guard checks
