@@ -171,8 +171,11 @@ def test_swapped_or_wrong_filter_system_and_trajectory_are_named():
     """A Trajectory passed as the system (swapped arguments) reached ``system.process_cov``
     and raised a raw AttributeError; a filter class (not instantiated), a system of other
     dimensions and a System passed as the trajectory are named the same way, in the audit,
-    the tightness report and the filters' constructors."""
+    the tightness report, the filters' constructors and tuning (``tune(system, traj)`` said
+    "params: none of [...] is a parameter of this filter", ``tune(HSNSMF, traj)`` raised a raw
+    TypeError)."""
     from diffsmf.tightness import inner_bounds, tightness
+    from training import evaluate, tune
 
     system = systems.get("spring_damper")
     traj = system.simulate(steps=2, batch=1)
@@ -188,6 +191,9 @@ def test_swapped_or_wrong_filter_system_and_trajectory_are_named():
         (lambda: inner_bounds(filt, other, traj, [1]), r"^system: n = 3, m = 3"),
         (lambda: filters.HSNSMF(traj), r"^system: must be a diffsmf.System, got Trajectory"),
         (lambda: filters.CombinedFilter(traj), r"^system: must be a diffsmf.System"),
+        (lambda: tune(system, traj), r"^filt: must be a filter .* got System"),
+        (lambda: tune(filters.HSNSMF, traj), r"^filt: .* got the class HSNSMF"),
+        (lambda: evaluate(traj, filt), r"^filt: must be a filter .* got Trajectory"),
     ]
     for call, match in cases:
         with pytest.raises(ValueError, match=match):

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from diffsmf.filters.base import SetFilter
+from diffsmf.filters.base import SetFilter, check_filter
 from diffsmf.utils import is_int
 from training import ddp
 from training.losses import LossWeights, filter_with_predictions, total_loss
@@ -198,6 +198,7 @@ def evaluate(
     (trajectory, step) pairs outside the set, ``contains`` with ``atol``) and
     ``violating_trajectories``.
     """
+    check_filter("filt", filt)
     data = as_data(data)
     weights = weights or LossWeights()
     cont, cons = _loss_flags(loss, data.x is not None)
@@ -376,6 +377,7 @@ def tune(
     Under ``torch.distributed`` each global mini-batch is sharded over the processes and the
     gradients are summed, so K processes follow the single-process trajectory.
     """
+    check_filter("filt", filt)
     for label, v in (("epochs", epochs), ("batch_size", batch_size), ("val_every", val_every),
                      ("patience", patience)):
         if not is_int(v) or v < 1:
