@@ -25,6 +25,15 @@ def test_one_sample_and_copies_of_one_point_raise_naming_X():
         fit_scplnn(torch.ones(5, dtype=F64), torch.arange(5.0, dtype=F64), 0.1)  # 1-D X
 
 
+def test_eps_that_is_not_a_number_is_named():
+    """``eps="a"`` raised torch's raw ``TypeError: new(): invalid data type 'str'``."""
+    X = torch.rand(40, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
+    y = X.sum(-1)
+    for eps in ("a", None, [0.1, "b"], float("nan"), -0.1, [0.1, 0.2]):
+        with pytest.raises(ValueError, match=r"^eps: expected a positive number or one per output"):
+            fit_scplnn(X, y, eps)
+
+
 def test_collinear_inputs_raise_or_warn_in_report():
     t = torch.linspace(0, 1, 200, dtype=F64)
     X = torch.stack([t, 1 - 2 * t], -1)

@@ -222,7 +222,10 @@ def fit_partition(
 
 
 def _eps_tensor(eps: Any, p: int) -> Tensor:
-    e = torch.as_tensor(eps, dtype=_F64).reshape(-1)
+    try:
+        e = torch.as_tensor(eps, dtype=_F64).reshape(-1)
+    except (TypeError, ValueError, RuntimeError):  # a string, None, a ragged list: named below
+        e = torch.full((0,), float("nan"), dtype=_F64)
     if e.numel() == 1:
         e = e.expand(p).clone()
     if e.shape != (p,) or not bool((e > 0).all()) or not torch.isfinite(e).all():
