@@ -440,6 +440,18 @@ def test_bad_arguments():
             CZSMF(system, **{key: value})
     with pytest.raises(ValueError, match="max_generators"):
         CZSMF(system, max_generators=True, max_constraints=0)
+    # -1 was a hidden "default" sentinel: max_generators=-1 silently gave the default caps;
+    # now the default is "auto" and -1, another string or a string constraint cap are named
+    for kw, key in [({"max_generators": -1}, "max_generators"),
+                    ({"max_constraints": -1}, "max_constraints"),
+                    ({"max_generators": "AUTO"}, "max_generators"),
+                    ({"max_constraints": "x"}, "max_constraints")]:
+        with pytest.raises(ValueError, match=f"^{key}: must be"):
+            CZSMF(system, **kw)
+    n, m = system.n, system.m
+    auto = CZSMF(system, max_generators="auto", max_constraints="auto")
+    assert (auto.max_generators, auto.max_constraints) == (35 * n + 4 + 6 * m, 4 + 6 * m)
+    assert CZSMF(system, max_constraints=3).max_generators == 35 * n + 3
 
 
 def test_by_name_and_initial_set():

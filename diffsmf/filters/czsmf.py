@@ -62,10 +62,10 @@ class CZSMF(SetFilter):
     Args:
         system: the system to filter.
         max_generators: generator cap ``q`` (``None``: no reduction), at least
-            ``n + max_constraints + 1``. Default ``35 n + max_constraints`` (80 for n = 2,
-            m = 1: 1.0000 of the exact hull widths on the linear benchmark, see
+            ``n + max_constraints + 1``. Default ``"auto"``: ``35 n + max_constraints`` (80 for
+            n = 2, m = 1: 1.0000 of the exact hull widths on the linear benchmark, see
             docs/constrained_zonotopes.md for the measured table of tightness vs cost).
-        max_constraints: constraint cap (``None``: no reduction). Default ``4 + 6 m``.
+        max_constraints: constraint cap (``None``: no reduction). Default ``"auto"``: ``4 + 6 m``.
         elimination: choice of the eliminated constraint (Scott 2016 sec. 4.2): ``"hull"``
             (default: the ``HULL_CANDIDATES = 4`` best Appendix A candidates, each eliminated
             exactly and ranked by the hull of the result, 2 n x 4 batched LPs per eliminated
@@ -102,8 +102,8 @@ class CZSMF(SetFilter):
         self,
         system: System,
         *,
-        max_generators: int | None = -1,
-        max_constraints: int | None = -1,
+        max_generators: int | str | None = "auto",
+        max_constraints: int | str | None = "auto",
         reduce_method: str = "girard",
         remainder: str = "auto",
         stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
@@ -117,24 +117,25 @@ class CZSMF(SetFilter):
         super().__init__(system, **kw)
         n, m = system.n, system.m
         C.check_initial_set("initial_set", initial_set, n)
-        if max_constraints == -1:
+        if isinstance(max_constraints, str) and max_constraints == "auto":
             max_constraints = 4 + 6 * m
-        if max_generators == -1:
-            max_generators = 35 * n + (max_constraints or 0)
-        if (max_generators is None) != (max_constraints is None):
-            raise ValueError("max_generators: give both caps or None for both (no reduction)")
         if max_constraints is not None and (
             not is_int(max_constraints) or max_constraints < 0
         ):
             raise ValueError(
-                f"max_constraints: must be an integer >= 0 or None, got {max_constraints!r}"
+                f"max_constraints: must be an integer >= 0, \"auto\" or None, got "
+                f"{max_constraints!r}"
             )
+        if isinstance(max_generators, str) and max_generators == "auto":
+            max_generators = 35 * n + (max_constraints or 0)
+        if (max_generators is None) != (max_constraints is None):
+            raise ValueError("max_generators: give both caps or None for both (no reduction)")
         if max_generators is not None and (
             not is_int(max_generators) or max_generators < n + max_constraints + 1
         ):
             raise ValueError(
                 f"max_generators: must be an integer >= n + max_constraints + 1 = "
-                f"{n + (max_constraints or 0) + 1}, got {max_generators!r}"
+                f"{n + (max_constraints or 0) + 1}, \"auto\" or None, got {max_generators!r}"
             )
         if reduce_method not in ("girard", "combastel"):
             raise ValueError(f"reduce_method: unknown {reduce_method!r} (girard | combastel)")
