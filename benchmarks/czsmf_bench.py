@@ -30,7 +30,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -56,15 +55,10 @@ CONFIGS = {
 
 
 def polygon_area(S, K: int = 64) -> torch.Tensor:
-    """Area of the outer polygon ``{x : d_k.x <= h(d_k)}`` of a 2-D set -> ``[...]``."""
-    t = torch.arange(K, dtype=torch.float64) * (2 * math.pi / K)
-    D = torch.stack([t.cos(), t.sin()], -1)  # [K, 2]
-    h = S.support(D.reshape(K, *([1] * len(S.batch_shape)), 2)).movedim(0, -1)  # [..., K]
-    # vertex between consecutive half-planes k, k+1 (Cramer), then the shoelace formula
-    D2, h2 = D.roll(-1, 0), h.roll(-1, -1)
-    det = D[:, 0] * D2[:, 1] - D[:, 1] * D2[:, 0]
-    vx = (h * D2[:, 1] - h2 * D[:, 1]) / det
-    vy = (D[:, 0] * h2 - D2[:, 0] * h) / det
+    """Area of the outer polygon ``{x : d_k.x <= h(d_k)}`` of a 2-D set -> ``[...]``
+    (``ConstrainedZonotope.outer_polygon_2d`` and the shoelace formula)."""
+    V = S.outer_polygon_2d(K)  # [..., K, 2] (S: a ConstrainedZonotope, CZSMF sets)
+    vx, vy = V[..., 0], V[..., 1]
     return 0.5 * (vx * vy.roll(-1, -1) - vx.roll(-1, -1) * vy).sum(-1).abs()
 
 

@@ -59,8 +59,11 @@ def polygon_2d(S: ConvexSet, dims: tuple[int, int] | None = None, k: int = 200) 
     """Closed boundary polygon ``[p, 2]`` of a 2-D set (or a 2-D projection) with batch shape [].
 
     Zonotopes/parallelotopes use the exact vertices (``Zonotope.vertices_2d``), boxes their 4
-    corners, ellipsoids ``k`` boundary points ``c + L [cos, sin]``.
+    corners, ellipsoids ``k`` boundary points ``c + L [cos, sin]``, constrained zonotopes (CZSMF)
+    the outer polygon of their certified support in ``k`` directions
+    (``ConstrainedZonotope.outer_polygon_2d``; a certified empty set raises).
     """
+    from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
     from diffsmf.sets.ellipsoid import Ellipsoid
     from diffsmf.sets.interval import Interval
     from diffsmf.sets.parallelotope import Parallelotope
@@ -69,7 +72,12 @@ def polygon_2d(S: ConvexSet, dims: tuple[int, int] | None = None, k: int = 200) 
     if len(S.batch_shape) != 0:
         raise ValueError(f"S: plot one set (batch shape []), got {tuple(S.batch_shape)}")
     P = _project(S, dims)
-    if isinstance(P, Interval):
+    if isinstance(P, ConstrainedZonotope):
+        with torch.no_grad():
+            if bool(P.is_empty()):
+                raise ValueError("S: the constrained zonotope is certified empty, nothing to plot")
+            pts = P.outer_polygon_2d(k)
+    elif isinstance(P, Interval):
         lo, up = P.lower.detach(), P.upper.detach()
         pts = torch.stack([lo, torch.stack([up[0], lo[1]]), up, torch.stack([lo[0], up[1]])], 0)
     elif isinstance(P, Parallelotope):

@@ -587,3 +587,69 @@ def test_sample_of_an_empty_set_is_nan():
         assert torch.isfinite(inside).all()
         assert (inside.abs() <= 1 + 1e-9).all()
         torch.testing.assert_close(inside.sum(-1), torch.full((16,), 0.5, dtype=inside.dtype))
+
+
+def _exact_vertices_2d(Z: CZ, directions: int) -> np.ndarray:
+    """HiGHS's optimal points of the support LPs in ``directions`` directions: vertices of the
+    exact polygon (their convex hull is an inner polygon that tends to the set)."""
+    c, G, A, b = (t.numpy() for t in (Z.center, Z.generators, Z.A, Z.b))
+    kw = dict(A_eq=A, b_eq=b) if A.shape[0] else {}
+    pts = []
+    for t in np.arange(directions) * (2 * np.pi / directions):
+        d = np.array([np.cos(t), np.sin(t)])
+        r = linprog(-(G.T @ d), bounds=[(-1, 1)] * G.shape[1], method="highs", **kw)
+        assert r.status == 0
+        pts.append(c + G @ r.x)
+    return np.array(pts)
+
+
+def _polygon_area(V: np.ndarray) -> float:
+    x, y = V[:, 0], V[:, 1]
+    return 0.5 * abs(float((x * np.roll(y, -1) - np.roll(x, -1) * y).sum()))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_outer_polygon_contains_the_exact_vertices_and_tends_to_the_area(seed):
+    """``outer_polygon_2d`` (used by ``plot.polygon_2d`` for CZSMF sets and the documented
+    CZSMF areas) against HiGHS: every exact vertex lies inside the polygon, and its area tends
+    to the exact one from above (the inner hull of the exact vertices from below)."""
+    from scipy.spatial import ConvexHull
+
+    Z = random_cz(1, 2, 6, 2, seed=seed)[0]
+    P = _exact_vertices_2d(Z, 720)
+    inner = ConvexHull(P).volume
+    # measured excess: 0.07-0.29 (k = 16), 0.03-0.04 (64), 0.002-0.003 (1024)
+    for k, rel in ((16, 0.35), (64, 0.06), (1024, 0.005)):
+        V = Z.outer_polygon_2d(k).numpy()  # [k, 2], counter-clockwise
+        E = np.roll(V, -1, 0) - V
+        cross = E[:, None, 0] * (P[None, :, 1] - V[:, None, 1]) - E[:, None, 1] * (
+            P[None, :, 0] - V[:, None, 0])  # [k, points]: >= 0 left of every edge
+        assert cross.min() >= -1e-9, (k, cross.min())
+        area = _polygon_area(V)
+        assert inner * (1 - 1e-12) <= area <= inner * (1 + rel), (k, area, inner)
+
+
+def test_outer_polygon_bad_input_and_batch_and_plot(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from diffsmf.plot import plot_set, polygon_2d
+
+    Z = random_cz(3, 2, 5, 1, seed=4)
+    V = Z.outer_polygon_2d(32)
+    assert V.shape == (3, 32, 2)
+    torch.testing.assert_close(V[1], Z[1].outer_polygon_2d(32), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="^outer_polygon_2d: needs a 2-D set"):
+        random_cz(1, 3, 5, 1).outer_polygon_2d()
+    with pytest.raises(ValueError, match="^k: at least 3"):
+        Z.outer_polygon_2d(2)
+    fig, ax = plt.subplots()
+    patch = plot_set(ax, Z[0], label="CZSMF set")  # raised "cannot plot a ConstrainedZonotope"
+    assert patch.get_xy().shape == (201, 2)  # closed polygon of 200 directions
+    assert polygon_2d(Z[0], k=40).shape == (41, 2)
+    empty = random_cz(1, 2, 5, 1, feasible=False)[0]
+    with pytest.raises(ValueError, match="^S: the constrained zonotope is certified empty"):
+        plot_set(ax, empty)
+    plt.close(fig)

@@ -239,6 +239,32 @@ class ConstrainedZonotope(ConvexSet):
         c, G, A, b = self._c, self.generators, self.A, self.b
         return support_value(d, c, G, A, b, iters)
 
+    def outer_polygon_2d(self, k: int = 64, iters: int = LP_ITERS) -> Tensor:
+        """Vertices ``[..., k, 2]`` (counter-clockwise) of the outer polygon of a 2-D set.
+
+        The polygon is ``{x : d_i.x <= h(d_i), i < k}`` with ``d_i = (cos, sin)(2 pi i / k)``
+        and ``h`` the certified support (:meth:`support`), so it contains the set and touches
+        it in the ``k`` directions; vertex ``i`` is where the support lines ``i`` and ``i + 1``
+        meet. For plots and area measurements (:func:`diffsmf.plot.polygon_2d`; the CZSMF
+        areas in docs/constrained_zonotopes.md): the vertices are computed in float64 without
+        outward rounding. An empty set (crossed support values) gives a polygon with no
+        meaning; check :meth:`is_empty` first.
+        """
+        if self.dim != 2:
+            raise ValueError(f"outer_polygon_2d: needs a 2-D set, got dim {self.dim}")
+        k = check_count("k", k)
+        if k < 3:
+            raise ValueError(f"k: at least 3 directions bound a polygon, got {k}")
+        t = torch.arange(k, dtype=self.dtype, device=self.device) * (2 * math.pi / k)
+        D = torch.stack([t.cos(), t.sin()], -1)  # [k, 2]
+        h = self.support(D.reshape(k, *([1] * len(self.batch_shape)), 2), iters)  # [k, ...]
+        h = h.movedim(0, -1)  # [..., k]
+        D2, h2 = D.roll(-1, 0), h.roll(-1, -1)
+        det = D[:, 0] * D2[:, 1] - D[:, 1] * D2[:, 0]  # sin(2 pi / k) > 0
+        vx = (h * D2[:, 1] - h2 * D[:, 1]) / det  # Cramer's rule for the two support lines
+        vy = (D[:, 0] * h2 - D2[:, 0] * h) / det
+        return torch.stack([vx, vy], -1)
+
     def interval_hull(self, iters: int = LP_ITERS) -> Interval:
         """Certified outer box from ``2 n`` support LPs (batched) -> Interval ``[..., n]``.
 
