@@ -55,11 +55,8 @@ CONFIGS = {
 
 
 def polygon_area(S, K: int = 64) -> torch.Tensor:
-    """Area of the outer polygon ``{x : d_k.x <= h(d_k)}`` of a 2-D set -> ``[...]``
-    (``ConstrainedZonotope.outer_polygon_2d`` and the shoelace formula)."""
-    V = S.outer_polygon_2d(K)  # [..., K, 2] (S: a ConstrainedZonotope, CZSMF sets)
-    vx, vy = V[..., 0], V[..., 1]
-    return 0.5 * (vx * vy.roll(-1, -1) - vx.roll(-1, -1) * vy).sum(-1).abs()
+    """Area of the outer polygon ``{x : d_k.x <= h(d_k)}`` of a 2-D CZSMF set -> ``[...]``."""
+    return S.outer_polygon_area(K)
 
 
 def linear_table(steps: int, trials: int) -> None:

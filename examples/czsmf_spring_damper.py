@@ -5,7 +5,7 @@ spring-damper with HSNSMF, MSZM, CZSMF with its default caps and CZSMF with the 
 ``(30, 5, propagation)`` caps, and prints per filter the mean set area over steps 1..T, the time
 per step and whether every true state lies in its set. Areas: HSNSMF and MSZM their exact
 planar areas (``res.volume``); CZSMF the area of its outer polygon over 64 support directions
-(``ConstrainedZonotope.outer_polygon_2d``, an upper bound of the true area; ``res.volume`` of a
+(``ConstrainedZonotope.outer_polygon_area``, an upper bound of the true area; ``res.volume`` of a
 CZSMF set is its interval-hull area, the documented proxy). Writes a figure: the four sets of
 the first trajectory at two steps (a panel each), with the true state, and the mean area over
 time.
@@ -46,9 +46,7 @@ def areas(res: ds.filters.FilterResult) -> torch.Tensor:
     S = res.sets
     if not isinstance(S, ds.ConstrainedZonotope):
         return res.volume
-    V = S.outer_polygon_2d(64)  # [B, T+1, 64, 2]
-    x, y = V[..., 0], V[..., 1]
-    return 0.5 * (x * y.roll(-1, -1) - x.roll(-1, -1) * y).sum(-1).abs()
+    return S.outer_polygon_area(64)
 
 
 def run(steps: int, trials: int, seed: int = 0) -> tuple[ds.Trajectory, dict[str, dict]]:

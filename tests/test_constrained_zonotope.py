@@ -627,6 +627,7 @@ def test_outer_polygon_contains_the_exact_vertices_and_tends_to_the_area(seed):
         assert cross.min() >= -1e-9, (k, cross.min())
         area = _polygon_area(V)
         assert inner * (1 - 1e-12) <= area <= inner * (1 + rel), (k, area, inner)
+        assert abs(float(Z.outer_polygon_area(k)) - area) <= 1e-12 * area
 
 
 def test_outer_polygon_bad_input_and_batch_and_plot(tmp_path):

@@ -265,6 +265,14 @@ class ConstrainedZonotope(ConvexSet):
         vy = (D[:, 0] * h2 - D2[:, 0] * h) / det
         return torch.stack([vx, vy], -1)
 
+    def outer_polygon_area(self, k: int = 64, iters: int = LP_ITERS) -> Tensor:
+        """Area ``[...]`` of :meth:`outer_polygon_2d` (shoelace formula): an upper bound of a
+        2-D set's area, within a few per cent of it at ``k = 64`` (the CZSMF areas in
+        docs/constrained_zonotopes.md). ``volume()`` stays the interval-hull proxy."""
+        V = self.outer_polygon_2d(k, iters)
+        x, y = V[..., 0], V[..., 1]
+        return 0.5 * (x * y.roll(-1, -1) - x.roll(-1, -1) * y).sum(-1).abs()
+
     def interval_hull(self, iters: int = LP_ITERS) -> Interval:
         """Certified outer box from ``2 n`` support LPs (batched) -> Interval ``[..., n]``.
 
