@@ -444,6 +444,18 @@ def test_gradcheck_interval_hull():
     assert torch.autograd.gradcheck(f, (c, G, A, b), eps=1e-6, atol=1e-6)
 
 
+def test_gradcheck_outer_polygon_area():
+    """The outer polygon's vertices are linear in the certified support values, so its area
+    has the support's envelope gradient (the CZSMF area a user might tune on)."""
+    c, G, A, b = _fields(5)
+
+    def f(c, G, A, b):
+        Z = CZ(c, G, A, b)
+        return torch.cat([Z.outer_polygon_area(8).reshape(1), Z.outer_polygon_2d(8).reshape(-1)])
+
+    assert torch.autograd.gradcheck(f, (c, G, A, b), eps=1e-6, atol=1e-6)
+
+
 def test_gradcheck_linear_ops():
     c, G, A, b = _fields(18)
     M = torch.tensor([[1.0, 0.3], [-0.2, 0.9]], requires_grad=True)
