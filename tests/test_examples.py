@@ -19,7 +19,7 @@ def _load(name: str):
 
 def test_czsmf_example_runs_contains_and_plots(tmp_path):
     ex = _load("czsmf_spring_damper")
-    traj, out = ex.run(steps=6, trials=2, seed=3)
+    traj, out = ex.run(steps=4, trials=2, seed=3)
     assert set(out) == set(ex.FILTERS)
     for name, r in out.items():
         assert r["contained"], name
@@ -30,5 +30,5 @@ def test_czsmf_example_runs_contains_and_plots(tmp_path):
         hull = out[name]["result"].volume
         assert (out[name]["area"] <= hull * (1 + 1e-12)).all(), name
     path = tmp_path / "cz.png"
-    ex.figure(traj, out, path, (2, 5))
+    ex.figure(traj, out, path, (2, 4))
     assert path.stat().st_size > 10_000
