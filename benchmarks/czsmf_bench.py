@@ -54,11 +54,6 @@ CONFIGS = {
 }
 
 
-def polygon_area(S, K: int = 64) -> torch.Tensor:
-    """Area of the outer polygon ``{x : d_k.x <= h(d_k)}`` of a 2-D CZSMF set -> ``[...]``."""
-    return S.outer_polygon_area(K)
-
-
 def linear_table(steps: int, trials: int) -> None:
     system = linear_system()
     traj = system.simulate(steps=steps, batch=trials, seed=4, noise="uniform")
@@ -111,7 +106,7 @@ def seed_table(steps: int, trials: int) -> None:
             hull = float((res.upper - res.lower).prod(-1)[:, 1:].mean())
             if isinstance(filt, CZSMF):
                 with torch.no_grad():
-                    area = float(polygon_area(res.sets[:, 1:]).mean())
+                    area = float(res.sets[:, 1:].outer_polygon_area(64).mean())
             else:
                 area = float(res.volume[:, 1:].mean())
             print(f"| {name} | {label} | {area:.4e} | {hull:.4e} | {dt:.3f} |", flush=True)
