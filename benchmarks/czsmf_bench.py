@@ -161,17 +161,24 @@ def _tile(state, reps: int):
     )
 
 
-def cost_table(big_steps: int, tile_from: int, keys: list[str] | None = None) -> None:
+def cost_table(
+    big_steps: int, tile_from: int, keys: list[str] | None = None,
+    batches: tuple[int, ...] = (1, 100, 10_000),
+) -> None:
     """Steady-state time per step: the filter first runs ``warm`` steps online (CZSMF reaches
     its caps), then ``steps`` more steps are timed. At batch 10,000 the warm-up runs at batch
     ``tile_from`` and its state and the measurements of the timed steps are tiled to 10,000
     (the default caps' warm-up alone would take most of an hour at 10,000; the timed steps do
-    the same work per set)."""
-    print("\nTime per step at the fixed size (spring_damper, uniform noise)\n")
-    print("| filter | batch | timed steps (after warm-up) | time per step [s] |")
-    print("|---|---:|---:|---:|")
+    the same work per set). ``batches``: the batches to time (20 timed steps at 1, 10 at 100,
+    ``big_steps`` otherwise); each row is also given relative to HSNSMF at its batch."""
+    print(f"\nTime per step at the fixed size (spring_damper, uniform noise, "
+          f"{torch.get_num_threads()} thread(s))\n")
+    print("| filter | batch | timed steps (after warm-up) | time per step [s] | vs HSNSMF |")
+    print("|---|---:|---:|---:|---:|")
     system = ds.systems.get("spring_damper")
-    for batch, steps in ((1, 20), (100, 10), (10_000, big_steps)):
+    for batch in batches:
+        steps = {1: 20, 100: 10}.get(batch, big_steps)
+        base = float("nan")
         filts = [("HSNSMF", ds.filters.HSNSMF(system)), ("MSZM", ds.filters.MSZM(system))]
         filts += [(f"CZSMF {k}", CZSMF(system, **CONFIGS[k])) for k in keys or COST_KEYS]
         small = min(batch, tile_from) if tile_from > 0 else batch
@@ -192,7 +199,9 @@ def cost_table(big_steps: int, tile_from: int, keys: list[str] | None = None) ->
                     uk = None if u is None else u[: st.consistent.shape[0], k]
                     st = filt.update(filt.predict(st, uk), y[: st.consistent.shape[0], k])
             dt = (time.perf_counter() - t0) / steps
-            print(f"| {label} | {batch} | {steps} | {dt:.4f} |", flush=True)
+            if label == "HSNSMF":  # the first row of each batch
+                base = dt
+            print(f"| {label} | {batch} | {steps} | {dt:.4f} | {dt / base:.1f}x |", flush=True)
 
 
 def compiled_table(batch: int, steps: int, keys: list[str] | None = None) -> None:
@@ -244,6 +253,9 @@ def main() -> int:
     ap.add_argument("--chain-trials", type=int, default=4)
     ap.add_argument("--chain-n", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--cost-batches", type=int, nargs="+", default=[1, 100, 10_000],
+                    help="batches of the cost table (the default caps take minutes per step at "
+                    "10,000)")
     ap.add_argument("--cost-configs", nargs="*", default=None, metavar="KEY",
                     help=f"CZSMF rows of the cost table (default {COST_KEYS}; keys of CONFIGS)")
     args = ap.parse_args()
@@ -259,7 +271,7 @@ def main() -> int:
     if bad:
         ap.error(f"--cost-configs: unknown {bad}; choose from {list(CONFIGS)}")
     if "cost" in args.parts:
-        cost_table(args.big_steps, args.tile_from, args.cost_configs)
+        cost_table(args.big_steps, args.tile_from, args.cost_configs, tuple(args.cost_batches))
     if "compiled" in args.parts:
         compiled_table(args.compiled_batch, args.compiled_steps, args.cost_configs)
     return 0
