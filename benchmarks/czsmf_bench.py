@@ -4,7 +4,7 @@
    summed interval-hull widths of CZSMF over the horizon divided by those of the exact
    feasible set (per-coordinate HiGHS LPs on the stacked x0, w, v constraints), for several
    reduction caps; "none" = no reduction (must be 1 to ~1e-9).
-2. Seed 000 examples (``spring_damper``, ``bilinear``): mean set area over steps 1..T of
+2. Wang et al. 2022 examples (``spring_damper``, ``bilinear``): mean set area over steps 1..T of
    HSNSMF (parallelotope, exact area), MSZM (zonotope, exact area) and CZSMF (the area of the
    outer polygon of 64 support directions, an upper bound of its true area, and its interval
    hull area), uniform noise.
@@ -88,7 +88,7 @@ def linear_table(steps: int, trials: int) -> None:
 
 def seed_table(steps: int, trials: int) -> None:
     print(
-        f"\nSeed 000 examples, {trials} trajectories x {steps} steps, uniform noise "
+        f"\nWang et al. 2022 examples, {trials} trajectories x {steps} steps, uniform noise "
         "(mean over steps 1..T)\n"
     )
     print("| system | filter | mean area | mean hull area | time per step [s] |")

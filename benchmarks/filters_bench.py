@@ -4,7 +4,7 @@ Each diffsmf filter runs batched (one tensor op per step for the whole batch). T
 is a straightforward numpy HS-NSMF that loops over trajectories (same algorithm: Stirling
 slopes, DC remainder at the parallelotope vertices with alpha from the exact Hessian bound of
 the spring-damper model, Theorem 2 box sum, Chisci minimal outer parallelotope over the
-generator bases, seed 000 eq. 30-41 strip update).
+generator bases, Wang et al. 2022, eq. 30-41 strip update).
 
 Runtime is capped: each (filter, batch) cell runs ``--steps`` steps (default 10; a fifth of
 them for the eager filters above batch 1,000) and the per-trajectory numpy loop runs at most
@@ -60,7 +60,7 @@ def _alpha(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def _dc_box(c: np.ndarray, T: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Seed 000 eq. 15-16 at the 4 vertices of c + T[-1,1]^2 -> (lower, upper)."""
+    """Wang et al. 2022, eq. 15-16 at the 4 vertices of c + T[-1,1]^2 -> (lower, upper)."""
     V = c + np.array(list(itertools.product([-1, 1], repeat=2))) @ T.T
     r = np.abs(T).sum(1)
     a = _alpha(c - r, c + r)
@@ -88,7 +88,7 @@ def _chisci(G: np.ndarray) -> np.ndarray:
 
 
 def _strip(xc: np.ndarray, T: np.ndarray, p: np.ndarray, cs: float):
-    """Seed 000 eq. 30-41 for the strip |p x - cs| <= 1 -> (xc, T, consistent)."""
+    """Wang et al. 2022, eq. 30-41 for the strip |p x - cs| <= 1 -> (xc, T, consistent)."""
     T = T.copy()
     pt = p @ T
     e_p = p @ xc - cs + np.abs(pt).sum()

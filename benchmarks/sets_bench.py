@@ -3,7 +3,7 @@
     python benchmarks/sets_bench.py [--quick] [--budget SECONDS]
 
 Operations (float64, CPU):
-  * ``P.intersect_strip(S)``: parallelotope/strip update, seed 000 eq. 30-41;
+  * ``P.intersect_strip(S)``: parallelotope/strip update, Wang et al. 2022, eq. 30-41;
   * ``Z.reduce(2, "girard")``: zonotope with m = 4n generators reduced to 2n;
   * ``Z.to_parallelotope()``: Chisci 1996 minimal-volume outer parallelotope of a zonotope with
     m = 2n generators in 2-D (6 bases) and m = n + 2 = 8 in 6-D (28 bases).
@@ -30,7 +30,7 @@ torch.set_default_dtype(torch.float64)
 
 # ---------------------------------------------------------------------- numpy references
 def np_par_strip(c: np.ndarray, T: np.ndarray, a: np.ndarray, y: float, h: float):
-    """One parallelotope/strip update, seed 000 eq. 30-41, plain numpy (no margins)."""
+    """One parallelotope/strip update, Wang et al. 2022, eq. 30-41, plain numpy (no margins)."""
     n = c.shape[0]
     p, cc = a / h, y / h
     T = T.copy()

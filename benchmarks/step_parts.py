@@ -1,13 +1,13 @@
 """Where a compiled filter step goes: each part compiled on its own, ms per call.
 
-The parts of one step of HSNSMF or MSZM (seed 000), each traced with ``torch.compile`` and the
-filters' own Inductor options (``SetFilter.compile``: no SIMD, C++ wrapper), timed on a state
+The parts of one step of HSNSMF or MSZM (Wang et al. 2022), each traced with ``torch.compile`` and
+the filters' own Inductor options (``SetFilter.compile``: no SIMD, C++ wrapper), timed on a state
 reached after a few eager steps (median of ``--repeats`` calls after two warm-up calls):
 
 * ``hull``: the set's interval hull;
-* ``jacobian``: the Stirling slopes at the centre (seed 000 eq. 12);
+* ``jacobian``: the Stirling slopes at the centre (Wang et al. 2022, eq. 12);
 * ``remainder``: the guaranteed prediction remainder over the region the filter uses (HSNSMF
-  the parallelotope, MSZM its interval hull; seed 000 eq. 14-18);
+  the parallelotope, MSZM its interval hull; Wang et al. 2022, eq. 14-18);
 * ``predict``, ``update``: the filter's two halves (MSZM's include its reduction);
 * ``step``: predict + update, what ``filt.compile()`` runs per step.
 
@@ -105,7 +105,8 @@ def main() -> None:
     except (KeyError, ValueError) as e:
         ap.error(str(e))
     if system.n != 2:
-        ap.error(f"--system: a built-in with 2 states (the seed 000 examples), got n = {system.n}")
+        ap.error(f"--system: a built-in with 2 states (the Wang et al. 2022 examples), "
+                 f"got n = {system.n}")
     filt = filters.by_name(args.filter)(system)
     tr = system.simulate(steps=4, batch=args.batch, seed=0, noise="uniform")
     with torch.no_grad():

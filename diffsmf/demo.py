@@ -2,12 +2,12 @@
 
 Three parts, each a few seconds on a laptop CPU:
 
-1. **Filters** (the main job): seed 000's comparison on the built-in ``spring_damper``:
+1. **Filters** (the main job): Wang et al. 2022's comparison on the built-in ``spring_damper``:
    HS-NSMF (parallelotopes) vs MSZM (zonotopes) vs CDSMF (ellipsoids) vs EKF, a table of mean
    set area and containment, and a figure of areas and state bounds over time.
-2. **Sets**: the seed 000 worked example (minimal outer parallelotope of a zonotope) and a
+2. **Sets**: the Wang et al. 2022 worked example (minimal outer parallelotope of a zonotope) and a
    strip intersection, drawn.
-3. **PWL**: an SCPLNN fit of f(x) = -x1^2 x2 (seed 004) with its error certificate.
+3. **PWL**: an SCPLNN fit of f(x) = -x1^2 x2 (Wang et al. 2009) with its error certificate.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def filters_demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
-    """Seed 000 comparison on ``spring_damper``: table text + figure ``filters_demo.png``.
+    """Wang et al. 2022 comparison on ``spring_damper``: table text + figure ``filters_demo.png``.
 
     HSNSMF, MSZM, CDSMF (guaranteed) and the EKF (not guaranteed: its 3-sigma ellipsoid) on
     ``trials`` worst-case (vertex-noise) trajectories; the figure
@@ -58,7 +58,7 @@ def filters_demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0)
     fig_path = Path(outdir) / "filters_demo.png"
     comparison_figure(traj.x, results, fig_path, {n: n in GUARANTEED for n in names})
     text = [
-        f"Seed 000 comparison on spring_damper: {trials} trajectories x {steps} steps, "
+        f"Wang et al. 2022 comparison on spring_damper: {trials} trajectories x {steps} steps, "
         "worst-case (vertex) noise.",
         "Each filter bounds the state by a set; smaller area = tighter bound. 'outside' counts",
         "(trajectory, step) pairs whose true state left the set (0 is required of a guaranteed",
@@ -72,7 +72,7 @@ def filters_demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0)
 
 
 def sets_demo(outdir: Path) -> str:
-    """Seed 000 worked example (under eq. 22) and a strip intersection; writes sets.png."""
+    """Wang et al. 2022 worked example (under eq. 22) and a strip intersection; writes sets.png."""
     from matplotlib.figure import Figure
 
     from diffsmf.plot import plot_set
@@ -104,13 +104,13 @@ def sets_demo(outdir: Path) -> str:
     ax.set_ylabel("x2")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0)
-    ax.set_title("seed 000 worked example (eq. 22) and a strip intersection", fontsize=10)
+    ax.set_title("Wang et al. 2022 worked example (eq. 22) and a strip intersection", fontsize=10)
     fig.tight_layout()
     fig.savefig(outdir / "sets.png", dpi=110, bbox_inches="tight")
     rows = ("[" + ", ".join(f"{v:.4f}" for v in row) + "]" for row in P.T.tolist())
     T = "[" + ", ".join(rows) + "]"
     return (
-        "Sets: seed 000 worked example (under eq. 22)\n"
+        "Sets: Wang et al. 2022 worked example (under eq. 22)\n"
         f"  minimal outer parallelotope T = {T}  (paper: [[0.1992, 0.1042], [0.1195, 0.2345]])\n"
         f"  area: zonotope {Z.volume():.4f}, parallelotope {P.volume():.4f}; after the strip "
         f"{PS.volume():.4f} (parallelotope), {ZS.volume():.4f} (zonotope)\n"

@@ -1,4 +1,4 @@
-"""Seed 001 sec. 5: ESMF with bounded parameter mismatch, RMSE per state against the paper.
+"""Song et al. 2017, sec. 5: ESMF with bounded parameter mismatch, RMSE per state against the paper.
 
 Runs the ESMF (default volume-minimal weight rho; eq. 13; eq. 40 as printed) and the EKF on
 ``mismatch_quadratic`` (Table 1) and ``fermenter`` (Table 3), simulated from the paper's true

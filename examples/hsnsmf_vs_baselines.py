@@ -1,4 +1,5 @@
-"""Seed 000 sec. 4: HS-NSMF vs MSZM and CDSMF on both examples (bilinear eq. 42, spring-damper).
+"""Wang et al. 2022, sec. 4: HS-NSMF vs MSZM and CDSMF on both examples (bilinear eq. 42,
+spring-damper).
 
 The paper judges the filters by the area of their sets: for k > 3 it reports
 HSNSMF < MSZM < CDSMF on both examples (Fig. 8 and 14; no numbers are printed). This script runs
@@ -43,7 +44,7 @@ def run(name: str, trials: int, outdir: Path, seed: int) -> dict[str, dict[str, 
         )
         out[noise] = means
         if noise == "uniform":
-            path = outdir / f"seed000_{name}.png"
+            path = outdir / f"hsnsmf_{name}.png"
             _figure(traj, results, path)
             print(f"figure: {path}")
     return out

@@ -1,4 +1,5 @@
-"""Iterative-learning estimation of an intermittent actuator fault (seed 003 header/abstract).
+"""Iterative-learning estimation of an intermittent actuator fault (the iterative-learning
+fault-estimation abstract).
 
 Built-in repeated system with 20 % time-varying uncertainty in A[0, 1] and three fault pulses
 (rectangle, triangle, half-sine). Prints the max fault-estimate error per trial and writes

@@ -1,4 +1,4 @@
-"""Seed 004 example (eq. 23): LMI observer with a PWL model of f(X) = -x1^2 x2.
+"""Wang et al. 2009 example (eq. 23): LMI observer with a PWL model of f(X) = -x1^2 x2.
 
 Prints the paper-comparison table and the pipeline results for three eps values, and writes
 docs/figures/observer_vdp.png (eps = 0.05). Run: python examples/observer_vdp.py [--fast]
@@ -24,7 +24,7 @@ STRUCT = (np.array([[0.0], [1.0]]), np.eye(2))
 
 
 def paper_table() -> None:
-    print("== seed 004 setting: Lipschitz 1, models with eps = 3 and 1.5 ==")
+    print("== Wang et al. 2009 setting: Lipschitz 1, models with eps = 3 and 1.5 ==")
     print(f"{'design':<34}{'gain':>8}{'bound eps=3':>13}{'bound eps=1.5':>15}")
     print(f"{'paper (Theorem 1, eq. 20-22)':<34}{0.2027:>8.4f}{0.6080:>13.4f}{0.3040:>15.4f}")
     for mg in (211.46, 1000.0):
@@ -47,7 +47,7 @@ def pipeline(fast: bool) -> None:
         print(res.summary())
         if eps == 0.05:
             plot_pipeline(res, "docs/figures/observer_vdp.png")
-    print("\n== fit_scplnn (adaptive splitting, seed 004 sec. 3.1.2) as the model ==")
+    print("\n== fit_scplnn (adaptive splitting, Wang et al. 2009, sec. 3.1.2) as the model ==")
     res = design_observer_pipeline("vdp", 0.2, method="scplnn", simulate_system=False)
     print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in res.fit.items()})
     print("structured design:", res.design.status, f"bound {res.design.bound:.4g}")

@@ -1,14 +1,15 @@
-"""Seed 004 sec. 3.1 / 4: SCPLNN fits of f(X) = -x1^2 x2 on [-2, 2]^2.
+"""Wang et al. 2009, sec. 3.1 / 4: SCPLNN fits of f(X) = -x1^2 x2 on [-2, 2]^2.
 
     python examples/pwl_fit.py [--out out/pwl]
 
 1. Adaptive fits for eps in {0.1, 0.03, 0.01} on a 101x101 grid of samples: regions, vertices,
    max training error, held-out error on the 200x200 grid of cell centres, time.
 2. The split rules on random samples: "rivara" (default: conforming longest-edge bisection
-   of every region above eps, with held-out samples), "interior" (seed 004's rule, longest-edge
-   cut near faces; the default before issue 15), "edge", and "paper" (seed 004 literally:
-   always connect the sample to the region's vertices).
-3. Seed 004's comparison with hinging hyperplanes ("model 3") at the same number of regions and
+   of every region above eps, with held-out samples), "interior" (Wang et al. 2009's rule,
+   longest-edge cut near faces; the default before issue 15), "edge", and "paper" (Wang et al. 2009
+   literally: always connect the sample to the region's vertices).
+3. Wang et al. 2009's comparison with hinging hyperplanes ("model 3") at the same number of regions
+and
    at the same number of parameters.
 4. A figure of the eps = 0.1 partition over its held-out error (out/pwl/pwl_fit.png).
 """
@@ -71,7 +72,7 @@ def main() -> None:
         hm, _ = held_out(model, Xh)
         print(f"| {rule} | {rep.converged} | {rep.regions} | {rep.vertices} | "
               f"{float(rep.max_error[0]):.4f} | {hm:.4f} | {rep.seconds:.2f} |")
-    print("\n3. SCPLNN vs hinging hyperplanes (seed 004 'model 3')")
+    print("\n3. SCPLNN vs hinging hyperplanes (Wang et al. 2009 'model 3')")
     print("| SCPLNN eps | SCPLNN regions / params | SCPLNN train max | HH K | HH regions / params "
           "| HH train max | HH held-out max |")
     print("|---|---|---|---|---|---|---|")

@@ -1,18 +1,21 @@
-"""Seed 003 sec. 3: radar tracking with Gaussian + bounded noise, EKF vs ESMF vs combined filter.
+"""Jiang et al. 2016, sec. 3: radar tracking with Gaussian + bounded noise, EKF vs ESMF vs combined
+filter.
 
 Runs ``--runs`` Monte Carlo trajectories (default 100, batched) of the ``radar`` system for
 ``--steps`` steps (default 100; the paper does not state its horizon), filters them with
 
 * ``EKF`` (diffsmf.filters.EKF): covariances from the bounds (uniform variance r^2/3 of each
   noise box half-width) plus the Gaussian parts; initial covariance from ``x0_set``'s hull;
-* ``ESMF`` (diffsmf.filters.ESMF, seed 001): a pure set-membership filter, so the Gaussian parts
-  are folded into the bounds as 3-sigma ellipsoids (seed 003 sec. 1.1 suggests 3 sigma):
+* ``ESMF`` (diffsmf.filters.ESMF, Song et al. 2017): a pure set-membership filter, so the Gaussian
+parts
+  are folded into the bounds as 3-sigma ellipsoids (Jiang et al. 2016, sec. 1.1 suggests 3 sigma):
   ``D (+) F(0, 9 Q)`` and ``E (+) F(0, 9 R)``, outer Minkowski sums of minimal trace;
-* ``CombinedFilter`` (seed 003 eq. 39-57): Kalman centre/covariance with the Gaussian parts,
+* ``CombinedFilter`` (Jiang et al. 2016, eq. 39-57): Kalman centre/covariance with the Gaussian
+parts,
   ellipsoidal mean set with the bounded parts, statistical linearisation of the measurement;
 * ``SMF (set gain)``: ``CombinedFilter(gain="set")`` on the 3-sigma system, i.e. a pure
   ellipsoidal set-membership filter with statistical linearisation (our stand-in next to
-  seed 001's ESMF, not a paper row),
+  Song et al. 2017's ESMF, not a paper row),
 
 and prints position and velocity RMSE (per-step RMSE over the runs, averaged over the steps)
 next to the paper's Table 1. The true initial state is the paper's x0 = [200, 12, 200, 10]
@@ -145,7 +148,7 @@ def _figures(out: Path, traj, results) -> None:
         ax.plot(res_c.center[0, k, 0], res_c.center[0, k, 2], "C2*", ms=6)
     ax.set_xlabel("x1 (m)")
     ax.set_ylabel("x2 (m)")
-    ax.set_title("radar (seed 003 fig. 3): combined mean sets (solid) and 3-sigma regions\n"
+    ax.set_title("radar tracking: combined mean sets (solid) and 3-sigma regions\n"
                  "(mean set (+) F(0, 9P), dashed) every 10 steps", fontsize=10)
     ax.legend()
     fig.tight_layout()

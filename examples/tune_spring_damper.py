@@ -17,7 +17,7 @@ Parts (``--part``; each prints a table and writes JSON under ``--out``):
 * ``grad``: the gradient of the log-area at every step of a 100-step horizon w.r.t. every
   hyperparameter (finite?).
 * ``tightness``: outer/inner width ratios (diffsmf.tightness) of HSNSMF, MSZM and CDSMF on
-  both seed 000 examples (bilinear, spring_damper) at steps 5, 20 and the last.
+  both Wang et al. 2022 examples (bilinear, spring_damper) at steps 5, 20 and the last.
 * ``timing``: a 200-epoch run of 64 trajectories x 100 steps with windowed back-propagation
   (``tune(window=10)``, timed in full), and full-horizon back-propagation (a few epochs
   timed, extrapolated to 200); both from 5 b* with the consistency loss, held-out audit.
@@ -280,7 +280,7 @@ def part_grad(a: argparse.Namespace) -> dict:
 
 
 def part_tightness(a: argparse.Namespace) -> dict:
-    """Outer/inner width ratios of HSNSMF, MSZM, CDSMF on both seed 000 examples."""
+    """Outer/inner width ratios of HSNSMF, MSZM, CDSMF on both Wang et al. 2022 examples."""
     from diffsmf.tightness import inner_bounds, tightness
 
     out = {}

@@ -1,4 +1,4 @@
-"""Combined Kalman + set-membership filter (seed 003) and statistical linearisation.
+"""Combined Kalman + set-membership filter (Jiang et al. 2016) and statistical linearisation.
 
 References: filterpy's KalmanFilter (Gaussian part), a hand-written numpy ellipsoidal
 set-membership recursion (bounded part), scipy root finding / minimisation (Minkowski weights),

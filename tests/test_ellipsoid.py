@@ -118,7 +118,7 @@ def test_minkowski_weights_against_brute_force(seed, n):
         )
         assert math.log(p) == pytest.approx(res.x, abs=1e-4)
         assert fn(math.log(p)) <= res.fun + 1e-9
-    # the erratum equation of seed 003 eq. 35: sum 1/(lambda + 1/p) = n p^2/(p + 1)
+    # the erratum equation of Jiang et al. 2016, eq. 35: sum 1/(lambda + 1/p) = n p^2/(p + 1)
     p = minkowski_weight(S1, S2, "volume")
     lam = _lambdas(S1, S2)
     lhs = (1.0 / (lam + 1.0 / p)).sum(-1)

@@ -40,7 +40,7 @@ def linear_system() -> ds.System:
 
 
 def quadratic_system() -> ds.System:
-    """Seed 000 eq. 42 written here (independent of the library): 2-D, nonlinear f."""
+    """Wang et al. 2022, eq. 42 written here (independent of the library): 2-D, nonlinear f."""
 
     def f(x, u, theta):
         return torch.stack([0.5 * x[..., 0] * x[..., 1], 0.2 * x[..., 1] ** 2], -1) + u

@@ -1,4 +1,5 @@
-"""Iterative-learning intermittent fault estimation (seed 003 header; Shi-He-Zhou line)."""
+"""Iterative-learning intermittent fault estimation (the iterative-learning fault-estimation
+abstract; Shi-He-Zhou line)."""
 
 import numpy as np
 import pytest

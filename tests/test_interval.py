@@ -1,4 +1,5 @@
-"""Interval arithmetic (seed 001 sec. 3) and the box set: enclosure against sampled points."""
+"""Interval arithmetic (Song et al. 2017, sec. 3) and the box set: enclosure against sampled
+points."""
 
 import math
 

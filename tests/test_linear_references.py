@@ -6,7 +6,7 @@ states, two outputs (the strips are intersected one by one, output 0 first).
 
 * HSNSMF = Chisci et al. 1996: prediction zonotope ``[A T, diag(W)]``, minimal-volume outer
   parallelotope over all generator bases ``T = B diag(sum_j |(B^-1 G)_ij|)``, then each strip
-  by seed 000 eq. 30-41 (Vicino-Zappa / Chisci parallelotope cap strip).
+  by Wang et al. 2022, eq. 30-41 (Vicino-Zappa / Chisci parallelotope cap strip).
 * MSZM = Alamo et al. 2005 with the volume rule: ``Z(lam) = (c + lam (y - p c),
   [(I - lam p') G, sigma lam])`` with ``lam`` minimising the exact volume (Gover-Krikorian sum
   over generator pairs, evaluated here by brute force). In 2-D the volume is convex piecewise
@@ -110,7 +110,7 @@ def _chisci(G: np.ndarray) -> np.ndarray:
 
 
 def _par_strip(xc, T, p, cs, tie=1e-9, rule=False):
-    """Seed 000 eq. 30-41: parallelotope (xc, T) cap {|p x - cs| <= 1} -> list of (xc, T).
+    """Wang et al. 2022, eq. 30-41: parallelotope (xc, T) cap {|p x - cs| <= 1} -> list of (xc, T).
 
     Eq. 38-39 pick ``i* = argmax_j p_bar t_bar_j`` (j = n + 1: keep P_bar, value 1). The
     argmax is often an exact tie: a column clipped by eq. 37 on one side only has

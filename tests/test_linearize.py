@@ -215,7 +215,7 @@ def test_eig_lower_bound_below_sampled_matrices():
 
 # ------------------------------------------------------------------------- remainders
 def bilin(x):
-    """Seed 000 eq. 42 map plus a transcendental term; closes over a batched input."""
+    """Wang et al. 2022, eq. 42 map plus a transcendental term; closes over a batched input."""
     u = torch.tensor([[0.6, 0.6]]).expand(4, 2)
     return torch.stack([0.5 * x[..., 0] * x[..., 1], 0.2 * x[..., 1] ** 2 + torch.sin(
         x[..., 0])], -1) + u

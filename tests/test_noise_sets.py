@@ -162,8 +162,8 @@ def test_measurement_noise_set_scales_like_the_process_set():
 
 
 def _numpy_update(c: np.ndarray, P: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Seed 001 eq. 36-39 with R = SV (the ellipsoidal V itself), volume-minimal rho found by a
-    dense grid + golden search in numpy (independent of diffsmf)."""
+    """Song et al. 2017, eq. 36-39 with R = SV (the ellipsoidal V itself), volume-minimal rho found
+    by a dense grid + golden search in numpy (independent of diffsmf)."""
     from scipy.optimize import minimize_scalar
 
     e = y - C2 @ c
@@ -189,7 +189,7 @@ def _numpy_update(c: np.ndarray, P: np.ndarray, y: np.ndarray) -> tuple[np.ndarr
 
 def test_esmf_update_uses_the_ellipsoidal_V_exactly():
     """One update from a known prior: ESMF with an ellipsoidal V (linear h, so the remainder is
-    only the rounding floor) equals the seed 001 intersection with V itself, not with the
+    only the rounding floor) equals the Song et al. 2017 intersection with V itself, not with the
     covering ellipsoid of V's box."""
     s = _two_output_system(_ell_V())
     filt = ds.filters.ESMF(s)

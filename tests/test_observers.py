@@ -1,4 +1,4 @@
-"""LMI observer design (seed 004 Thm 1 re-derived), PWL observer and the design pipeline."""
+"""LMI observer design (Wang et al. 2009 Thm 1 re-derived), PWL observer and the design pipeline."""
 
 import control
 import numpy as np
@@ -18,7 +18,7 @@ from diffsmf.observers import (
 )
 from diffsmf.observers import lmi as lmi_mod
 
-A_VDP = np.array([[0.0, 1.0], [-1.0, 1.0]])  # seed 004 eq. 23
+A_VDP = np.array([[0.0, 1.0], [-1.0, 1.0]])  # Wang et al. 2009, eq. 23
 C_VDP = np.array([[1.0, 0.0]])
 BF_VDP = np.array([[0.0], [1.0]])
 
@@ -35,7 +35,7 @@ def _independent_check(d, A, C, structure=None):
         assert np.abs(ev).max() < 1
 
 
-def test_seed004_example_against_paper_numbers():
+def test_wang2009_example_against_paper_numbers():
     # paper: Lipschitz 1 ("gamma = 1"), peak gain 0.2027, bounds 0.6080 (eps 3) and 0.3040 (eps 1.5)
     st = (BF_VDP, np.eye(2))
     d3 = design_lipschitz_observer(A_VDP, C_VDP, 1.0, 3.0, structure=st, max_gain=1000)

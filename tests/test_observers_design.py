@@ -13,7 +13,7 @@ from scipy.optimize import minimize_scalar
 from diffsmf.observers import analyze_observer_gain, design_lipschitz_observer, lmi_matrix
 from diffsmf.observers import lmi as lmi_mod
 
-A_VDP = np.array([[0.0, 1.0], [-1.0, 1.0]])  # seed 004 eq. 23
+A_VDP = np.array([[0.0, 1.0], [-1.0, 1.0]])  # Wang et al. 2009, eq. 23
 C_VDP = np.array([[1.0, 0.0]])
 ST_VDP = (np.array([[0.0], [1.0]]), np.eye(2))
 

@@ -9,7 +9,8 @@ import torch
 from diffsmf.observers import DifferentiableObserverDesign, design_lipschitz_observer
 from diffsmf.observers.lmi import _problem, _Search, _structure_keys
 
-# seed 004 example: structured nonlinearity B_f phi(H x), gamma = 1; max_gain makes it well-posed
+# Wang et al. 2009 example: structured nonlinearity B_f phi(H x), gamma = 1; max_gain makes it
+# well-posed
 A0 = np.array([[0.0, 1.0], [-1.0, 1.0]])
 C0 = np.array([[1.0, 0.0]])
 BF, H = np.array([[0.0], [1.0]]), np.eye(2)

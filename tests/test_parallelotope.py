@@ -1,4 +1,5 @@
-"""Parallelotope: validation, exact geometry vs scipy, strip intersection (seed 000 eq. 30-41)."""
+"""Parallelotope: validation, exact geometry vs scipy, strip intersection (Wang et al. 2022, eq.
+30-41)."""
 
 import itertools
 

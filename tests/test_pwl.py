@@ -1,4 +1,4 @@
-"""Tests of diffsmf.pwl: partitions, SCPLNN module, adaptive fit (seed 004 sec. 3.1)."""
+"""Tests of diffsmf.pwl: partitions, SCPLNN module, adaptive fit (Wang et al. 2009, sec. 3.1)."""
 
 import json
 import math
@@ -24,7 +24,7 @@ def _gen(seed=0):
     return torch.Generator().manual_seed(seed)
 
 
-def _f_seed(X):  # seed 004 example: f(X) = -x1^2 x2
+def _f_seed(X):  # Wang et al. 2009 example: f(X) = -x1^2 x2
     return -X[..., 0] ** 2 * X[..., 1]
 
 
@@ -117,7 +117,7 @@ def test_continuity_across_shared_faces(n):
         assert torch.allclose(model(inner), ref, atol=1e-11)
 
 
-# ---------------------------------------------------------------- adaptive loop (seed 004)
+# ---------------------------------------------------------------- adaptive loop (Wang et al. 2009)
 @pytest.mark.parametrize("eps", [0.1, 0.03, 0.01])
 def test_adaptive_fit_reaches_eps_on_seed_function(eps):
     t = torch.linspace(-2, 2, 61, dtype=F64)
@@ -298,7 +298,8 @@ def test_maxmin_basis_equivalent_to_nodal_basis():
     with torch.no_grad():
         assert torch.allclose(nodal.maxmin_basis(Xt) @ w, nodal(Xt), atol=1e-9)
     X2 = torch.rand(800, 2, generator=_gen(5), dtype=F64) * 4 - 2
-    interior, _ = fit_scplnn(X2, _f_seed(X2), 0.2, rule="interior")  # seed 004 stellar splits
+    interior, _ = fit_scplnn(X2, _f_seed(X2), 0.2, rule="interior")  # Wang et al. 2009 stellar
+                                                                     # splits
     with pytest.raises(ValueError, match="star"):
         interior.maxmin_basis(Xt)
 

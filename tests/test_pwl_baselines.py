@@ -28,8 +28,8 @@ def test_hinging_recovers_a_hinge_sum():
 
 
 def test_scplnn_vs_hinging_on_seed_function():
-    """Seed 004 sec. 4 compares SCPLNN with hinging hyperplanes ("model 3"). Measured here at
-    an equal number of fitted parameters, where SCPLNN is more accurate; at an equal number of
+    """Wang et al. 2009, sec. 4 compares SCPLNN with hinging hyperplanes ("model 3"). Measured here
+    at an equal number of fitted parameters, where SCPLNN is more accurate; at an equal number of
     linear regions the two are close (numbers in docs/pwl.md)."""
     X = torch.rand(3000, 2, generator=_gen(2), dtype=F64) * 4 - 2
     y = -X[:, 0] ** 2 * X[:, 1]

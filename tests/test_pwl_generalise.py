@@ -84,7 +84,8 @@ def test_peak_heldout_close_to_eps_and_beats_delaunay_interpolation():
 
 
 def test_old_rule_slivers_vs_bisection():
-    """The stellar rule (seed 004 interior splits) leaves thin triangles; bisection does not."""
+    """The stellar rule (Wang et al. 2009 interior splits) leaves thin triangles; bisection does
+    not."""
     X = torch.rand(2000, 2, generator=torch.Generator().manual_seed(1), dtype=F64) * 4 - 2
     m_old, _ = fit_scplnn(X, _peak(X), 0.02, rule="interior")
     m_new, _ = fit_scplnn(X, _peak(X), 0.02)

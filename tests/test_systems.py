@@ -1,4 +1,5 @@
-"""Built-in systems of seeds 000, 001, 004: paper values, simulation, interval extensions.
+"""Built-in systems of Wang et al. 2022, Song et al. 2017 and Wang et al. 2009: paper values,
+simulation, interval extensions.
 
 Independent references: the papers' numbers (Table 2 steady state, switching schedules),
 scipy's ODE solver for the Euler-discretised continuous models, sampling for enclosures.

@@ -52,9 +52,9 @@ def strip_vertices(c, G, a, y, h):
     return np.array(out).reshape(-1, len(c))
 
 
-# ---------------------------------------------------------------------- seed 000 example
-def test_seed000_worked_example_outer_parallelotope():
-    """seed 000, under eq. 22: T = [[0.1992, 0.1042], [0.1195, 0.2345]] (4 decimals)."""
+# ---------------------------------------------------------------------- Wang et al. 2022 example
+def test_wang2022_worked_example_outer_parallelotope():
+    """Wang et al. 2022, under eq. 22: T = [[0.1992, 0.1042], [0.1195, 0.2345]] (4 decimals)."""
     Z = ds.Zonotope([0.4, 0.15], [[0.15, 0.08, 0.025, 0], [0.09, 0.18, 0, 0.025]])
     P = Z.to_parallelotope()
     ref = torch.tensor([[0.1992, 0.1042], [0.1195, 0.2345]])

@@ -3,8 +3,8 @@
 Nothing here is geometry or linearisation (those live in :mod:`diffsmf.sets` and
 :mod:`diffsmf.linearize`); these helpers only wire a :class:`~diffsmf.systems.System` to them:
 the step function at the nominal parameter, the guaranteed remainder box of a step (model
-remainder + parameter mismatch + float64 rounding margin), the measurement strips of seed 000
-Theorem 3, conversions of the initial set, and the sequential strip update with its
+remainder + parameter mismatch + float64 rounding margin), the measurement strips of Wang et al.
+2022 Theorem 3, conversions of the initial set, and the sequential strip update with its
 consistency flag.
 """
 
@@ -94,7 +94,7 @@ def noise_ellipsoid(filt: SetFilter) -> ConvexSet | None:
 
 
 def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) -> ConvexSet:
-    """The predicted zonotope of HSNSMF and MSZM: ``f(c) + F G (+) E (+) W`` (seed 000 eq.
+    """The predicted zonotope of HSNSMF and MSZM: ``f(c) + F G (+) E (+) W`` (Wang et al. 2022, eq.
     20-21, Theorem 2; Alamo 2005) -> Zonotope ``[B]``.
 
     ``fc [B, n]`` the model at the centre, ``FG [B, n, q]`` the mapped generators, ``E`` the
@@ -131,11 +131,11 @@ def prediction_remainder(
     """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``,
     and ``ok [B]``: False where no finite box exists (:func:`sanitize_remainder`).
 
-    ``remainder`` is a :mod:`diffsmf.linearize` remainder bound (``dc_remainder`` for seed 000,
-    ``lagrange_remainder`` for seed 001); when the system has mismatched parameters the
-    deviation ``f(x, u, theta) - f(x, u, theta_nom)`` over ``S`` x ``parameters``
-    (``linearize.parameter_deviation``, seed 001 eq. 18-21, evaluated over the whole set, not
-    only at the centre as in the paper) is added. ``margin [n]`` (>= 0, the filters'
+    ``remainder`` is a :mod:`diffsmf.linearize` remainder bound (``dc_remainder`` for Wang et al.
+    2022, ``lagrange_remainder`` for Song et al. 2017); when the system has mismatched parameters
+    the deviation ``f(x, u, theta) - f(x, u, theta_nom)`` over ``S`` x ``parameters``
+    (``linearize.parameter_deviation``, Song et al. 2017, eq. 18-21, evaluated over the whole set,
+    not only at the centre as in the paper) is added. ``margin [n]`` (>= 0, the filters'
     ``remainder_margin``) then enlarges the computed box to ``[lo - m, hi + m]``
     (:func:`add_remainder_margin`); it can only add to the guaranteed box, never replace it.
     Where the box is not finite (a singularity of the model over ``S``) it is returned as 0
@@ -169,7 +169,7 @@ def measurement_strips(
     y: Tensor,
     vbox: Interval,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Strips of seed 000 Theorem 3 (eq. 23-29), one per measurement component.
+    """Strips of Wang et al. 2022, Theorem 3 (eq. 23-29), one per measurement component.
 
     ``{x : |H_i x - (y_i - v_c,i - h_i(c) + H_i c - e_mid,i)| <= eps_v,i + e_rad,i}`` with
     ``[e_min, e_max]`` the remainder of ``h`` about ``c`` over ``S``. Written un-normalised
@@ -196,11 +196,11 @@ def sequential_strip_update(
     half: Tensor,
     intersect: Callable[[ConvexSet, object], ConvexSet],
 ) -> tuple[ConvexSet, Tensor]:
-    """Intersect ``S`` with the m strips one by one (seed 000 sec. 3.3).
+    """Intersect ``S`` with the m strips one by one (Wang et al. 2022, sec. 3.3).
 
     Returns the updated set and ``consistent [B]``. Where some strip misses the current set
-    (empty intersection: a fault, seed 000 eq. 31-32) the input set is returned unchanged for
-    that batch element and ``consistent`` is False. A strip of infinite half-width (an
+    (empty intersection: a fault, Wang et al. 2022, eq. 31-32) the input set is returned unchanged
+    for that batch element and ``consistent`` is False. A strip of infinite half-width (an
     unbounded remainder of ``h``) is all of R^n and is skipped for that element.
     """
     from diffsmf.sets.strip import Strip
@@ -228,8 +228,8 @@ def stirling_strip_update(
     y: Tensor,
     intersect: Callable[[ConvexSet, object], ConvexSet],
 ) -> tuple[ConvexSet, Tensor]:
-    """Seed 000 Theorem 3 update shared by HSNSMF, MSZM and CDSMF: Stirling slopes of ``h`` at
-    the centre (eq. 13), DC remainder of ``h`` over ``region`` folded into the strips
+    """Wang et al. 2022, Theorem 3 update shared by HSNSMF, MSZM and CDSMF: Stirling slopes of ``h``
+    at the centre (eq. 13), DC remainder of ``h`` over ``region`` folded into the strips
     (eq. 23-29), strips intersected one by one with ``intersect`` -> (set, consistent ``[B]``).
     """
     from diffsmf.linearize import stirling_jacobian
@@ -328,7 +328,7 @@ def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:
 
 
 def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: int) -> None:
-    """Validate and register the learnable Stirling step ``h [n]`` (seed 000 eq. 12-13)."""
+    """Validate and register the learnable Stirling step ``h [n]`` (Wang et al. 2022, eq. 12-13)."""
     from diffsmf.utils import register_positive
 
     h = torch.as_tensor(value, dtype=torch.float64)
@@ -341,7 +341,7 @@ def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
     """Validate ``remainder`` (a name of :data:`diffsmf.linearize.REMAINDERS` or ``"auto"``)
     and set ``module.remainder`` (the resolved name) and ``module.remainder_fn``.
 
-    ``"auto"``: the seed 000 vertex method (``"dc-vertices"``) up to
+    ``"auto"``: the Wang et al. 2022 vertex method (``"dc-vertices"``) up to
     :data:`~diffsmf.linearize.AUTO_VERTEX_MAX_N` states, then the vertex-free bounds
     (``"lagrange"`` up to :data:`~diffsmf.linearize.AUTO_LAGRANGE_MAX_N`, ``"mean-value"``
     above; 2^n vertices are out of reach at n = 16, 32). Every choice is guaranteed.

@@ -1,7 +1,7 @@
 """Filter contract shared by every filter: state, result and the predict/update loop.
 
 ``forward(y, u)`` is exactly: for each k, ``predict(state, u[:, k-1])`` then
-``update(state, y[:, k-1])`` (DESIGN.md). Subclasses implement ``initial_state``,
+``update(state, y[:, k-1])`` (docs/design.md). Subclasses implement ``initial_state``,
 ``predict`` and ``_update``; NaN handling and result assembly live here once.
 """
 

@@ -1,15 +1,16 @@
 """CDSMF: central-difference (Stirling) ellipsoidal set-membership filter.
 
-The ellipsoidal baseline of seed 000 (its ref. [18], Shen et al. 2019), built from the same
+The ellipsoidal baseline of Wang et al. 2022 (its ref. [18], Shen et al. 2019), built from the same
 pieces as :class:`~diffsmf.filters.HSNSMF` so that the comparison isolates the set shape:
 
-* predict: Stirling linearisation about the centre (seed 000 eq. 12), DC remainder box over the
+* predict: Stirling linearisation about the centre (Wang et al. 2022, eq. 12), DC remainder box over
+the
   interval hull of the ellipsoid (eq. 14-18), remainder box + process-noise box covered by the
-  ellipsoid ``diag(n r^2)`` (``Ellipsoid.from_box``; the 2-D ``2 r^2`` of seed 001 eq. 23/29
-  generalised, see the erratum), then the outer Minkowski sum (seed 001 eq. 14-17) with the
-  rule's weight (trace-minimal by default) times the learnable ``minkowski_scale``;
-* update: the strips of seed 000 Theorem 3 intersected one by one with
-  ``Ellipsoid.intersect_strip`` (seed 001 eq. 10-13).
+  ellipsoid ``diag(n r^2)`` (``Ellipsoid.from_box``; the 2-D ``2 r^2`` of Song et al. 2017, eq.
+  23/29 generalised, see the erratum), then the outer Minkowski sum (Song et al. 2017, eq. 14-17)
+  with the rule's weight (trace-minimal by default) times the learnable ``minkowski_scale``;
+* update: the strips of Wang et al. 2022, Theorem 3 intersected one by one with
+  ``Ellipsoid.intersect_strip`` (Song et al. 2017, eq. 10-13).
 """
 
 from __future__ import annotations
@@ -46,15 +47,16 @@ class CDSMF(C.EllipsoidalSetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             :func:`~diffsmf.filters._common.register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (seed 000 eq. 14-18,
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
+        14-18,
             2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
             n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
             :func:`~diffsmf.linearize.resolve_remainder`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of the prediction's
-            Minkowski sum (seed 001 eq. 14-17; seed 003 eq. 34-36): ``p = s * p_rule`` in
-            ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_rule`` the ``sum_method`` rule of the
-            step (``minkowski_weight``), ``S1`` the linearised set and ``S2`` the covering
+            Minkowski sum (Song et al. 2017, eq. 14-17; Jiang et al. 2016, eq. 34-36): ``p = s *
+            p_rule`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_rule`` the ``sum_method`` rule of
+            the step (``minkowski_weight``), ``S1`` the linearised set and ``S2`` the covering
             ellipsoid of remainder + noise. Every ``p > 0`` gives an outer bound of the sum,
             so tuning ``s`` never breaks the guarantee; 1 (default) reproduces the rule bit
             for bit. The rule minimises the trace (or volume) of one step's sum, not the
@@ -96,7 +98,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         E = state.set
         c = E.center
         fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, c, self.stirling_step)  # seed 000 eq. 12
+        F = stirling_jacobian(fn, c, self.stirling_step)  # Wang et al. 2022, eq. 12
         box = C.remainder_box(E, state.extras)
         R, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
             self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin
@@ -118,7 +120,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         return state.replace(set=new, extras=C.spent_initial_box(state.extras)).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
-        """Seed 000 Theorem 3 strips intersected one by one with the ellipsoid."""
+        """Wang et al. 2022, Theorem 3 strips intersected one by one with the ellipsoid."""
         E = state.set
         new, ok = C.stirling_strip_update(
             self, E, E.interval_hull(), y, lambda S, st: S.intersect_strip(st)

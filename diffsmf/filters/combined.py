@@ -1,16 +1,17 @@
-"""Combined Kalman + set-membership filter for Gaussian plus bounded noise (seed 003).
+"""Combined Kalman + set-membership filter for Gaussian plus bounded noise (Jiang et al. 2016).
 
-Model (seed 003 eq. 1-4, in diffsmf's convention, noise added in state space)::
+Model (Jiang et al. 2016, eq. 1-4, in diffsmf's convention, noise added in state space)::
 
     x_k = f(x_{k-1}, u_{k-1}) + w_k + d_k,   w ~ N(0, Q),  d in F(d_c, D)
     y_k = h(x_k) + v_k + e_k,                v ~ N(0, R),  e in F(e_c, E)
 
 The filter carries the *set of conditional means* ``F(a, S)`` (an :class:`Ellipsoid`) and one
 covariance ``P``: the centre and ``P`` follow the Kalman equations, the shape ``S`` follows the
-outer-bounding Minkowski sums of an ellipsoidal set-membership filter (seed 003 eq. 39-47).
-Nonlinear ``f`` and ``h`` are replaced by affine maps fitted by statistical linearisation over
-the current ellipsoid (seed 003 eq. 48-55, :func:`diffsmf.linearize.statistical_linearization`),
-the centre being propagated through the nonlinear maps (eq. 56-57).
+outer-bounding Minkowski sums of an ellipsoidal set-membership filter (Jiang et al. 2016, eq.
+39-47). Nonlinear ``f`` and ``h`` are replaced by affine maps fitted by statistical linearisation
+over the current ellipsoid (Jiang et al. 2016, eq. 48-55,
+:func:`diffsmf.linearize.statistical_linearization`), the centre being propagated through the
+nonlinear maps (eq. 56-57).
 
 Guarantee: for affine ``f`` and ``h`` and zero Gaussian noise, the true state stays in ``F(a, S)``
 whatever gain is used (x = (I - K H) x + K (y - e) exactly); with Gaussian noise the set bounds
@@ -110,7 +111,7 @@ class CombinedResult(FilterResult):
 
 
 class CombinedFilter(SetFilter):
-    """Combined Kalman + ellipsoidal set-membership filter (seed 003 eq. 39-57).
+    """Combined Kalman + ellipsoidal set-membership filter (Jiang et al. 2016, eq. 39-57).
 
     Args:
         system: the system; ``x0_set`` (an Ellipsoid, or a box covered by one) is the initial
@@ -123,7 +124,7 @@ class CombinedFilter(SetFilter):
             ``r^2 / 3`` for a box), so that ``by_name("combined")(system)`` works; pass it to
             separate the Gaussian initial spread from the initial mean set.
         weight: Minkowski weights p, q by ``"trace"`` (minimal trace, the paper's choice) or
-            ``"volume"`` (minimal volume), seed 003 eq. 34-36 (erratum).
+            ``"volume"`` (minimal volume), Jiang et al. 2016, eq. 34-36 (erratum).
         gain: ``"kalman"`` (eq. 44, ``K = P H' (H P H' + R)^-1``, needs R positive definite),
             ``"set"`` (``K = S H' (H S H' + E)^-1``, a pure ellipsoidal set-membership filter
             that ignores P), or ``"auto"`` (``"kalman"`` when R is positive definite, else
@@ -194,7 +195,8 @@ class CombinedFilter(SetFilter):
         r_pd = bool(torch.linalg.cholesky_ex(R0)[1] == 0)
         if gain == "kalman" and not r_pd:
             raise ValueError(
-                "measurement_cov: gain='kalman' needs a positive definite R (seed 003 eq. 2); "
+                "measurement_cov: gain='kalman' needs a positive definite R "
+                "(Jiang et al. 2016, eq. 2); "
                 "use gain='set' for a pure set-membership gain"
             )
         self.gain = ("kalman" if r_pd else "set") if gain == "auto" else gain
@@ -247,7 +249,8 @@ class CombinedFilter(SetFilter):
         )
 
     def _linearize(self, fn, a: Tensor, S: Tensor, P: Tensor) -> Tensor:
-        """Fitted matrix of ``fn`` over ``F(a, S + LIN_P_WEIGHT P)`` (seed 003 eq. 54-55)."""
+        """Fitted matrix of ``fn`` over ``F(a, S + LIN_P_WEIGHT P)`` (Jiang et al. 2016, eq.
+        54-55)."""
         A, _ = statistical_linearization(
             fn,
             a,
@@ -259,7 +262,7 @@ class CombinedFilter(SetFilter):
         return A
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
-        """Time update, seed 003 eq. 39-42 (linear) / eq. 54, 56 (nonlinear)."""
+        """Time update, Jiang et al. 2016, eq. 39-42 (linear) / eq. 54, 56 (nonlinear)."""
         a, S, P = state.set.center, state.set.shape, state.extras["covariance"]
         theta = self.system.theta_nominal
 
@@ -279,7 +282,7 @@ class CombinedFilter(SetFilter):
         )
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
-        """Measurement update, seed 003 eq. 43-47 (linear) / eq. 55, 57 (nonlinear)."""
+        """Measurement update, Jiang et al. 2016, eq. 43-47 (linear) / eq. 55, 57 (nonlinear)."""
         a, S, P = state.set.center, state.set.shape, state.extras["covariance"]
         h = self.system.h
         H = self._linearize(h, a, S, P)  # eq. 55

@@ -1,8 +1,8 @@
-"""Side-by-side comparison of filters on one system (seed 000 sec. 4 style) and the demo.
+"""Side-by-side comparison of filters on one system (Wang et al. 2022, sec. 4 style) and the demo.
 
 ``compare(system, ["hsnsmf", "mszm", "cdsmf"], trials=20, steps=100)`` simulates one batch of
 trajectories and runs every filter on the same data; each row reports the mean set area
-(volume) after step 3 (seed 000 compares the areas "for every k > 3"), the containment
+(volume) after step 3 (Wang et al. 2022 compares the areas "for every k > 3"), the containment
 violations (see :mod:`diffsmf.audit`), the worst normalised distance outside, the number of
 inconsistent steps and the wall time.
 """
@@ -105,7 +105,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
-    """Seed 000 comparison on ``spring_damper`` (the ``diffsmf demo`` part): table text and
+    """Wang et al. 2022 comparison on ``spring_damper`` (the ``diffsmf demo`` part): table text and
     ``filters_demo.png``; see :func:`diffsmf.demo.filters_demo` (one implementation)."""
     from diffsmf.demo import filters_demo
 

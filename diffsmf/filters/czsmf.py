@@ -2,10 +2,10 @@
 
 The set family of Scott, Raimondo, Marseglia, Braatz (Automatica 69, 2016, "Scott 2016"),
 :class:`~diffsmf.sets.ConstrainedZonotope`, with the linearisation and guaranteed remainders of
-the other filters (seed 000):
+the other filters (Wang et al. 2022):
 
 * predict: with ``p`` the midpoint of the interval hull of ``Z`` (the expansion point),
-  ``F`` the Stirling slopes of ``f`` at ``p`` (seed 000 eq. 12) and ``E`` the guaranteed
+  ``F`` the Stirling slopes of ``f`` at ``p`` (Wang et al. 2022, eq. 12) and ``E`` the guaranteed
   remainder box of ``f(x) - f(p) - F (x - p)`` over the hull (``dc_remainder`` or
   ``lagrange_remainder`` through :func:`~diffsmf.filters._common.prediction_remainder`),
   ``Z+ = F Z + (f(p) - F p + mid E + c_W) (+) box(rad E + r_W) (+) W0`` with W as given
@@ -13,7 +13,7 @@ the other filters (seed 000):
   ``W0``, an ellipsoid W its constrained-zonotope cover) -- the linear map and the Minkowski
   sums are exact (Scott 2016 eq. 11-12); the box is merged into the axis generators of the
   generator reduction (Scott 2016 sec. 5) once the generator cap is reached;
-* update: the seed 000 Theorem 3 strips (eq. 23-29, :func:`~diffsmf.filters._common.
+* update: the Wang et al. 2022, Theorem 3 strips (eq. 23-29, :func:`~diffsmf.filters._common.
   measurement_strips`, Stirling slopes of ``h`` at the predicted hull midpoint, remainder over
   the predicted hull) are intersected exactly (Scott 2016 eq. 13: one generator and one
   constraint per output), then constraints are eliminated down to the cap (Scott 2016 sec.
@@ -57,7 +57,8 @@ __all__ = ["CZSMF"]
 
 
 class CZSMF(SetFilter):
-    """Constrained-zonotope filter (Scott 2016 set family, seed 000 linearisation), guaranteed.
+    """Constrained-zonotope filter (Scott 2016 set family, Wang et al. 2022 linearisation),
+    guaranteed.
 
     Args:
         system: the system to filter.
@@ -75,8 +76,8 @@ class CZSMF(SetFilter):
         reduce_method: lifted generator reduction, ``"girard"`` | ``"combastel"``.
         remainder: guaranteed remainder bound by name, over the interval hull of the set
             (:func:`~diffsmf.linearize.resolve_remainder`): ``"dc-vertices"`` (alias ``"dc"``,
-            seed 000 eq. 14-18 at the hull corners), ``"lagrange"`` (seed 001 eq. 26-28),
-            ``"mean-value"``, or ``"auto"`` (default, as the other filters).
+            Wang et al. 2022, eq. 14-18 at the hull corners), ``"lagrange"`` (Song et al. 2017, eq.
+            26-28), ``"mean-value"``, or ``"auto"`` (default, as the other filters).
         stirling_step: Stirling step h (scalar or ``[n]``), learnable.
         remainder_margin: learnable inflation ``m >= 0`` of the prediction remainder box
             (:func:`~diffsmf.filters._common.register_remainder_margin`).
@@ -233,7 +234,7 @@ class CZSMF(SetFilter):
         return (Z, duals) if box is None else (Z._append_box(box), None)
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
-        """``F Z + f(p) - F p + E + W`` (Scott 2016 eq. 11-12, seed 000 eq. 12-21)."""
+        """``F Z + f(p) - F p + E + W`` (Scott 2016 eq. 11-12, Wang et al. 2022, eq. 12-21)."""
         from diffsmf.linearize import stirling_jacobian
 
         Z = state.set
@@ -241,7 +242,7 @@ class CZSMF(SetFilter):
         hull = Interval._make(lo, hi)
         p = 0.5 * (lo + hi)  # expansion point: the hull midpoint
         fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, p, self.stirling_step)  # seed 000 eq. 12
+        F = stirling_jacobian(fn, p, self.stirling_step)  # Wang et al. 2022, eq. 12
         E, finite = C.prediction_remainder(  # not finite: flagged unbounded (placeholder set)
             self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin
         )  # remainder over the interval hull of Z (+ margin)
@@ -274,7 +275,7 @@ class CZSMF(SetFilter):
         lo, hi = state.extras["lower"], state.extras["upper"]
         hull = Interval._make(lo, hi)
         p = 0.5 * (lo + hi)
-        H = stirling_jacobian(self.system.h, p, self.stirling_step)  # seed 000 eq. 13
+        H = stirling_jacobian(self.system.h, p, self.stirling_step)  # Wang et al. 2022, eq. 13
         a, d, w = C.measurement_strips(
             self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box()
         )  # eq. 23-29: |a_i x - d_i| <= w_i, [B, m, n], [B, m], [B, m]

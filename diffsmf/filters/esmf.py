@@ -1,4 +1,5 @@
-"""ESMF: extended (ellipsoidal) set-membership filter with bounded parameter mismatch, seed 001.
+"""ESMF: extended (ellipsoidal) set-membership filter with bounded parameter mismatch, Song et al.
+2017.
 
 Prediction (sec. 4.2, eq. 18-35): autograd Jacobian A at the centre with the nominal parameter
 (eq. 25); Lagrange remainder by an interval Hessian over the interval hull of the ellipsoid
@@ -54,7 +55,7 @@ def _max_sv(M: Tensor) -> Tensor:
 
 
 class ESMF(C.EllipsoidalSetFilter):
-    """Extended set-membership filter of seed 001 (guaranteed, ellipsoidal).
+    """Extended set-membership filter of Song et al. 2017 (guaranteed, ellipsoidal).
 
     Args:
         system: the system to filter (``system.parameters`` = the mismatch interval, or None).
@@ -83,7 +84,7 @@ class ESMF(C.EllipsoidalSetFilter):
             is the last one (eq. 34-35, prior ``A P A'`` + virtual noise). Softplus-scaled
             (``scale * softplus(raw)``). Raises ``ValueError`` for 0, negative, NaN or
             infinite values.
-        remainder: guaranteed remainder bound by name (default ``"lagrange"``, seed 001 eq.
+        remainder: guaranteed remainder bound by name (default ``"lagrange"``, Song et al. 2017, eq.
             26-28; also ``"dc-vertices"``, ``"mean-value"``, ``"auto"``; see
             :func:`~diffsmf.linearize.resolve_remainder`).
 
@@ -149,7 +150,7 @@ class ESMF(C.EllipsoidalSetFilter):
         ``V + Rh`` (eq. 23 with the n-D erratum). An ellipsoidal V is used as given and a
         zonotope V through its covering ellipsoid (issue 13: not via its interval hull), each
         summed with the covering ellipsoid of the remainder box by the trace-minimal outer
-        Minkowski sum (seed 001 eq. 14-17). Widened for rounding.
+        Minkowski sum (Song et al. 2017, eq. 14-17). Widened for rounding.
         """
         V = self.measurement_noise_set()
         if isinstance(V, Interval):
@@ -195,6 +196,6 @@ class ESMF(C.EllipsoidalSetFilter):
         D = _sym(rho[..., None, None] * HPH + (1 - rho)[..., None, None] * Rhat)
         Dnu = linalg.solve(D, nu.unsqueeze(-1)).squeeze(-1)
         xi = 1 - rho * (1 - rho) * (nu * Dnu).sum(-1)  # eq. 36 (times rho (1 - rho))
-        ok = (xi > 0) | ~ok_h  # seed 001: xi <= 0 means the bounds are violated (a fault)
+        ok = (xi > 0) | ~ok_h  # Song et al. 2017: xi <= 0 means the bounds are violated (a fault)
         new = E.intersect_measurement(H, ylin, Rhat, rho=torch.where(ok, rho, 0.5 * rho))
         return state.replace(set=where(ok & ok_h, new, E), consistent=ok)

@@ -1,7 +1,7 @@
-"""HS-NSMF: hyperparallel-space (parallelotope) nonlinear set-membership filter, seed 000.
+"""HS-NSMF: hyperparallel-space (parallelotope) nonlinear set-membership filter, Wang et al. 2022.
 
 Prediction (Theorem 1-2, eq. 10-22): Stirling linearisation of ``f`` about the centre, the
-DC-programming remainder box (with the Hessian-bound alpha of the seed 000 erratum), the box
+DC-programming remainder box (with the Hessian-bound alpha of the Wang et al. 2022 erratum), the box
 sum remainder + process noise (Theorem 2), the zonotope ``[F T, T_e + T_w]`` (eq. 20-21) and
 its minimal-volume outer parallelotope (Chisci 1996, eq. 22).
 
@@ -24,11 +24,11 @@ from diffsmf.utils import Positive
 
 __all__ = ["HSNSMF"]
 
-DEFAULT_STIRLING_STEP = 0.1  # seed 000 gives no value for the Stirling step h
+DEFAULT_STIRLING_STEP = 0.1  # Wang et al. 2022 gives no value for the Stirling step h
 
 
 class HSNSMF(SetFilter):
-    """Parallelotope set-membership filter of seed 000 (guaranteed).
+    """Parallelotope set-membership filter of Wang et al. 2022 (guaranteed).
 
     Args:
         system: the system to filter.
@@ -38,7 +38,8 @@ class HSNSMF(SetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             :func:`~diffsmf.filters._common.register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (seed 000 eq. 14-18,
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
+        14-18,
             2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
             n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;

@@ -1,12 +1,12 @@
 """MSZM: zonotope set-membership filter of Alamo, Bravo & Camacho (Automatica 2005).
 
-The baseline "minimum segments zonotopic method" of seed 000 (ref. [19]). Same Stirling
+The baseline "minimum segments zonotopic method" of Wang et al. 2022 (ref. [19]). Same Stirling
 linearisation and DC remainder as :class:`~diffsmf.filters.HSNSMF`, evaluated over the interval
-hull of the zonotope (Alamo 2005 bounds the remainder over the box hull; seed 000 sec. 4.1 names
-exactly this outer box as a source of the baselines' conservatism; the 2^m vertices of a
+hull of the zonotope (Alamo 2005 bounds the remainder over the box hull; Wang et al. 2022, sec. 4.1
+names exactly this outer box as a source of the baselines' conservatism; the 2^m vertices of a
 zonotope with m generators would also be far too many); the set is a zonotope:
 
-* predict: ``Z+ = f(c) + F (Z - c) (+) E (+) W`` (Alamo 2005 Property 1 / seed 000 eq. 9),
+* predict: ``Z+ = f(c) + F (Z - c) (+) E (+) W`` (Alamo 2005 Property 1 / Wang et al. 2022, eq. 9),
   then ``reduce(order, method)`` to at most ``order * n`` generators;
 * update: each measurement strip is intersected with ``Zonotope.intersect_strip`` (Alamo 2005
   Property 2, weight by ``strip_method``), then the result is reduced to the same
@@ -68,7 +68,8 @@ class MSZM(SetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             :func:`~diffsmf.filters._common.register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (seed 000 eq. 14-18,
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
+        14-18,
             2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
             n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
@@ -142,9 +143,9 @@ class MSZM(SetFilter):
         Z = state.set
         c, G = Z.center, Z.generators
         fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, c, self.stirling_step)  # seed 000 eq. 12
-        # remainder over the interval hull (Alamo 2005; seed 000 sec. 4.1: the baselines bound
-        # the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
+        F = stirling_jacobian(fn, c, self.stirling_step)  # Wang et al. 2022, eq. 12
+        # remainder over the interval hull (Alamo 2005; Wang et al. 2022, sec. 4.1: the baselines
+        # bound the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
         E, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
             self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin
         )
@@ -153,7 +154,8 @@ class MSZM(SetFilter):
         return state.replace(set=self._fit(Zp)).and_bounded(bounded)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
-        """Strips (seed 000 eq. 23-29) intersected with Alamo 2005 Property 2, then reduced."""
+        """Strips (Wang et al. 2022, eq. 23-29) intersected with Alamo 2005 Property 2, then
+        reduced."""
         Z = state.set
         new, ok = C.stirling_strip_update(
             self, Z, Z.interval_hull(), y,

@@ -33,7 +33,8 @@ def _check_x(x: Tensor) -> Tensor:
 def jacobian(fn: Fn, x: Tensor) -> Tensor:
     """Autograd Jacobian ``d fn / d x`` at ``x [..., n]`` -> ``[..., k, n]``.
 
-    Seed 001 eq. 25 (``A = df/dx`` at the estimate; also the EKF and the DC tangent planes).
+    Song et al. 2017, eq. 25 (``A = df/dx`` at the estimate; also the EKF and the DC tangent
+    planes).
 
     One forward pass and one reverse pass per output component (the batch elements do not
     interact, so the gradient of the summed component i is row i of every Jacobian). Plain
@@ -95,7 +96,7 @@ def _jacobian_forward(fn: Fn, x: Tensor) -> Tensor:
 def hessian(fn: Fn, x: Tensor) -> Tensor:
     """Autograd Hessian of each output of ``fn`` at ``x [..., n]`` -> ``[..., k, n, n]``.
 
-    Seed 001 eq. 26-28 (``N_es``, here at a point; the guaranteed version over a box is
+    Song et al. 2017, eq. 26-28 (``N_es``, here at a point; the guaranteed version over a box is
     :func:`diffsmf.linearize.interval_hessian`).
     """
     x = _check_x(x)
@@ -112,7 +113,7 @@ def hessian(fn: Fn, x: Tensor) -> Tensor:
 def stirling_jacobian(fn: Fn, x: Tensor, h: Tensor | float) -> Tensor:
     """Stirling (central-difference) slope matrix at ``x [..., n]`` -> ``[..., k, n]``.
 
-    Seed 000 eq. 12-13: column j is ``(fn(x + h_j e_j) - fn(x - h_j e_j)) / (2 h_j)``.
+    Wang et al. 2022, eq. 12-13: column j is ``(fn(x + h_j e_j) - fn(x - h_j e_j)) / (2 h_j)``.
     ``h`` is a positive scalar or a tensor broadcastable to ``[..., n]`` (per-coordinate
     steps); the result is differentiable in ``h`` and ``x``. Exact for quadratic ``fn``.
     The 2n stencil points are stacked in a new *leading* dim so that closures over batched

@@ -5,8 +5,9 @@ user function, three :class:`~diffsmf.sets.Interval` arrays enclosing, over all 
 input box, its value ``q [...]``, its gradient ``dq/dx [..., n]`` and its Hessian
 ``d2q/dx2 [..., n, n]``. The propagation rules are the ordinary first/second-order chain, sum
 and product rules, evaluated in the outward-rounded Moore arithmetic of ``Interval``
-(seed 001 sec. 3 interval extensions, used here for the interval Hessian of seed 001 eq. 26-28
-and for the DC parameter of seed 000 eq. 15-16, erratum). For a unary ``phi``::
+(Song et al. 2017, sec. 3 interval extensions, used here for the interval Hessian of Song et al.
+2017, eq. 26-28 and for the DC parameter of Wang et al. 2022, eq. 15-16, erratum). For a unary
+``phi``::
 
     grad phi(q) = phi'(Q) grad q,   hess phi(q) = phi'(Q) hess q + phi''(Q) grad q grad q'
 
@@ -566,8 +567,8 @@ def jet_eval(fn: Callable[[Any], Any], box: Interval, order: int = 2) -> Jet:
 def interval_jacobian(fn: Callable[[Any], Any], box: Interval) -> Interval:
     """Guaranteed enclosure of the Jacobian of ``fn`` over ``box [..., n]`` -> ``[..., k, n]``.
 
-    Interval extension (seed 001 sec. 3.2) of the derivative; used for the mean-value form of
-    the parameter deviation (seed 001 eq. 18-21).
+    Interval extension (Song et al. 2017, sec. 3.2) of the derivative; used for the mean-value form
+    of the parameter deviation (Song et al. 2017, eq. 18-21).
     """
     return jet_eval(fn, box, order=1).grad
 
@@ -575,7 +576,7 @@ def interval_jacobian(fn: Callable[[Any], Any], box: Interval) -> Interval:
 def interval_hessian(fn: Callable[[Any], Any], box: Interval) -> Interval:
     """Guaranteed enclosure of the Hessians of ``fn`` over ``box`` -> ``[..., k, n, n]``.
 
-    Interval Hessian of seed 001 eq. 26-28 (there written for the Lagrange remainder).
+    Interval Hessian of Song et al. 2017, eq. 26-28 (there written for the Lagrange remainder).
     """
     out = jet_eval(fn, box, order=2)
     assert out.hess is not None

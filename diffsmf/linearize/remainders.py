@@ -158,8 +158,8 @@ def _quad_form(H: Interval, d: Interval) -> Interval:
 def lagrange_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None) -> Interval:
     """Lagrange remainder bound with the interval Hessian -> Interval ``[..., k]``.
 
-    Seed 001 eq. 26-28: ``r(x) = 1/2 (x-c)' H(xi) (x-c)`` with ``H`` enclosed by the interval
-    Hessian over the interval hull of ``S`` and ``c``; the quadratic form is bounded in
+    Song et al. 2017, eq. 26-28: ``r(x) = 1/2 (x-c)' H(xi) (x-c)`` with ``H`` enclosed by the
+    interval Hessian over the interval hull of ``S`` and ``c``; the quadratic form is bounded in
     interval arithmetic over ``x - c`` in the hull. If ``J`` differs from the exact Jacobian
     at ``c`` (e.g. Stirling slopes), the exact range of ``(J_exact(c) - J)(x - c)`` over ``S``
     (support function) is added. ``J=None`` means the exact Jacobian.
@@ -178,7 +178,7 @@ def lagrange_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None)
 def _lagrange(
     jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, D: Tensor | None
 ) -> Interval:
-    """Seed 001 eq. 26-28 from the jet over ``box``; ``D = J_exact(c) - J`` or None."""
+    """Song et al. 2017, eq. 26-28 from the jet over ``box``; ``D = J_exact(c) - J`` or None."""
     d = box.__sub__(c)  # [..., n] (outward rounded; the method call traces under Dynamo)
     R = _quad_form(jet.hess, d) * 0.5
     if D is not None and (tracing() or not bool((D.detach() == 0).all())):
@@ -273,14 +273,15 @@ def diagonal_shift(H: Interval) -> Tensor:
 
 
 def _dc_upper(rv: Tensor, qv: Tensor) -> Tensor:
-    """Seed 000 eq. 15: r + q convex, tangent of q at c is 0 -> r <= max_v (r(v) + q(v))."""
+    """Wang et al. 2022, eq. 15: r + q convex, tangent of q at c is 0 -> r <= max_v (r(v) +
+    q(v))."""
     return (rv + qv).amax(0)
 
 
 def _dc_lower(
     rv: Tensor, qv: Tensor, grad_c: Tensor, grad_v: Tensor | None, W: Tensor, dv: Tensor
 ) -> Tensor:
-    """Seed 000 eq. 16: r >= tangent of the convex r + q at p, minus the concave q.
+    """Wang et al. 2022, eq. 16: r >= tangent of the convex r + q at p, minus the concave q.
 
     ``tangent_p(x) - q(x)`` is concave, so its minimum over the polytope is at a vertex; the
     best tangent point among ``c`` and (if ``grad_v`` given) the vertices is kept. The
@@ -313,7 +314,7 @@ def dc_remainder(
 ) -> Interval:
     """Difference-of-convex remainder bound at the set's vertices -> Interval ``[..., k]``.
 
-    Seed 000 eq. 14-18 with the erratum (seeds/README.md): per output i, ``r_i = g1 - g2``
+    Wang et al. 2022, eq. 14-18 with the erratum (docs/errata.md): per output i, ``r_i = g1 - g2``
     with ``g1 = r_i + q`` convex and ``g2 = q`` a convex quadratic centred at ``c``. The
     paper's ``q = alpha_i |x - c|^2`` uses ``alpha_i = max(0, -lambda_min / 2)`` from a
     guaranteed lower bound of the smallest eigenvalue of the interval Hessian of ``fn_i`` over
@@ -406,8 +407,8 @@ def parameter_deviation(
 ) -> Interval:
     """Enclosure of ``f(x, u, theta) - f(x, u, theta_nom)`` for x in S, theta in params.
 
-    Seed 001 eq. 18-21 (there evaluated at the estimate only, which is not guaranteed for the
-    other x in S). Here two guaranteed enclosures over the box hull of S are intersected:
+    Song et al. 2017, eq. 18-21 (there evaluated at the estimate only, which is not guaranteed for
+    the other x in S). Here two guaranteed enclosures over the box hull of S are intersected:
     the simple interval extension ``F(X, u, Theta) - F(X, u, theta_nom)`` (eq. 20) and the
     mean-value form ``sum_j [df/dtheta_j](X, Theta) (Theta_j - theta_nom_j)`` with the
     interval Jacobian w.r.t. theta (exact range when f is affine in theta). -> ``[..., n]``.
@@ -437,7 +438,8 @@ def mean_value_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = Non
 
     ``r(x) = fn(x) - fn(c) - J (x - c) = (J_fn(xi) - J)(x - c)`` for some ``xi`` on the
     segment ``[c, x]`` (mean-value theorem, row by row), so with ``[J_fn]`` the interval
-    Jacobian over the hull of ``S`` and ``c`` (first-order interval jets, seed 001 sec. 3.2):
+    Jacobian over the hull of ``S`` and ``c`` (first-order interval jets, Song et al. 2017, sec.
+    3.2):
 
         r(x) in ([J_fn] - J) (box - c)
 
@@ -467,7 +469,8 @@ REMAINDERS: dict[str, Callable[..., Interval]] = {
     "mean-value": mean_value_remainder,
 }
 
-#: ``remainder="auto"`` uses the seed 000 vertex method up to this state dimension (2^8 = 256
+#: ``remainder="auto"`` uses the Wang et al. 2022 vertex method up to this state dimension (2^8 =
+# 256
 #: box corners, :data:`MAX_VERTICES`), the vertex-free Lagrange bound up to
 #: :data:`AUTO_LAGRANGE_MAX_N` and the mean-value bound above (its cost is O(k n) per jet
 #: operation instead of the Lagrange bound's O(k n^2)).
@@ -478,9 +481,9 @@ AUTO_LAGRANGE_MAX_N = 16
 def resolve_remainder(name: str, n: int) -> tuple[str, Callable[..., Interval]]:
     """``(name, function)`` of a remainder bound chosen by name for state dimension ``n``.
 
-    ``"auto"`` is ``"dc-vertices"`` (seed 000 eq. 14-18) for ``n <= AUTO_VERTEX_MAX_N`` (8),
-    ``"lagrange"`` (interval-Hessian quadratic form, vertex-free, seed 001 eq. 26-28) for
-    ``n <= AUTO_LAGRANGE_MAX_N`` (16) and ``"mean-value"`` (interval Jacobian, first order,
+    ``"auto"`` is ``"dc-vertices"`` (Wang et al. 2022, eq. 14-18) for ``n <= AUTO_VERTEX_MAX_N``
+    (8), ``"lagrange"`` (interval-Hessian quadratic form, vertex-free, Song et al. 2017, eq. 26-28)
+    for ``n <= AUTO_LAGRANGE_MAX_N`` (16) and ``"mean-value"`` (interval Jacobian, first order,
     cheapest) above.
     Raises ``ValueError`` naming ``remainder`` for an unknown name.
     """

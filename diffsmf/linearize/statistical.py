@@ -1,8 +1,8 @@
-"""Statistical linearisation over an ellipsoid on 4N+1 axis points (seed 003 eq. 48-55).
+"""Statistical linearisation over an ellipsoid on 4N+1 axis points (Jiang et al. 2016, eq. 48-55).
 
 The affine map ``fn(x) ~ A x + b`` is fitted by weighted least squares to the values of ``fn`` at
 points spread evenly on the axes of the ellipsoid ``F(c, S) = {x : (x-c)' S^-1 (x-c) <= 1}``
-(Morrell & Stirling 1991, the method seed 003 cites as [19]). With the default levels
+(Morrell & Stirling 1991, the method Jiang et al. 2016 cites as [19]). With the default levels
 ``(0.5, 1.0)`` each axis carries the points ``c +- 0.5 a_i`` and ``c +- a_i`` (``a_i`` the i-th
 semi-axis), which together with the centre give the paper's 4N+1 points.
 
@@ -127,7 +127,7 @@ def _check_levels(levels: Sequence[float]) -> tuple[float, ...]:
 def axis_points(
     center: Tensor, shape: Tensor, levels: Sequence[float] = (0.5, 1.0), axes: str = "principal"
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Points spread evenly on the ellipsoid's axes (seed 003 sec. 2.2, fig. 2).
+    """Points spread evenly on the ellipsoid's axes (Jiang et al. 2016, sec. 2.2, fig. 2).
 
     Args:
         center: ``[..., n]``; shape: ``[..., n, n]`` symmetric positive definite.
@@ -193,9 +193,9 @@ def statistical_linearization(
 ) -> tuple[Tensor, Tensor]:
     """Weighted least-squares affine fit ``fn(x) ~ A x + b`` over ``F(center, shape)``.
 
-    Seed 003 eq. 50-55 (eq. 54 for the state map, eq. 55 for the measurement map): minimise
-    ``sum_i l_i |fn(x_i) - A x_i - b|^2`` over the axis points of :func:`axis_points`. The fit
-    is done in the axis coordinates ``z`` (``x = c + M z``), whose normal matrix does not depend
+    Jiang et al. 2016, eq. 50-55 (eq. 54 for the state map, eq. 55 for the measurement map):
+    minimise ``sum_i l_i |fn(x_i) - A x_i - b|^2`` over the axis points of :func:`axis_points`. The
+    fit is done in the axis coordinates ``z`` (``x = c + M z``), whose normal matrix does not depend
     on the ellipsoid's scale, then mapped back with ``torch.linalg.solve`` (no inverse).
 
     Args:

@@ -1,4 +1,5 @@
-"""LMI observer design (seed 004), PWL-model observer pipeline, ILC fault estimation (seed 003)."""
+"""LMI observer design (Wang et al. 2009), PWL-model observer pipeline, ILC fault estimation (Jiang
+et al. 2016)."""
 
 from diffsmf.observers.differentiable import DifferentiableObserverDesign
 from diffsmf.observers.ilc import (

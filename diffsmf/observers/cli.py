@@ -1,4 +1,4 @@
-r"""``diffsmf design-observer``: SCPLNN model + LMI observer design + simulation (seed 004).
+r"""``diffsmf design-observer``: SCPLNN model + LMI observer design + simulation (Wang et al. 2009).
 
     diffsmf design-observer --system vdp --eps 0.05 --out run/
     diffsmf design-observer --model my_model.py:make_model --eps 0.1 --out run/
@@ -38,8 +38,8 @@ SYSTEMS = ("vdp",)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--system", default=None, metavar="NAME",
-                     help=f"built-in continuous-time system: {', '.join(SYSTEMS)} (seed 004 "
-                          "eq. 23); the default when --model is not given")
+                     help=f"built-in continuous-time system: {', '.join(SYSTEMS)} "
+                          "(Wang et al. 2009, eq. 23); the default when --model is not given")
     src.add_argument("--model", default=None, metavar="FILE.py:FUNC",
                      help="your model: FUNC() in FILE.py returns a "
                           "diffsmf.observers.ContinuousModel")

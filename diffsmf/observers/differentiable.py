@@ -8,9 +8,9 @@ the LMI: the reduced 2-block LMI, equivalent to the 3-block one, see lmi.py)::
     min mu  s.t.  R(P, Y, lambda, nu; A, C, gamma^2, alpha) < -margin I,  P >= I,
                   (lambda - nu)(mu - nu) >= nu^2,  [|Y|_2 <= max_gain, if given]
 
-and returns L = P^-1 Y (seed 004 eq. 22) and the guaranteed bound (module docstring of lmi.py)
-``bound = eps sqrt(mu / (alpha lambda_min(P)))`` computed in torch from the layer's outputs, so
-``bound.backward()`` gives d bound / d (A, C, lipschitz, alpha) through the implicit
+and returns L = P^-1 Y (Wang et al. 2009, eq. 22) and the guaranteed bound (module docstring of
+lmi.py) ``bound = eps sqrt(mu / (alpha lambda_min(P)))`` computed in torch from the layer's outputs,
+so ``bound.backward()`` gives d bound / d (A, C, lipschitz, alpha) through the implicit
 differentiation of the conic program (diffcp), and d bound / d eps = bound / eps exactly (eps only
 scales the bound).
 
@@ -21,8 +21,8 @@ equals the fixed-alpha gradient at alpha* — pass ``alpha=design_lipschitz_obse
 alpha is also a layer input, so its own gradient (~0 at alpha*) is available.
 
 Well-posedness: when the bound infimum is only approached by L -> infinity (high-gain designs,
-e.g. the seed 004 structured example), the SDP solution is not attained and its derivative is
-meaningless; cap the gain with ``max_gain`` (as in the design function) to get a
+e.g. the Wang et al. 2009 structured example), the SDP solution is not attained and its derivative
+is meaningless; cap the gain with ``max_gain`` (as in the design function) to get a
 well-posed, differentiable problem. The layer uses diffcp's default SCS backend (tight ``eps``);
 diffcp's Clarabel backend gave wrong derivatives in our checks. The layer output is for
 gradient-based design; certify a final gain with :func:`analyze_observer_gain`.
@@ -131,7 +131,7 @@ class DifferentiableObserverDesign(torch.nn.Module):
                 "infeasible at this decay rate / max_gain: check design_lipschitz_observer"
             ) from exc
         P = 0.5 * (P + P.transpose(-1, -2))
-        L = torch.linalg.solve(P, Y)  # seed 004 eq. 22: L = P^-1 Y
+        L = torch.linalg.solve(P, Y)  # Wang et al. 2009, eq. 22: L = P^-1 Y
         p_min = torch.linalg.eigvalsh(P)[..., 0]
         mu = mu.reshape(batch)
         p_min = p_min.reshape(batch)

@@ -1,6 +1,6 @@
 r"""Iterative-learning estimation of intermittent actuator faults in uncertain repeated systems.
 
-Seed 003's header and abstract only (the body is another paper); we follow the line of
+the iterative-learning fault-estimation abstract (the body is another paper); we follow the line of
 Shi, He, Zhou (2016), "Iterative learning based estimation of periodically occurring faults".
 
 Repeated system, trial k = 0, 1, ..., time t = 0..N-1 (every trial repeats the same task)::

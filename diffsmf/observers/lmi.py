@@ -1,6 +1,7 @@
-r"""LMI design of robust observers for Lipschitz systems with a bounded model error (seed 004).
+r"""LMI design of robust observers for Lipschitz systems with a bounded model error (Wang et al.
+2009).
 
-System (seed 004 eq. 1) and observer (eq. 3, our sign convention)::
+System (Wang et al. 2009, eq. 1) and observer (eq. 3, our sign convention)::
 
     x' = A x + f(x) + B u,    y = C x
     x̂' = A x̂ + f̂(x̂) + B u + L (y - C x̂)
@@ -60,8 +61,8 @@ stationary point J' = 0 is h(alpha) = alpha: one model step from a tiny alpha (p
 secant steps on h, safeguarded by the bracket of sign changes of
 g = d log J / d log alpha = alpha / h - 1; stop at |g| <= 0.01, or |g| <= 0.03 when the
 predicted decrease g^2 / (2 d g / d log alpha) of log J is <= 1e-4 (the bound is then within
-~5e-5 of its optimum over alpha). The gain is L = P^-1 Y (seed 004 eq. 22). Rajamani (1998) is the
-special case eps = 0.
+~5e-5 of its optimum over alpha). The gain is L = P^-1 Y (Wang et al. 2009, eq. 22). Rajamani (1998)
+is the special case eps = 0.
 
 **Verification without the solver**: the 3-block LMI matrix is rebuilt in numpy from the
 returned P and L (not from the solver's Y), with mu the smallest value for which this (P, L,
@@ -217,8 +218,8 @@ def _check_search(time: str, alpha_max, margin, iters) -> tuple[float, float, in
 def lmi_matrix(A, C, L, P, lam, mu, alpha, lipschitz, structure=None, time="continuous"):
     """The 3-block design LMI matrix (must be negative definite) rebuilt in numpy from P and L.
 
-    Continuous: seed 004 Theorem 1 as re-derived in the module docstring; discrete: its Schur
-    form. A [n, n], C [l, n], L [n, l], P [n, n]; returns the symmetric matrix [k, k],
+    Continuous: Wang et al. 2009, Theorem 1 as re-derived in the module docstring; discrete: its
+    Schur form. A [n, n], C [l, n], L [n, l], P [n, n]; returns the symmetric matrix [k, k],
     k = n + 2 nf (continuous) or 2 n + 2 nf (discrete); used to verify solver output.
     """
     n = A.shape[0]
@@ -550,7 +551,8 @@ def design_lipschitz_observer(
     margin: float = 1e-6,
     iters: int = 12,
 ) -> ObserverDesign:
-    """Observer gain L minimising the guaranteed error bound (seed 004 eq. 20-22, re-derived).
+    """Observer gain L minimising the guaranteed error bound (Wang et al. 2009, eq. 20-22,
+    re-derived).
 
     A [n, n], C [l, n]; lipschitz = gamma >= 0 (of f̂, or of phi under ``structure=(B_f [n, nf],
     H [h, n])``; 0: linear error dynamics); approx_error = eps >= sup |f - f̂| on the domain

@@ -1,4 +1,4 @@
-"""The PWL-model observer of seed 004 eq. 3 as a batched torch module."""
+"""The PWL-model observer of Wang et al. 2009, eq. 3 as a batched torch module."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def rk4_step(rhs: Callable[[Tensor, Tensor], Tensor], z: Tensor, t: Tensor, dt: 
 
 
 class PWLObserver(nn.Module):
-    """Observer x̂' = A x̂ + B_f f̂(H x̂) + B u + L (y - C x̂) (seed 004 eq. 3, our sign of L).
+    """Observer x̂' = A x̂ + B_f f̂(H x̂) + B u + L (y - C x̂) (Wang et al. 2009, eq. 3, our sign of L).
 
     A [n, n], B [n, m], C [l, n], L [n, l]; ``fhat`` maps [..., q] -> [..., r] (an SCPLNN or
     any torch module/function); B_f [n, r] and H [q, n] default to identities (f̂ of the full

@@ -1,6 +1,6 @@
 """Samples of f -> SCPLNN model f̂ with a certified error eps -> LMI gain -> simulated observer.
 
-Seed 004 sec. 3 end to end, on its example eq. 23 (continuous-time van der Pol form)::
+Wang et al. 2009, sec. 3 end to end, on its example eq. 23 (continuous-time van der Pol form)::
 
     x1' = x2,  x2' = x2 - x1 - x1^2 x2 + u,  y = x1,   u = sin t
     A = [[0, 1], [-1, 1]], B = [0; 1], C = [1, 0], f(x) = B_f phi(x), B_f = [0; 1], phi = -x1^2 x2
@@ -114,7 +114,7 @@ class ContinuousModel:
 
 
 def interval_hess_bound(phi: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
-    """A certified ``hess_bound`` for phi by interval arithmetic (seed 001 eq. 26-28).
+    """A certified ``hess_bound`` for phi by interval arithmetic (Song et al. 2017, eq. 26-28).
 
     For simplex vertices V [M, q+1, q]: the interval Hessian [H_lo, H_hi] of each phi_i over the
     simplex's bounding box (:func:`diffsmf.linearize.jets.interval_hessian`); with
@@ -142,7 +142,7 @@ def interval_hess_bound(phi: Callable[[Tensor], Tensor]) -> Callable[[Tensor], T
 
 
 def _vdp_phi(x: Tensor) -> Tensor:
-    return -(x[..., :1] ** 2) * x[..., 1:2]  # seed 004 eq. 23: f(X) = -x1^2 x2
+    return -(x[..., :1] ** 2) * x[..., 1:2]  # Wang et al. 2009, eq. 23: f(X) = -x1^2 x2
 
 
 def _vdp_hess_bound(V: Tensor) -> Tensor:
@@ -153,8 +153,8 @@ def _vdp_hess_bound(V: Tensor) -> Tensor:
 
 
 def vdp_model() -> ContinuousModel:
-    """Seed 004 eq. 23 with the seed's x(0) = [1.2, 0.5], x̂(0) = [1.5, 0.7], u = sin t. The domain
-    covers the forced limit cycle (|x1| <= 2.38, |x2| <= 3.77 on t in [0, 30])."""
+    """Wang et al. 2009, eq. 23 with the seed's x(0) = [1.2, 0.5], x̂(0) = [1.5, 0.7], u = sin t.
+    The domain covers the forced limit cycle (|x1| <= 2.38, |x2| <= 3.77 on t in [0, 30])."""
     return ContinuousModel(
         name="vdp",
         A=np.array([[0.0, 1.0], [-1.0, 1.0]]),
@@ -215,9 +215,9 @@ def fit_nonlinearity(
 ) -> tuple[object, dict]:
     """SCPLNN model of phi on the domain with certified error, and a report dict.
 
-    method "scplnn": ``diffsmf.pwl.fit_scplnn`` (seed 004 sec. 3.1.2) on ``samples`` uniform
-    random samples, with the vertex values taken from phi (``vertex_fn``) and every region also
-    split until its certified bound (:func:`simplex_error_bound`, with ``sysm.hess_bound``) is
+    method "scplnn": ``diffsmf.pwl.fit_scplnn`` (Wang et al. 2009, sec. 3.1.2) on ``samples``
+    uniform random samples, with the vertex values taken from phi (``vertex_fn``) and every region
+    also split until its certified bound (:func:`simplex_error_bound`, with ``sysm.hess_bound``) is
     below eps (``region_bound``).
     "grid": interpolation on a Kuhn-triangulated grid refined until the certified error <= eps.
     "auto": "scplnn", falling back to "grid" when its certified error exceeds eps or its
@@ -374,8 +374,8 @@ def design_observer_pipeline(
     """Sample phi, fit SCPLNN with certified error, design L (structured and general LMIs),
     build the :class:`PWLObserver`, simulate system and observer, check the guarantee.
 
-    system: "vdp" (seed 004 eq. 23) or a :class:`ContinuousModel`; eps: target certified model
-    error; T, dt: simulated time and RK4 step; max_gain: cap on |L|_2; samples, seed: the
+    system: "vdp" (Wang et al. 2009, eq. 23) or a :class:`ContinuousModel`; eps: target certified
+    model error; T, dt: simulated time and RK4 step; max_gain: cap on |L|_2; samples, seed: the
     uniform random samples of phi for ``fit_scplnn``; progress: tqdm bars (fit, simulation).
     Bad arguments raise ValueError naming them.
     """

@@ -1,4 +1,4 @@
-"""Continuous piecewise-linear (SCPLNN) models fitted to samples (seed 004 sec. 3.1).
+"""Continuous piecewise-linear (SCPLNN) models fitted to samples (Wang et al. 2009, sec. 3.1).
 
 >>> from diffsmf.pwl import fit_scplnn
 >>> model, report = fit_scplnn(X, Y, eps=0.01)   # X [N, n], Y [N, p]

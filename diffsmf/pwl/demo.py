@@ -1,4 +1,5 @@
-"""PWL part of ``diffsmf demo``: fit f(X) = -x1^2 x2 (seed 004 sec. 4) and draw the partition."""
+"""PWL part of ``diffsmf demo``: fit f(X) = -x1^2 x2 (Wang et al. 2009, sec. 4) and draw the
+partition."""
 
 from __future__ import annotations
 

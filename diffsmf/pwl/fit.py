@@ -1,4 +1,4 @@
-"""Adaptive least-squares fitting of SCPLNN models (seed 004 sec. 3.1.2).
+"""Adaptive least-squares fitting of SCPLNN models (Wang et al. 2009, sec. 3.1.2).
 
 Step 1: least-squares affine fit; stop if its max sample error is below eps.
 Step 2: an initial partition. Default (``rule="rivara"``, issue 15): the Kuhn triangulation of
@@ -265,7 +265,8 @@ def fit_scplnn(
     degenerate: str = "error",
 ) -> tuple[SCPLNN, FitReport]:
     """Fit an SCPLNN to samples X ``[N, n]`` (or [N]), Y ``[N, p]`` (or [N]) by adaptive
-    splitting (seed 004 sec. 3.1.2: least squares, split the regions whose error exceeds eps).
+    splitting (Wang et al. 2009, sec. 3.1.2: least squares, split the regions whose error exceeds
+    eps).
 
     Args:
         eps: target max absolute training error, a number or one per output ``[p]``.
@@ -282,15 +283,15 @@ def fit_scplnn(
             0.5 / (n + 1).
         rule: ``"rivara"`` (default: conforming longest-edge bisection of every region above
             eps, :class:`~diffsmf.pwl.partition.BisectionRefiner`, starting from the Kuhn
-            triangulation of the box; no slivers), ``"interior"`` (seed 004: connect the sample
-            to the region's vertices when it is well inside, else cut the longest edge; the
+            triangulation of the box; no slivers), ``"interior"`` (Wang et al. 2009: connect the
+            sample to the region's vertices when it is well inside, else cut the longest edge; the
             default before issue 15), ``"edge"`` (always the longest edge of the sample's
             region) or ``"paper"`` (always connect the sample to the vertices; stalls on
             slivers).
         edge_clip: where the longest edge is cut: the sample's projection clipped to
             ``[edge_clip, 1 - edge_clip]`` (0.5: the midpoint).
         mark: split only regions whose error exceeds ``max(eps, mark * current max error)``
-            each round (0: every region above eps, as in seed 004).
+            each round (0: every region above eps, as in Wang et al. 2009).
         outside: policy of the returned model for points outside the domain.
         progress: tqdm progress bar (None: shown only for fits longer than 2 s on a terminal).
         vertex_fn: known function ``[k, n] -> [k, p]``; when given, the vertex weights are its
@@ -570,7 +571,8 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
                     coef: Tensor, t0: float, max_regions: int, max_rounds: int, ridge: float,
                     mark: float, outside: str, progress: bool | None, history: list,
                     known: _Known, opts: _Opts, ctx: _Ctx) -> tuple[SCPLNN, FitReport]:
-    """Seed 004 sec. 3.1.2 Step 3 with conforming longest-edge bisection (``rule="rivara"``).
+    """Wang et al. 2009, sec. 3.1.2 Step 3 with conforming longest-edge bisection
+    (``rule="rivara"``).
 
     Start: the Kuhn triangulation of the box (n! simplices) or the enclosing simplex. Each
     round: locate all samples, least-squares vertex weights on the training samples (or

@@ -1,4 +1,4 @@
-"""Breiman's hinging-hyperplane model (Breiman 1993), seed 004's "model 3" baseline.
+"""Breiman's hinging-hyperplane model (Breiman 1993), Wang et al. 2009's "model 3" baseline.
 
 ``f(x) = sum_k h_k(x)`` with each hinge ``h_k(x) = max(b1 . [x;1], b2 . [x;1])`` or ``min(...)``.
 Fitting (Breiman 1993, sec. III; Pucar and Sjoberg 1998): hinges are added one at a time, each

@@ -6,9 +6,11 @@ what makes the nodal ("hat") basis continuous. Constructions here:
 
 * :func:`kuhn_simplices` / :func:`grid_partition` -- Kuhn (Freudenthal) triangulation of a
   regular grid of boxes (every cell cut into n! simplices along the same coordinate orders),
-* :func:`cone_partition` -- seed 004 sec. 3.1.2 Step 2: the point p connected to the domain's
+* :func:`cone_partition` -- Wang et al. 2009, sec. 3.1.2 Step 2: the point p connected to the
+domain's
   vertices, in n-D the cone from p over the Kuhn triangulation of the box's 2n facets,
-* :class:`Refiner` -- seed 004 sec. 3.1.2 Step 3: split the region containing p by connecting p
+* :class:`Refiner` -- Wang et al. 2009, sec. 3.1.2 Step 3: split the region containing p by
+connecting p
   to its vertices (stellar subdivision; a point on a face splits every simplex sharing that face,
   so conformity is kept),
 * :class:`BisectionRefiner` -- conforming longest-edge (Rivara) bisection, the default
@@ -110,7 +112,7 @@ def grid_partition(lower: Tensor, upper: Tensor, cells: int | list[int]) -> tupl
 def cone_partition(
     lower: Tensor, upper: Tensor, apex: Tensor, tol: float = 1e-12
 ) -> tuple[Tensor, Tensor]:
-    """Seed 004 sec. 3.1.2 Step 2: connect ``apex`` to the vertices of the box domain.
+    """Wang et al. 2009, sec. 3.1.2 Step 2: connect ``apex`` to the vertices of the box domain.
 
     In n-D: the cone from ``apex`` over the Kuhn triangulation of each of the 2n facets (the
     restriction of the cube's Kuhn triangulation to its boundary, so facets agree on shared
@@ -404,24 +406,24 @@ class PointLocator:
 
 
 class Refiner:
-    """Mutable partition under refinement (seed 004 sec. 3.1.2 Step 3), stored with spare
+    """Mutable partition under refinement (Wang et al. 2009, sec. 3.1.2 Step 3), stored with spare
     capacity: ``V [nv, n]``, ``S [M, n+1]`` with a liveness mask, and the barycentric matrices.
 
     ``split(p, s)`` inserts a new vertex for the max-error sample ``p`` of simplex ``s``:
 
     * ``rule="interior"`` (default) and p well inside s (every barycentric coordinate at least
-      ``snap``): p is connected to the vertices of s (seed 004 Step 3, n+1 children);
+      ``snap``): p is connected to the vertices of s (Wang et al. 2009 Step 3, n+1 children);
     * ``rule="paper"``: always connect p to the vertices of s (of the face of s containing p
-      when p lies on one), seed 004 literally; kept for comparison;
+      when p lies on one), Wang et al. 2009 literally; kept for comparison;
     * otherwise (p near a face of s, where connecting it would create slivers, or
       ``rule="edge"``): the longest edge of s is cut at p's projection, clipped to
       ``[edge_clip, 1 - edge_clip]`` of the edge (default: the midpoint), and every simplex
       sharing that edge is split in two (stellar subdivision of the edge).
 
     Both are stellar subdivisions of a face, applied to every live simplex containing the face,
-    so the partition stays conforming. The edge rule is a deviation from seed 004: with interior
-    splits only, no edge is ever shortened, the model is linear along the original long edges
-    and the loop stalls on slivers (measured: 10x more vertices, see docs/pwl.md).
+    so the partition stays conforming. The edge rule is a deviation from Wang et al. 2009: with
+    interior splits only, no edge is ever shortened, the model is linear along the original long
+    edges and the loop stalls on slivers (measured: 10x more vertices, see docs/pwl.md).
     ``last_face``/``last_weights`` give the new vertex as a convex combination of a face.
     """
 
@@ -452,7 +454,8 @@ class Refiner:
         """Insert point p [n] lying in simplex s. Returns (removed ids, new ids) or None when p
         is at a vertex already (never, with the edge rule), in which case nothing changes."""
         lam = self.lam(p[None], torch.tensor([s]))[0]
-        if self.rule == "paper":  # seed 004 literally: connect p to the vertices of its face
+        if self.rule == "paper":  # Wang et al. 2009 literally: connect p to the vertices of its
+                                  # face
             face_pos = (lam > 1e-9).nonzero().flatten()
             if face_pos.numel() < 2:
                 return None  # p is a vertex already
@@ -461,7 +464,7 @@ class Refiner:
             q = w @ self.V[face]
             self.last_face, self.last_weights = face, w
         elif self.rule == "interior" and bool((lam >= self.snap).all()):
-            face, q = self.S[s], p  # seed 004: connect p to the region's vertices
+            face, q = self.S[s], p  # Wang et al. 2009: connect p to the region's vertices
             self.last_face, self.last_weights = face, lam
         else:  # longest edge of s, cut at p's projection (clipped to the middle third)
             Vs = self.V[self.S[s]] / self.scale  # [n+1, n]

@@ -1,10 +1,10 @@
 """The SCPLNN model: a continuous piecewise-linear function on a simplicial partition.
 
-Seed 004 sec. 3.1.1 writes the model as a weighted sum of max-min basis functions (eq. 11-15),
-one per region, whose weights are fitted by least squares. We store the same space of functions
-in the *nodal* (hat) basis: one weight vector per partition vertex, ``f(x) = sum_j lam_j(x)
-W[v_j]`` with ``lam`` the barycentric coordinates of x in the simplex containing it. Both bases
-span exactly the continuous functions that are affine on every simplex of the partition (the
+Wang et al. 2009, sec. 3.1.1 writes the model as a weighted sum of max-min basis functions (eq.
+11-15), one per region, whose weights are fitted by least squares. We store the same space of
+functions in the *nodal* (hat) basis: one weight vector per partition vertex, ``f(x) = sum_j
+lam_j(x) W[v_j]`` with ``lam`` the barycentric coordinates of x in the simplex containing it. Both
+bases span exactly the continuous functions that are affine on every simplex of the partition (the
 nodal basis has one function per vertex, the dimension of that space); the hat function of a
 vertex whose star is convex is itself a max-min function ``max(0, min_s lam_v^s(x))`` (eq. 12
 with a = 0), see :meth:`SCPLNN.maxmin_basis`, and every fitted model can be exported in the

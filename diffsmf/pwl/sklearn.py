@@ -15,7 +15,8 @@ __all__ = ["PWLRegressor"]
 
 
 class PWLRegressor(RegressorMixin, BaseEstimator):
-    """Continuous piecewise-linear regression (SCPLNN, seed 004 sec. 3.1) as an sklearn estimator.
+    """Continuous piecewise-linear regression (SCPLNN, Wang et al. 2009, sec. 3.1) as an sklearn
+    estimator.
 
     Args:
         eps: target max absolute training error (number or one per output); None: ``rel_eps``

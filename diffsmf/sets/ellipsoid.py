@@ -1,4 +1,5 @@
-"""Ellipsoids ``{x : (x - c)' S^-1 (x - c) <= 1}`` (seed 001 eq. 10-17, seed 003 eq. 34-36).
+"""Ellipsoids ``{x : (x - c)' S^-1 (x - c) <= 1}`` (Song et al. 2017, eq. 10-17, Jiang et al. 2016,
+eq. 34-36).
 
 Outer bounds (Minkowski sum, intersections, covers) are inflated by the relative factor
 ``1 + INFLATE`` (``INFLATE = 1e-10``) so that boundary points stay inside despite rounding.
@@ -237,7 +238,8 @@ class Ellipsoid(ConvexSet):
     # ------------------------------------------------------------------ covers
     @classmethod
     def from_box(cls, box: Interval, min_radius: float = 1e-12) -> Ellipsoid:
-        """Covering ellipsoid ``diag(n r_i^2)`` of a box (seed 001 eq. 23/29, n-D erratum)."""
+        """Covering ellipsoid ``diag(n r_i^2)`` of a box (Song et al. 2017, eq. 23/29, n-D
+        erratum)."""
         return box.to_ellipsoid(min_radius=min_radius)
 
     @classmethod
@@ -283,8 +285,8 @@ class Ellipsoid(ConvexSet):
     def minkowski_sum(self, other: Any, method: str = "trace", p: Any = None) -> Ellipsoid:
         """Outer ellipsoid of ``self (+) other``: ``S(p) = (1 + 1/p) S1 + (1 + p) S2``.
 
-        (seed 001 eq. 14-17 with ``alpha = 1/(1+p)``; seed 003 eq. 34-36 with the erratum.)
-        ``method="trace"``: ``p = sqrt(tr S1 / tr S2)``; ``"volume"``: the root of
+        (Song et al. 2017, eq. 14-17 with ``alpha = 1/(1+p)``; Jiang et al. 2016, eq. 34-36 with the
+        erratum.) ``method="trace"``: ``p = sqrt(tr S1 / tr S2)``; ``"volume"``: the root of
         ``sum_i 1/(lambda_i + 1/p) = n p^2 / (p + 1)`` (``lambda`` eigenvalues of
         ``S1^-1 S2``); or an explicit ``p > 0`` ``[...]``. An Interval / Zonotope /
         Parallelotope operand is first covered by an ellipsoid (:meth:`from_zonotope`); a
@@ -315,7 +317,8 @@ class Ellipsoid(ConvexSet):
         method: str = "volume",
         rho: Any = None,
     ) -> Ellipsoid:
-        """Outer ellipsoid of ``E ∩ {x : (y - H x)' R^-1 (y - H x) <= 1}`` (seed 001 eq. 36-39).
+        """Outer ellipsoid of ``E ∩ {x : (y - H x)' R^-1 (y - H x) <= 1}`` (Song et al. 2017, eq.
+        36-39).
 
         ``H [..., m, n]``, ``y [..., m]``, ``R [..., m, m]`` SPD. The family (eq. 10-11 written
         for a degenerate second ellipsoid) is, for ``rho in [0, 1)``,
@@ -415,7 +418,8 @@ class Ellipsoid(ConvexSet):
                 raise ValueError("rho: must be in [0, 1)")
             return r.expand(fam.batch)
         if method == "fixed":
-            # seed 001 eq. 13: rho = sqrt(s1) / (sqrt(s1) + sqrt(s2)), s = largest singular value
+            # Song et al. 2017, eq. 13: rho = sqrt(s1) / (sqrt(s1) + sqrt(s2)), s = largest singular
+            # value
             s1 = torch.linalg.eigvalsh(self.shape)[..., -1]
             HH = torch.linalg.eigvalsh(_sym(H @ H.mT))[..., 0].clamp(min=1e-300)
             s2 = torch.linalg.eigvalsh(_sym(R))[..., -1] / HH
@@ -433,7 +437,8 @@ class Ellipsoid(ConvexSet):
         return _minimize_rho(red, full, fam.batch, self.center_, fam.requires_grad, top)
 
     def intersect_strip(self, strip: Any, method: str = "volume", rho: Any = None) -> Ellipsoid:
-        """Outer ellipsoid of ``E ∩ {x : |a.x - o| <= h}`` (seed 001 eq. 10-13 / 36-39, m = 1).
+        """Outer ellipsoid of ``E ∩ {x : |a.x - o| <= h}`` (Song et al. 2017, eq. 10-13 / 36-39, m =
+        1).
 
         The strip is first tightened to E's extent along ``a`` (same intersection). Emptiness
         is decided exactly with :meth:`intersects_strip`; an empty intersection returns the
@@ -474,7 +479,8 @@ class Ellipsoid(ConvexSet):
     def intersect_ellipsoid(
         self, other: Ellipsoid, method: str = "volume", rho: Any = None
     ) -> Ellipsoid:
-        """Outer ellipsoid of ``E1 ∩ E2`` (seed 001 eq. 10-13; ``H = I``, ``y = c2``, ``R = P2``).
+        """Outer ellipsoid of ``E1 ∩ E2`` (Song et al. 2017, eq. 10-13; ``H = I``, ``y = c2``, ``R =
+        P2``).
 
         ``rho`` weights E2 (``rho = 0`` gives E1, ``rho -> 1`` gives E2). Erratum: eq. 11's
         ``Psi`` must read ``1 - d' (P1/(1 - rho) + P2/rho)^-1 d`` (consistent with eq. 36), the
@@ -530,7 +536,7 @@ def _vol_condition(p: Tensor, lam: Tensor) -> Tensor:
 
 
 def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
-    """Weight ``p`` of ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` (seed 003 eq. 34-36, erratum).
+    """Weight ``p`` of ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` (Jiang et al. 2016, eq. 34-36, erratum).
 
     ``"trace"``: ``p = sqrt(tr S1 / tr S2)``. ``"volume"``: unique positive root of
     ``sum_i 1/(lambda_i + 1/p) = n p^2/(p + 1)`` (equivalently ``F(p) = 0`` with ``F``
@@ -822,7 +828,8 @@ def _rho_derivatives(obj: Any, r: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
-    """Shape of the outer ellipsoid of ``F(0, S1) + F(0, S2)`` (seed 003 eq. 34-36, erratum).
+    """Shape of the outer ellipsoid of ``F(0, S1) + F(0, S2)`` (Jiang et al. 2016, eq. 34-36,
+    erratum).
 
     ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` times ``1 + INFLATE`` (this module's rounding margin),
     with p from :func:`minkowski_weight`

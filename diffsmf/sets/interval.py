@@ -1,4 +1,4 @@
-"""Intervals: Moore interval arithmetic (seed 001 sec. 3) and the axis-aligned box set.
+"""Intervals: Moore interval arithmetic (Song et al. 2017, sec. 3) and the axis-aligned box set.
 
 An :class:`Interval` holds ``lower`` and ``upper`` tensors of one shape. It plays two roles:
 
@@ -488,7 +488,7 @@ class Interval(ConvexSet):
         return Parallelotope(c, torch.diag_embed(r))
 
     def to_ellipsoid(self, min_radius: float = 1e-12) -> Ellipsoid:
-        """Covering ellipsoid diag(n r_i^2) (seed 001 eq. 23/29 with the n-D erratum).
+        """Covering ellipsoid diag(n r_i^2) (Song et al. 2017, eq. 23/29 with the n-D erratum).
 
         Radii below ``min_radius`` are floored (the shape must be positive definite); the
         shape is inflated by ``4 eps`` relative so the corners are inside despite rounding.
@@ -555,13 +555,13 @@ def _as_interval(x: Any, like: Interval | None = None) -> Interval:
 
 
 def _add(a: Interval, b: Interval) -> Interval:
-    # seed 001 sec. 3: [a] + [b] = [a_lo + b_lo, a_hi + b_hi]; a zero sum is exact
+    # Song et al. 2017, sec. 3: [a] + [b] = [a_lo + b_lo, a_hi + b_hi]; a zero sum is exact
     lo, hi = a.lower + b.lower, a.upper + b.upper
     return Interval._make(_down(lo, absolute=False), _up(hi, absolute=False))
 
 
 def _mul(a: Interval, b: Interval) -> Interval:
-    # seed 001 sec. 3: [a] * [b] = [min, max] of the four endpoint products (0 * inf := 0)
+    # Song et al. 2017, sec. 3: [a] * [b] = [min, max] of the four endpoint products (0 * inf := 0)
     al, au, bl, bu = torch.broadcast_tensors(a.lower, a.upper, b.lower, b.upper)
     p = torch.stack([al, au]).unsqueeze(1) * torch.stack([bl, bu]).unsqueeze(0)  # [2, 2, ...]
     p = torch.nan_to_num(p.flatten(0, 1), nan=0.0, posinf=math.inf, neginf=-math.inf)
@@ -611,7 +611,7 @@ def _recip(b: Interval) -> Interval:
 
 
 def _div(a: Interval, b: Interval) -> Interval:
-    # seed 001 sec. 3: [a] / [b] = [a] * [1/b_hi, 1/b_lo] for 0 not in [b]
+    # Song et al. 2017, sec. 3: [a] / [b] = [a] * [1/b_hi, 1/b_lo] for 0 not in [b]
     c, d = b.lower, b.upper
     nonzero = (c > 0) | (d < 0)
     one = torch.ones_like(c)
@@ -701,7 +701,7 @@ def _hits(a: Tensor, b: Tensor, phase: float) -> Tensor:
 def _trig(
     x: Interval, fn: Callable[[Tensor], Tensor], phase_max: float, phase_min: float
 ) -> Interval:
-    # seed 001 sec. 3 (simple interval extension): range of sin/cos = endpoint values,
+    # Song et al. 2017, sec. 3 (simple interval extension): range of sin/cos = endpoint values,
     # widened to +-1 where a maximum/minimum lies inside the interval.
     fa, fb = fn(x.lower), fn(x.upper)
     lo = _down(torch.minimum(fa, fb), 2)
@@ -764,7 +764,7 @@ def _mid_rad_out(mc: Tensor, mr: Tensor, mabs: Tensor, k: int) -> Interval:
 
 
 def _matmul_ii(a: Interval, b: Interval) -> Interval:
-    # interval matrix product: entrywise exact Moore products summed (seed 001 sec. 3)
+    # interval matrix product: entrywise exact Moore products summed (Song et al. 2017, sec. 3)
     sq_a, sq_b = a.ndim == 1, b.ndim == 1
     if sq_a:
         a = a.unsqueeze(0)

@@ -1,4 +1,5 @@
-"""Parallelotopes ``P = {c + T eta : ||eta||_inf <= 1}``, T square and invertible (seed 000).
+"""Parallelotopes ``P = {c + T eta : ||eta||_inf <= 1}``, T square and invertible (Wang et al.
+2022).
 
 ``center [..., n]``, ``T [..., n, n]``. Batched and differentiable; linear solves, never
 explicit inverses.
@@ -27,11 +28,11 @@ __all__ = ["Parallelotope"]
 _EPS = torch.finfo(torch.float64).eps
 TIE_RTOL = 1e-12
 """Relative volume tolerance of the tie rule of :meth:`Parallelotope.intersect_strip`
-(seed 000 eq. 38-39): candidates within it of the least volume are tied."""
+(Wang et al. 2022, eq. 38-39): candidates within it of the least volume are tied."""
 
 
 class Parallelotope(ConvexSet):
-    """Parallelotope ``{c + T eta : eta in [-1, 1]^n}`` (seed 000 "hyperparallel space").
+    """Parallelotope ``{c + T eta : eta in [-1, 1]^n}`` (Wang et al. 2022 "hyperparallel space").
 
     Args:
         center: ``[..., n]``.
@@ -88,7 +89,7 @@ class Parallelotope(ConvexSet):
 
     # ------------------------------------------------------------------ set API
     def volume(self) -> Tensor:
-        """``2^n |det T|`` -> ``[...]`` (seed 000).
+        """``2^n |det T|`` -> ``[...]`` (Wang et al. 2022).
 
         The determinant in closed form up to n = 3 (:func:`diffsmf.linalg.det`; equal to
         LAPACK's LU to rounding): 45x faster than ``torch.linalg.det`` on 110,000 2 x 2
@@ -206,7 +207,7 @@ class Parallelotope(ConvexSet):
         return self._c.unsqueeze(-2) + s @ self.T.transpose(-1, -2)
 
     def intersect_strip(self, strip: Strip) -> Parallelotope:
-        """Outer parallelotope of ``P cap S`` by seed 000 eq. 30-41 (Vicino-Zappa 1996 /
+        """Outer parallelotope of ``P cap S`` by Wang et al. 2022, eq. 30-41 (Vicino-Zappa 1996 /
         Chisci et al. 1996), batched over the batch dims of P and S.
 
         The strip ``|a.x - y| <= sigma`` is normalised to ``|p x - c| <= 1``

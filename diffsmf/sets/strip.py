@@ -1,4 +1,5 @@
-"""Strips ``{x : |normal . x - offset| <= halfwidth}`` (measurement sets, seed 000 eq. 23-29).
+"""Strips ``{x : |normal . x - offset| <= halfwidth}`` (measurement sets, Wang et al. 2022, eq.
+23-29).
 
 A strip is unbounded (for n >= 2): ``volume()`` returns ``inf``, ``sample`` raises, and the
 support function is ``inf`` except along +-normal. It subclasses
@@ -71,7 +72,7 @@ class Strip(ConvexSet):
         """Strips of a linear(ised) measurement ``y = C x + v``, ``|v_i| <= noise_bound_i``.
 
         ``C [..., m, n]``, ``y [..., m]``, ``noise_bound [..., m]`` -> Strip batch ``[..., m]``
-        (one strip per output row, seed 000 eq. 23-29).
+        (one strip per output row, Wang et al. 2022, eq. 23-29).
         """
         return cls(C, y, noise_bound)
 

@@ -8,8 +8,8 @@ basis, which lambda candidate) are made on detached values; the chosen formula i
 evaluated with gradients.
 
 References: Kuehn 1998 / Girard 2005 / Combastel 2003 (reduction), Chisci, Garulli, Zappa 1996
-(minimal-volume outer parallelotope, seed 000 eq. 22), Alamo, Bravo, Camacho 2005 Automatica 41
-"Guaranteed state estimation by zonotopes" (strip intersection).
+(minimal-volume outer parallelotope, Wang et al. 2022, eq. 22), Alamo, Bravo, Camacho 2005
+Automatica 41 "Guaranteed state estimation by zonotopes" (strip intersection).
 """
 
 from __future__ import annotations
@@ -372,7 +372,7 @@ class Zonotope(ConvexSet):
     def to_parallelotope(self) -> Parallelotope:
         """Minimal-volume outer parallelotope over generator bases (Chisci et al. 1996).
 
-        seed 000 eq. 22: for a basis B of n generators, ``T = B diag(sum_j |(B^-1 G)_ij|)``
+        Wang et al. 2022, eq. 22: for a basis B of n generators, ``T = B diag(sum_j |(B^-1 G)_ij|)``
         contains Z; pick the basis of least ``|det T|``. Batched over the C(m, n) bases
         (chunked); singular bases (|det B| <= 1e-12 x Hadamard bound) are skipped. At most
         ``MAX_BASES`` bases per set: beyond, only bases of the L longest generators are
@@ -597,7 +597,8 @@ def _fallback_basis(G: Tensor) -> Tensor:
 
 
 def _basis_T(G: Tensor, basis: Tensor) -> Tensor:
-    """seed 000 eq. 22 / Chisci 1996: ``T = B diag(sum_j |(B^-1 G)_ij|)``, basis ``[..., n]``.
+    """Wang et al. 2022, eq. 22 / Chisci 1996: ``T = B diag(sum_j |(B^-1 G)_ij|)``, basis ``[...,
+    n]``.
 
     Guarantee: the solve is refined once (X + B^-1 (G - B X)) and both |X| and |correction|
     are summed, plus a relative margin of 8 n eps.

@@ -24,8 +24,8 @@ def register(name: str) -> Callable[[Callable[..., System]], Callable[..., Syste
 
 def _load_builtins() -> None:
     import diffsmf.systems.chain  # noqa: F401  (registers the n-dimensional oscillator chain)
-    import diffsmf.systems.library  # noqa: F401  (registers the seed 000/001/004 systems)
-    import diffsmf.systems.radar  # noqa: F401  (registers the seed 003 radar system)
+    import diffsmf.systems.library  # noqa: F401  (registers the Wang et al. 2022/001/004 systems)
+    import diffsmf.systems.radar  # noqa: F401  (registers the Jiang et al. 2016 radar system)
 
 
 def names() -> list[str]:

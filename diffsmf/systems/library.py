@@ -48,7 +48,7 @@ def _positive(name: str, value: float) -> float:
 
 @register("bilinear")
 def bilinear(u: float = 0.6, w: float = 1e-3, v: float = 1e-3, horizon: int = 100) -> System:
-    """Seed 000 eq. 42 (sec. 4.1): ``x+ = [0.5 x1 x2, 0.2 x2^2] + u + w``, ``y = x1 + v``.
+    """Wang et al. 2022, eq. 42 (sec. 4.1): ``x+ = [0.5 x1 x2, 0.2 x2^2] + u + w``, ``y = x1 + v``.
 
     Input ``u_k = 0.6`` added to both states (``inputs`` = ``[0.6, 0.6]``), ``|w|_inf <= 1e-3``,
     ``|v| <= 1e-3``, initial set the box ``[-0.2, 0.3] +- 0.1`` (the paper's parallelotope
@@ -81,7 +81,7 @@ def spring_damper(
     x0_radius: float = 0.15,
     horizon: int = 100,
 ) -> System:
-    """Seed 000 sec. 4.2 (Euler model of the paper): ``x1+ = x1 + dt x2``,
+    """Wang et al. 2022, sec. 4.2 (Euler model of the paper): ``x1+ = x1 + dt x2``,
     ``x2+ = x2 + dt (-k0 x1 (1 - kd x1^2) - c x2)``, ``y = x1 + v``.
 
     ``dt = 0.1 s``, ``k0 = 1.5``, ``kd = 3``, ``c = 1.24``, ``w`` in the box ``+-0.002``,
@@ -123,7 +123,8 @@ def mismatch_quadratic(
     switch_steps: tuple[int, int] = (30, 70),
     horizon: int = 100,
 ) -> System:
-    """Seed 001 eq. 41: ``x1+ = x1 - 0.2 C x1^2``, ``x2+ = x2 + 0.1 C x1^2``, ``y = [x1, 3 x2]``.
+    """Song et al. 2017, eq. 41: ``x1+ = x1 - 0.2 C x1^2``, ``x2+ = x2 + 0.1 C x1^2``, ``y = [x1, 3
+    x2]``.
 
     ``C`` is mismatched: ``parameters = [0.06, 0.26]`` (nominal 0.16); the true ``C(k)`` is 0.11
     for ``k <= 30``, 0.06 for ``30 < k <= 70``, 0.26 for ``k > 70`` (k = index of the step
@@ -158,7 +159,7 @@ def mismatch_quadratic(
     return s
 
 
-# Table 2 of seed 001
+# Table 2 of Song et al. 2017
 _FERMENTER = dict(Y=0.4, eta=2.2, gamma=0.2, mu_m=0.48, P_m=50.0, K_m=1.2, K_i=22.0)
 
 
@@ -173,7 +174,8 @@ def fermenter(
     x0_radius: tuple[float, float, float] = (2.5, 1.5, 5.5),
     horizon: int | None = None,
 ) -> System:
-    """Seed 001 eq. 42-43, Table 2: continuous fermenter, explicit Euler with step ``dt`` (h).
+    """Song et al. 2017, eq. 42-43, Table 2: continuous fermenter, explicit Euler with step ``dt``
+    (h).
 
     State ``[X, S, P]``, all measured (``y = x + v``). ``dX = -D X + mu X``,
     ``dS = D (S_f - S) - mu X / Y``, ``dP = -D P + (eta mu + gamma) X``,
@@ -228,7 +230,7 @@ _B_VDP = torch.tensor([0.0, 1.0], dtype=_F64)
 
 @register("vdp")
 def vdp(dt: float = 0.05, w: float = 1e-3, v: float = 1e-2, horizon: int = 400) -> System:
-    """Seed 004 eq. 23 (Van der Pol type), explicit Euler with step ``dt`` (s):
+    """Wang et al. 2009, eq. 23 (Van der Pol type), explicit Euler with step ``dt`` (s):
     ``x1+ = x1 + dt x2``, ``x2+ = x2 + dt (x2 - x1 - x1^2 x2 + u)``, ``y = x1 + v``.
 
     Input ``u_k = sin(k dt)``. Stated choices (the paper is continuous-time, noise-free):

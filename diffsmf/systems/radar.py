@@ -1,7 +1,7 @@
-"""Seed 003 radar tracking system (registered as ``"radar"``).
+"""Jiang et al. 2016 radar tracking system (registered as ``"radar"``).
 
-Seed 003 sec. 3.1: a target moving at (nearly) constant velocity in the plane, tracked by a
-radar at the origin measuring range and bearing every ``T = 1 s``::
+Jiang et al. 2016, sec. 3.1: a target moving at (nearly) constant velocity in the plane, tracked by
+a radar at the origin measuring range and bearing every ``T = 1 s``::
 
     x_k = A x_{k-1} + Gamma (w_k + d_k),   w ~ N(0, Q),  d in F(0, D)      state [x1, v1, x2, v2]
     y_k = [sqrt(x1^2 + x2^2), atan2(x2, x1)] + v_k + e_k,   v ~ N(0, R),  e in F(0, E)
@@ -39,7 +39,7 @@ _EPS = 1e-9
 
 
 def radar_matrices(T: float = 1.0) -> tuple[Tensor, Tensor]:
-    """Transition ``A [4, 4]`` and noise gain ``Gamma [4, 2]`` of seed 003 sec. 3.1."""
+    """Transition ``A [4, 4]`` and noise gain ``Gamma [4, 2]`` of Jiang et al. 2016, sec. 3.1."""
     A = torch.tensor(
         [[1.0, T, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, T], [0.0, 0.0, 0.0, 1.0]],
         dtype=torch.float64,
@@ -56,7 +56,7 @@ def radar_initial_cov() -> Tensor:
 
 
 def _range_bearing(x: Tensor) -> Tensor:
-    """Seed 003 sec. 3.1 measurement: ``[..., 4] -> [..., 2]`` (range, bearing)."""
+    """Jiang et al. 2016, sec. 3.1 measurement: ``[..., 4] -> [..., 2]`` (range, bearing)."""
     x1, x2 = x[..., 0], x[..., 2]
     return torch.stack([torch.sqrt(x1 * x1 + x2 * x2), torch.atan2(x2, x1)], -1)
 
@@ -68,7 +68,7 @@ def radar(
     bounded: bool = True,
     gaussian: bool = True,
 ) -> System:
-    """Seed 003 radar tracking system.
+    """Jiang et al. 2016 radar tracking system.
 
     Args:
         T: sampling period (s).
@@ -92,7 +92,7 @@ def radar(
     R = diag(20.0**2, 0.01**2)
 
     def f(x: Tensor, u: Tensor | None, theta: Tensor | None) -> Tensor:
-        return x @ A.mT  # seed 003 sec. 3.1, constant velocity
+        return x @ A.mT  # Jiang et al. 2016, sec. 3.1, constant velocity
 
     return System(
         f,

@@ -1,6 +1,6 @@
 """Discrete-time nonlinear system with bounded (and optionally Gaussian) noise.
 
-Model (the convention of every filter in diffsmf, DESIGN.md)::
+Model (the convention of every filter in diffsmf, docs/design.md)::
 
     x_k = f(x_{k-1}, u_{k-1}, theta_{k-1}) + w_{k-1} (+ g_{k-1}),   w in W,  g ~ N(0, Q)
     y_k = h(x_k) + v_k (+ e_k),                                        v in V,  e ~ N(0, R)
