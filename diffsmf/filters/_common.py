@@ -31,12 +31,9 @@ def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor
     ``u [B, p]`` is closed over; :mod:`diffsmf.linearize` puts extra point dims (stencils,
     vertices) in *leading* positions, so ``u`` broadcasts against them.
     """
-    theta = system.theta_nominal
+    from diffsmf.interval.enclose import StepModel
 
-    def fn(x: Tensor) -> Tensor:
-        return system.f(x, u, theta)
-
-    return fn
+    return StepModel(system.f, u, system.theta_nominal)
 
 
 def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:

@@ -172,7 +172,7 @@ def lagrange_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None)
     if _remember(fn, jet):
         return _affine_remainder(fn, S, c, J)
     D = None if J is None else jacobian(fn, c) - J
-    return _lagrange(jet, box, S, c, J, D)
+    return _lower_order(fn, jet, box, S, c, J, _lagrange(jet, box, S, c, J, D))
 
 
 def _lagrange(
@@ -187,6 +187,35 @@ def _lagrange(
     Jm = 0.0 if J is None else (J.abs() * d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2))
     scale = _abs_max(jet.val) + (Jm if J is None else Jm.sum(-1))
     return _padded(R.lower, R.upper, scale)
+
+
+def _lower_order(
+    fn: Fn, jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, R: Interval
+) -> Interval:
+    """``R`` intersected with the bounds of lower order, per output.
+
+    First order (mean value with the interval Jacobian, which encloses the Clarke generalised
+    Jacobian of a non-smooth model, Lebourg's theorem): ``r in ([J_fn] - J)(box - c)``, with
+    ``[J_fn]`` for ``J`` when ``J`` is None (the exact Jacobian at ``c`` lies in it). It bounds
+    the outputs whose Hessian enclosure is infinite (a kink of relu, abs, clamp, max or a PWL
+    model inside the set). Where the Jacobian enclosure itself is infinite (a branch on the
+    state that may jump), zeroth order: ``r in [f](box) - f(c) - J (S - c)``.
+    """
+    d = box.__sub__(c)
+    Jref = jet.grad if J is None else J
+    R1 = (jet.grad.__sub__(Jref) * d.unsqueeze(-2)).sum(-1)
+    mag = d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2)
+    scale = _abs_max(jet.val) + (0.0 if J is None else (J.abs() * mag).sum(-1).detach())
+    R = R.intersect(_padded(R1.lower, R1.upper, scale))
+    finite = torch.isfinite(jet.grad.lower) & torch.isfinite(jet.grad.upper)
+    if not tracing() and bool(finite.all()):
+        return R
+    Jc = jacobian(fn, c) if J is None else J
+    fc = fn(c)
+    L = _linear_range(S, Jc, c)
+    R0 = jet.val.__sub__(fc).__sub__(L)
+    scale0 = _abs_max(jet.val) + fc.abs().detach() + _abs_max(L)
+    return R.intersect(_padded(R0.lower, R0.upper, scale0))
 
 
 def _abs_max(I: Interval) -> Tensor:
@@ -347,7 +376,8 @@ def dc_remainder(
     H = jet.hess  # [..., k, n, n]
     if not tracing() and bool((H.lower.detach() == 0).all() and (H.upper.detach() == 0).all()):
         # fn is affine on the hull: r(x) = (J_exact - J)(x - c) exactly, no vertices needed
-        return _lagrange(jet, box, S, c, J, None if J is None else jacobian(fn, c) - J)
+        R = _lagrange(jet, box, S, c, J, None if J is None else jacobian(fn, c) - J)
+        return _lower_order(fn, jet, box, S, c, J, R)
     # the four convexifications at once (leading dim 4): r + q convex with q the ball
     # (alpha |x - c|^2) or the diagonal shift, and -r + q convex with the same two forms
     Hpm = Interval._make(torch.stack([H.lower, -H.upper]), torch.stack([H.upper, -H.lower]))
@@ -395,7 +425,7 @@ def dc_remainder(
     out = _padded(lower, upper, scale)
     if with_lagrange:
         out = out.intersect(_lagrange(jet, box, S, c, J, grad_c))
-    return out
+    return _lower_order(fn, jet, box, S, c, J, out)
 
 
 def parameter_deviation(
@@ -459,7 +489,7 @@ def mean_value_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = Non
     R = (Jint.__sub__(J) * d.unsqueeze(-2)).sum(-1)
     mag = d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2)
     scale = _abs_max(jet.val) + (J.abs() * mag).sum(-1).detach()
-    return _padded(R.lower, R.upper, scale)
+    return _lower_order(fn, jet, box, S, c, J, _padded(R.lower, R.upper, scale))
 
 
 #: Remainder bounds selectable by name in the filters (``remainder=...``).

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
+from diffsmf.interval.rounding import down, eps, nan_to_zero, subnormal, tiny, up
 from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count
 from diffsmf.utils import tracing
 
@@ -43,63 +44,13 @@ _TWO_PI = 2.0 * math.pi
 
 
 # ---------------------------------------------------------------------------- rounding helpers
-def _step(x: Tensor, k: int, direction: float, absolute: bool = True) -> Tensor:
-    """Move ``x`` outward by at least ``k`` ulps towards ``direction`` (+-inf).
-
-    For a float ``x`` whose exact value ``v`` is within ``k`` ulps (a correctly rounded
-    operation: ``k = 1``), the result bounds ``v``: the offset is ``2 k eps |x|`` (``ulp(x) <=
-    eps |x|`` for normal ``x``; the factor 2 absorbs the rounding of the subtraction itself).
-    ``absolute`` also adds the smallest subnormal, which covers results in the subnormal range
-    or underflowed to 0 (products, quotients, library functions); correctly rounded sums need
-    no absolute term (a sum in the subnormal range is exact), so exact zero sums stay exact.
-    An overflowed bound (a lower bound of +inf, an upper bound of -inf) first becomes the
-    largest finite float, like ``nextafter``. The offset is computed on detached values and
-    added, so the gradient passes unchanged. A chain of 4-5 elementwise ops: this is the hot
-    path of the interval jets.
-    """
-    if k <= 0:
-        return x
-    # Overflowed bounds are clamped first (inf - inf = nan); after the clamp the offset of the
-    # other infinity is inf, which keeps it infinite. The clamp leaves finite values unchanged.
-    # When autograd records on the CPU, a host check (3 ops) is cheaper than a clamp node on
-    # every call; without recording (no_grad, or no input requiring grad) the clamp is one op
-    # and no sync; on accelerators a check would synchronise, and while tracing for
-    # torch.compile it would break the graph, so the clamp is always applied there.
-    grad = x.requires_grad and torch.is_grad_enabled()
-    if not grad or tracing() or x.device.type != "cpu" or bool(torch.isinf(x.detach()).any()):
-        big = torch.finfo(x.dtype).max
-        x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
-    pad = (x.detach() if grad else x).abs() * (2.0 * k * _eps(x))
-    if absolute:
-        pad = pad + _subnormal(x)
-    return x + pad if direction > 0 else x - pad
-
-
-def _down(x: Tensor, k: int = 1, absolute: bool = True) -> Tensor:
-    return _step(x, k, -math.inf, absolute)
-
-
-def _up(x: Tensor, k: int = 1, absolute: bool = True) -> Tensor:
-    return _step(x, k, math.inf, absolute)
-
-
-def _subnormal(t: Tensor) -> float:
-    """Smallest positive subnormal of ``t``'s dtype."""
-    fi = torch.finfo(t.dtype)
-    return fi.tiny * fi.eps
-
-
-def _eps(t: Tensor) -> float:
-    return torch.finfo(t.dtype).eps
-
-
-def _tiny(t: Tensor) -> float:
-    return torch.finfo(t.dtype).tiny
-
-
-def _nan0(t: Tensor) -> Tensor:
-    """0 * inf := 0 (interval convention)."""
-    return torch.where(torch.isnan(t), torch.zeros_like(t), t)
+# one home: diffsmf.interval.rounding (aliases keep this module's names)
+_down = down
+_up = up
+_eps = eps
+_tiny = tiny
+_subnormal = subnormal
+_nan0 = nan_to_zero
 
 
 # ---------------------------------------------------------------------------- the class

@@ -1,0 +1,38 @@
+"""The guarantee engine: interval arithmetic and derivative enclosures of any torch model.
+
+* :mod:`~diffsmf.interval.rounding`: outward rounding, the guarantee of every operation;
+* :mod:`~diffsmf.interval.jet`: interval jets (value, gradient and Hessian enclosures);
+* :mod:`~diffsmf.interval.rules`: one inclusion rule per ATen op, in a registry;
+* :mod:`~diffsmf.interval.capture`: a model captured once as an ATen graph, evaluated by rules;
+* :mod:`~diffsmf.interval.enclose`: the entry point, :func:`enclose`.
+
+The box set and the interval array class live in :mod:`diffsmf.sets` (``Interval``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from diffsmf.interval.rounding import down, up
+
+__all__ = ["EngineError", "Enclosure", "StepModel", "down", "enclose", "inclusion",
+           "supported_ops", "up"]
+
+_LAZY = {
+    "EngineError": "diffsmf.interval.errors",
+    "inclusion": "diffsmf.interval.capture",
+    "Enclosure": "diffsmf.interval.enclose",
+    "StepModel": "diffsmf.interval.enclose",
+    "enclose": "diffsmf.interval.enclose",
+    "supported_ops": "diffsmf.interval.rules",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Lazy imports: the engine needs :mod:`diffsmf.sets`, which needs the rounding module."""
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'diffsmf.interval' has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(mod), name)

@@ -1,0 +1,393 @@
+"""Capture a torch model once as an ATen graph, then evaluate it in interval-jet arithmetic.
+
+:func:`capture` traces a model function with torch's own graph capture (``make_fx`` with
+functionalisation and the core-ATen decompositions, so in-place ops, views and composite ops
+such as ``einsum``, ``roll`` or ``nn.Linear`` reach the engine as a handful of core ops). The
+graph is captured on inputs with one batch row (``x [1, n]``) and evaluated on any batch: a
+:class:`Program` maps every node to its rule in :mod:`diffsmf.interval.rules` and runs the
+rules on enclosures whose extra leading dims (batch, tangents) the graph never sees. Nodes that
+depend on constants only are evaluated once, at capture.
+
+The capture reports, naming the model, what the engine cannot enclose: a Python branch on the
+state (``if x > 0``), a cast of the state to another dtype, ``.detach()``, ``.item()`` or an
+op without a rule. A model that needs an op the engine lacks, or a function the user can
+enclose better by hand, registers an inclusion rule (:func:`inclusion`), or, for an
+``nn.Module``, defines ``interval_enclosure(lo, hi) -> (value_lo, value_hi, jac_lo, jac_hi)``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import operator
+import types
+import weakref
+from collections.abc import Callable, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from diffsmf.interval.errors import EngineError
+from diffsmf.interval.jet import Jet, point
+from diffsmf.interval.rules import RULES, BoolBox, Ctx, register
+from diffsmf.sets.interval import Interval
+
+__all__ = ["EngineError", "Program", "capture", "inclusion"]
+
+aten = torch.ops.aten
+
+
+
+
+# ----------------------------------------------------------------------------- leaves
+_LEAVES: dict[int, Any] = {}
+_LEAF_KEYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_COUNTER = itertools.count()
+
+
+def _leaf_key(obj: Any) -> int:
+    try:
+        key = _LEAF_KEYS.get(obj)
+    except TypeError:
+        key = None
+    if key is None:
+        key = next(_COUNTER)
+        _LEAVES[key] = obj
+        try:
+            _LEAF_KEYS[obj] = key
+        except TypeError:
+            pass
+    return key
+
+
+@torch.library.custom_op("diffsmf::inclusion_leaf", mutates_args=())
+def _leaf_op(x: Tensor, key: int) -> Tensor:
+    return _call_leaf(_LEAVES[key], x).clone()
+
+
+@_leaf_op.register_fake
+def _leaf_fake(x: Tensor, key: int) -> Tensor:  # pragma: no cover - real-mode capture
+    return _call_leaf(_LEAVES[key], torch.zeros_like(x, device="meta"))
+
+
+def _call_leaf(obj: Any, x: Tensor) -> Tensor:
+    fn = getattr(obj, "_diffsmf_raw", None)
+    return fn(x) if fn is not None else obj(x)
+
+
+def inclusion(rule: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor, Tensor]]) -> Callable:
+    """Decorator: give a function of ``x [..., d] -> [..., k]`` a hand-written inclusion rule.
+
+    ``rule(lo, hi)`` takes a box ``lo, hi [..., d]`` and returns ``(value_lo, value_hi [..., k],
+    jac_lo, jac_hi [..., k, d])``: an enclosure of the function's values over the box and of its
+    (generalised) Jacobians. The engine then treats the function as one opaque operation with a
+    first-order (mean-value) remainder. Outside the engine the function runs unchanged::
+
+        def my_rule(lo, hi):
+            ...
+            return vlo, vhi, jlo, jhi
+
+        @ds.interval.inclusion(my_rule)
+        def saturate(x):
+            return torch.tanh(x) * 2.0
+    """
+
+    def deco(fn: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
+        class _Leaf:
+            def __init__(self) -> None:
+                self._diffsmf_raw = fn
+
+            def interval_enclosure(self, lo: Tensor, hi: Tensor) -> tuple[Tensor, ...]:
+                return rule(lo, hi)
+
+        leaf = _Leaf()
+        key = _leaf_key(leaf)
+
+        def wrapper(x: Tensor) -> Tensor:
+            if _CAPTURING:
+                return _leaf_op(x, key)
+            return fn(x)
+
+        wrapper.__wrapped__ = fn  # type: ignore[attr-defined]
+        wrapper.__name__ = getattr(fn, "__name__", "leaf")
+        return wrapper
+
+    return deco
+
+
+_CAPTURING = False
+
+
+def _reachable_modules(fn: Any, depth: int = 3) -> list[nn.Module]:
+    """nn.Modules reachable from ``fn``: itself, its submodules, closure cells and globals."""
+    found: list[nn.Module] = []
+    seen: set[int] = set()
+
+    def visit(obj: Any, d: int) -> None:
+        if id(obj) in seen or d < 0:
+            return
+        seen.add(id(obj))
+        if isinstance(obj, nn.Module):
+            found.extend(m for m in obj.modules() if id(m) not in {id(f) for f in found})
+            return
+        if isinstance(obj, types.MethodType):
+            visit(obj.__self__, d - 1)
+            visit(obj.__func__, d - 1)
+            return
+        if isinstance(obj, types.FunctionType):
+            for cell in obj.__closure__ or ():
+                try:
+                    visit(cell.cell_contents, d - 1)
+                except ValueError:
+                    pass
+            g = obj.__globals__
+            for name in obj.__code__.co_names:
+                if name in g and isinstance(g[name], (nn.Module, types.FunctionType)):
+                    visit(g[name], d - 1)
+            return
+        if isinstance(obj, (list, tuple)):
+            for o in obj:
+                visit(o, d - 1)
+        elif callable(obj) and hasattr(obj, "__dict__"):
+            for o in vars(obj).values():
+                if isinstance(o, (nn.Module, types.FunctionType, types.MethodType)):
+                    visit(o, d - 1)
+
+    visit(fn, depth)
+    return found
+
+
+@contextmanager
+def _patched_leaves(fn: Any):
+    """While capturing, modules with ``interval_enclosure`` become one opaque leaf op."""
+    global _CAPTURING
+    patched = []
+    for m in _reachable_modules(fn):
+        if hasattr(m, "interval_enclosure"):
+            key = _leaf_key(m)
+            raw = m.forward
+            m._diffsmf_raw = raw  # type: ignore[attr-defined]
+            m.forward = (lambda k: lambda x: _leaf_op(x, k))(key)  # type: ignore[method-assign]
+            patched.append((m, raw))
+    _CAPTURING = True
+    try:
+        yield
+    finally:
+        _CAPTURING = False
+        for m, _raw in patched:
+            del m.forward
+            del m._diffsmf_raw
+
+
+@register(torch.ops.diffsmf.inclusion_leaf, category="extension")
+def _leaf_rule(ctx: Ctx, x: Any, key: int) -> Any:
+    obj = _LEAVES[key]
+    if not isinstance(x, Jet):
+        return _call_leaf(obj, x)
+    vlo, vhi, jlo, jhi = obj.interval_enclosure(x.val.lower, x.val.upper)
+    val = Interval._make(vlo, vhi)
+    grad = hess = None
+    if x.order >= 1 and x.grad is not None:
+        J = Interval._make(jlo.unsqueeze(0), jhi.unsqueeze(0))  # [1, ..., k, d]
+        g = Interval._make(x.grad.lower.unsqueeze(-1), x.grad.upper.unsqueeze(-1))
+        grad = J @ g  # [n, ..., k, 1]
+        grad = Interval._make(grad.lower.squeeze(-1), grad.upper.squeeze(-1))
+    if x.order >= 2 and grad is not None:
+        # affine over the box where the Jacobian enclosure is a point (one linear piece)
+        flat = ((jlo == jhi).all(-1)) & _affine_input(x)
+        inf = torch.full((x.n, x.n, *vlo.shape), torch.inf, dtype=vlo.dtype, device=vlo.device)
+        z = torch.zeros_like(inf)
+        hess = Interval._make(torch.where(flat, z, -inf), torch.where(flat, z, inf))
+    return x.like(val, grad, hess)
+
+
+def _affine_input(x: Jet) -> Tensor | bool:
+    """True where the leaf's input is affine in the variables (its Hessian is 0)."""
+    if x.hess is None:
+        return True
+    z = (x.hess.lower == 0) & (x.hess.upper == 0)
+    return z.flatten(0, 1).all(0).all(-1, keepdim=True)
+
+
+# ----------------------------------------------------------------------------- capture
+def _decompositions() -> dict[Any, Callable]:
+    from torch._decomp import core_aten_decompositions
+
+    table = dict(core_aten_decompositions())
+    keep = {op for op in table if op.overloadpacket in RULES}  # ops with a rule of their own
+    keep |= {op for op in table if str(op.overloadpacket) in ("aten.softplus",)}
+    for op in keep:
+        table.pop(op, None)
+    return table
+
+
+def capture(fn: Callable[..., Tensor], example: Sequence[Tensor], name: str) -> Program:
+    """Capture ``fn(*example)`` (one batch row each, e.g. ``x [1, n]``) as a :class:`Program`.
+
+    Raises:
+        EngineError: naming ``name``, the op and what to do, when the model branches on the
+            state in Python, casts it, calls ``.item()``, or uses an op without a rule.
+    """
+    from torch.func import functionalize
+    from torch.fx.experimental.proxy_tensor import make_fx
+
+    ex = [e.detach() for e in example]
+    try:
+        with _patched_leaves(fn):
+            gm = make_fx(functionalize(fn, remove="mutations_and_views"),
+                         decomposition_table=_decompositions(), tracing_mode="real",
+                         _allow_non_fake_inputs=True)(*ex)
+    except RuntimeError as exc:
+        msg = str(exc)
+        if "_local_scalar_dense" in msg or "data-dependent" in msg:
+            raise EngineError(
+                f"{name}: the model reads a value of the state in Python (an `if` on the state, "
+                "`.item()`, `.tolist()` or `float(x)`); write branches with torch.where, "
+                "torch.clamp, torch.maximum or relu so the engine can enclose them"
+            ) from exc
+        raise EngineError(f"{name}: the model could not be captured ({msg.splitlines()[0]})") \
+            from exc
+    gm.graph.eliminate_dead_code()
+    return Program(gm, name)
+
+
+class Program:
+    """A captured model graph, evaluated on enclosures by the per-op rules."""
+
+    def __init__(self, gm: torch.fx.GraphModule, name: str) -> None:
+        self.name = name
+        self.gm = gm
+        self.placeholders: list[torch.fx.Node] = []
+        self.steps: list[tuple[torch.fx.Node, Callable, Ctx]] = []
+        self.consts: dict[torch.fx.Node, Any] = {}
+        self.ops: list[str] = []
+        const: set[torch.fx.Node] = set()
+        for node in gm.graph.nodes:
+            if node.op == "placeholder":
+                self.placeholders.append(node)
+            elif node.op == "get_attr":
+                self.consts[node] = getattr(gm, node.target)
+                t = self.consts[node]
+                if not (isinstance(t, Tensor) and t.requires_grad):
+                    const.add(node)
+            elif node.op == "call_function":
+                self._add(node, const)
+            elif node.op == "output":
+                self.output = node.args[0]
+        self.out_rank = _rank(self.output)
+
+    def _add(self, node: torch.fx.Node, const: set) -> None:
+        deps = [a for a in node.all_input_nodes]
+        is_const = all(d in const for d in deps)
+        if node.target is operator.getitem:
+            rule: Callable = lambda ctx, seq, i: seq[i]  # noqa: E731
+            ctx = Ctx((None,), 0, "getitem")
+        else:
+            packet = getattr(node.target, "overloadpacket", node.target)
+            opname = str(packet).removeprefix("aten.")
+            rule = RULES.get(packet)
+            for suffix in ("_copy", "_"):  # functionalised view ops, in-place variants
+                if rule is None and opname.endswith(suffix):
+                    rule = RULES.get(getattr(aten, opname.removesuffix(suffix), None))
+            if rule is None and is_const:
+                rule = _no_rule
+            if rule is None:
+                raise EngineError(
+                    f"{self.name}: the operation {opname} has no inclusion rule; rewrite that "
+                    "part of the model with supported torch ops (see the 'Writing models' docs "
+                    "page) or register a rule with diffsmf.interval.inclusion"
+                )
+            self.ops.append(opname)
+            ranks = tuple(_rank(a) if isinstance(a, torch.fx.Node) else None for a in node.args)
+            shapes = tuple(_shape(a) for a in node.args)
+            ctx = Ctx(ranks, _rank(node), opname, shapes)
+        if is_const:  # constant subgraph: evaluate once now
+            args, kwargs = self._resolve(node.args, node.kwargs, self.consts)
+            try:
+                self.consts[node] = node.target(*args, **kwargs)
+                const.add(node)
+                return
+            except Exception:  # noqa: BLE001 - evaluate it per call instead
+                pass
+        self.steps.append((node, rule, ctx))
+
+    @staticmethod
+    def _resolve(args: Any, kwargs: dict, env: dict) -> tuple[Any, dict]:
+        def r(a: Any) -> Any:
+            if isinstance(a, torch.fx.Node):
+                return env[a]
+            if isinstance(a, (list, tuple)):
+                return type(a)(r(b) for b in a)
+            return a
+
+        return r(args), {k: r(v) for k, v in kwargs.items()}
+
+    def run(self, inputs: Sequence[Any]) -> Any:
+        """Evaluate on ``inputs`` (one per placeholder: a Jet, a Tensor, in capture order)."""
+        env: dict[torch.fx.Node, Any] = dict(self.consts)
+        for node, value in zip(self.placeholders, inputs, strict=True):
+            env[node] = value
+        for node, rule, ctx in self.steps:
+            args, kwargs = self._resolve(node.args, node.kwargs, env)
+            env[node] = rule(ctx, *args, **kwargs)
+        out = env[self.output] if isinstance(self.output, torch.fx.Node) else self.output
+        if isinstance(out, BoolBox):
+            raise EngineError(f"{self.name}: the model returns a comparison")
+        return out
+
+
+def _no_rule(ctx: Ctx, *args: Any, **kwargs: Any) -> Any:
+    raise EngineError(f"the constant operation {ctx.name} could not be evaluated at capture")
+
+
+def _shape(node: Any) -> tuple[int, ...] | None:
+    if isinstance(node, torch.fx.Node):
+        v = node.meta.get("val")
+        if isinstance(v, Tensor):
+            return tuple(int(d) for d in v.shape)
+    return None
+
+
+def _rank(node: Any) -> int:
+    if isinstance(node, torch.fx.Node):
+        v = node.meta.get("val")
+        if isinstance(v, Tensor):
+            return v.dim()
+        if isinstance(v, (int, float, bool)):
+            return 0
+    return 0
+
+
+# ----------------------------------------------------------------------------- evaluation
+def seed(box: Interval, order: int, n_total: int, offset: int) -> Jet:
+    """The jet of an input box ``[*E, 1, d]`` whose variables are ``offset .. offset + d``."""
+    lo = box.lower
+    d = lo.shape[-1]
+    if order == 0:
+        return Jet(box, None, None, 0, n_total)
+    eye = torch.zeros(n_total, d, dtype=lo.dtype, device=lo.device)
+    eye[offset:offset + d] = torch.eye(d, dtype=lo.dtype, device=lo.device)
+    g = eye.reshape(n_total, *([1] * (lo.dim() - 1)), d)
+    return Jet(box, point(g), None, order, n_total)
+
+
+def to_trailing(out: Any, order: int, like: Tensor, n: int, row: bool) -> Jet:
+    """The program's result (leading tangents; a batch row dim when ``row``) -> value ``[*E, k]``,
+    gradient ``[*E, k, n]``, Hessian ``[*E, k, n, n]`` (None when structurally zero)."""
+    if not isinstance(out, Jet):
+        t = torch.as_tensor(out, dtype=like.dtype, device=like.device)
+        out = Jet(point(t), None, None, order, n)
+
+    def sq(t: Interval | None) -> Interval | None:
+        if t is None or not row:
+            return t
+        return Interval._make(t.lower.squeeze(-2), t.upper.squeeze(-2))
+
+    val, grad, hess = sq(out.val), sq(out.grad), sq(out.hess)
+    if grad is not None:
+        grad = Interval._make(grad.lower.movedim(0, -1), grad.upper.movedim(0, -1))
+    if hess is not None:
+        hess = Interval._make(hess.lower.movedim((0, 1), (-2, -1)),
+                              hess.upper.movedim((0, 1), (-2, -1)))
+    return Jet(val, grad, hess, order, n)

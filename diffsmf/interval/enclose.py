@@ -1,0 +1,155 @@
+"""Enclosures of a model over a box: the engine's entry points.
+
+:func:`enclose` evaluates a model ``fn(x [..., n]) -> [..., k]`` over a box ``[..., n]`` and
+returns guaranteed enclosures of its value ``[..., k]``, Jacobian ``[..., k, n]`` and Hessians
+``[..., k, n, n]``. The model is captured once (per function object) and evaluated by the
+per-op rules. The filters pass a :class:`StepModel` (the system's ``f`` with this step's input
+and parameter), whose program is captured once per system.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from diffsmf.interval.capture import EngineError, Program, capture, seed, to_trailing
+from diffsmf.interval.jet import Jet, point
+from diffsmf.sets.interval import Interval
+
+__all__ = ["Enclosure", "StepModel", "enclose", "program_for"]
+
+_PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_BY_ID: dict[tuple, Program] = {}
+
+
+class Enclosure:
+    """Enclosures of a model over a box: ``val [..., k]``, ``grad [..., k, n]`` (order >= 1),
+    ``hess [..., k, n, n]`` (order 2; zeros when structurally zero, see ``hess_is_zero``)."""
+
+    __slots__ = ("_hess", "grad", "n", "order", "val")
+
+    def __init__(self, jet: Jet) -> None:
+        self.val = jet.val
+        self.n = jet.n
+        self.order = jet.order
+        lo = jet.val.lower
+        if jet.order >= 1 and jet.grad is None:
+            z = torch.zeros((*lo.shape, jet.n), dtype=lo.dtype, device=lo.device)
+            self.grad = point(z)
+        else:
+            self.grad = jet.grad
+            if self.grad is not None and self.grad.lower.shape[:-1] != lo.shape:
+                shape = (*torch.broadcast_shapes(self.grad.lower.shape[:-1], lo.shape), jet.n)
+                self.grad = Interval._make(self.grad.lower.expand(shape),
+                                           self.grad.upper.expand(shape))
+        self._hess = jet.hess
+
+    @property
+    def hess_is_zero(self) -> bool:
+        """True when the Hessian is structurally zero (the model is affine)."""
+        return self.order >= 2 and self._hess is None
+
+    @property
+    def hess(self) -> Interval | None:
+        if self.order < 2:
+            return None
+        lo = self.val.lower
+        shape = (*lo.shape, self.n, self.n)
+        if self._hess is None:
+            z = torch.zeros(shape, dtype=lo.dtype, device=lo.device)
+            return point(z)
+        h = self._hess
+        if h.lower.shape != shape:
+            shape = torch.broadcast_shapes(h.lower.shape, shape)
+            h = Interval._make(h.lower.expand(shape), h.upper.expand(shape))
+        return h
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.val.lower.shape
+
+
+class StepModel:
+    """``x -> f(x, u, theta)``: a system's dynamics for one step, with a stable program.
+
+    Args:
+        f: the system's ``f(x, u, theta)`` (a stable object: its program is cached on it).
+        u: input ``[..., p]`` or ``None``.
+        theta: parameter ``[..., q]`` or ``None``.
+    """
+
+    def __init__(self, f: Callable[..., Tensor], u: Tensor | None, theta: Tensor | None) -> None:
+        self.f = f
+        self.u = u
+        self.theta = theta
+
+    def __call__(self, x: Tensor) -> Tensor:
+        return self.f(x, self.u, self.theta)
+
+    def points(self) -> list[Tensor]:
+        return [t for t in (self.u, self.theta) if t is not None]
+
+    def program(self, x: Tensor) -> Program:
+        u_ex = None if self.u is None else self.u.detach().reshape(-1, self.u.shape[-1])[:1]
+        th_ex = None if self.theta is None else self.theta.detach().reshape(
+            -1, self.theta.shape[-1])[:1]
+        has = (u_ex is not None, th_ex is not None)
+
+        def g(x_: Tensor, *rest: Tensor) -> Tensor:
+            it = iter(rest)
+            u_ = next(it) if has[0] else None
+            th_ = next(it) if has[1] else None
+            return self.f(x_, u_, th_)
+
+        ex = [x] + [t for t in (u_ex, th_ex) if t is not None]
+        return program_for(self.f, g, ex, "f", key=has)
+
+
+def program_for(owner: Any, fn: Callable[..., Tensor], example: list[Tensor], name: str,
+                key: Any = None) -> Program:
+    """The program of ``fn`` captured on ``example`` (cached on ``owner`` and ``key``)."""
+    shapes = tuple((tuple(e.shape), e.dtype, e.device.type) for e in example)
+    k = (key, shapes)
+    try:
+        cache = _PROGRAMS.setdefault(owner, {})
+    except TypeError:  # not weak-referenceable
+        cache = _BY_ID.setdefault((id(owner),), {})  # type: ignore[assignment]
+    prog = cache.get(k)
+    if prog is None:
+        prog = capture(fn, example, name)
+        cache[k] = prog
+    return prog
+
+
+def enclose(fn: Callable[..., Tensor], box: Interval, order: int = 2,
+            name: str = "fn") -> Enclosure:
+    """Enclosures of ``fn`` over ``box [..., n]`` -> :class:`Enclosure` (``[..., k]`` value,
+    ``[..., k, n]`` Jacobian, ``[..., k, n, n]`` Hessians, as ``order`` asks).
+
+    ``fn`` maps ``x [..., n]`` to ``[..., k]`` with torch ops (leading dims are batch dims).
+    Raises :class:`EngineError` naming ``name`` for a model the engine cannot enclose.
+    """
+    if not isinstance(box, Interval) or box.lower.dim() < 1:
+        raise ValueError("box: expected an Interval of shape [..., n]")
+    if order not in (0, 1, 2):
+        raise ValueError(f"order: expected 0, 1 or 2, got {order}")
+    lo = box.lower
+    n = lo.shape[-1]
+    if isinstance(fn, StepModel):  # one program for every batch shape: a batch row in front
+        prog = fn.program(torch.zeros(1, n, dtype=lo.dtype, device=lo.device))
+        if prog.out_rank != 2:
+            raise EngineError(f"{prog.name}: must map x [..., n] to [..., k] (keep the batch "
+                              "dims)")
+        x = Interval._make(lo.unsqueeze(-2), box.upper.unsqueeze(-2))
+        out = prog.run([seed(x, order, n, 0), *[t.unsqueeze(-2) for t in fn.points()]])
+        return Enclosure(to_trailing(out, order, lo, n, row=True))
+    # any function (it may close over batched tensors): captured at this box's shape
+    prog = program_for(fn, fn, [torch.zeros_like(lo)], getattr(fn, "__name__", name))
+    if prog.out_rank < 1:
+        raise EngineError(f"{prog.name}: must map x [..., n] to [..., k] (keep the batch dims)")
+    out = prog.run([seed(box, order, n, 0)])
+    return Enclosure(to_trailing(out, order, lo, n, row=False))

@@ -1,0 +1,184 @@
+"""Derivative enclosures: interval jets with the tangent dimensions in front.
+
+A :class:`Jet` encloses, over every ``x`` in an input box, a tensor-valued intermediate quantity
+``q(x)`` of a model program: its value ``val [*E, *s]``, its gradient ``grad [n, *E, *s]`` and
+its Hessian ``hess [n, n, *E, *s]``, each an :class:`~diffsmf.sets.Interval` array (``*E`` are
+the caller's batch dims, ``*s`` the quantity's own shape as captured, ``n`` the number of
+differentiation variables). With the tangent dimensions *leading*, every operation that only
+moves values, and every linear one, applies to the value, the gradient and the Hessian
+unchanged: the program's shape arguments refer to the trailing ``*s`` dims only.
+
+``grad is None`` is a structurally zero gradient (a quantity that does not depend on ``x``,
+e.g. an interval parameter); ``hess is None`` is a structurally zero Hessian (``q`` affine in
+``x`` so far), so affine parts cost no Hessian arithmetic and an affine model is recognised
+exactly. An entry of ``[-inf, inf]`` in ``grad`` or ``hess`` says that the derivative does not
+exist there (a discontinuity, or a kink for the Hessian): the remainder bounds then fall back
+to a bound of lower order for the outputs concerned.
+
+The calculus (Song et al. 2017, sec. 3, interval extensions): for a unary ``phi`` with
+enclosures ``phi(Q)``, ``phi'(Q)``, ``phi''(Q)`` over the value enclosure ``Q``::
+
+    grad phi(q) = phi'(Q) grad q,   hess phi(q) = phi'(Q) hess q + phi''(Q) grad q grad q'
+
+and the product rule for ``a * b``. A non-smooth ``phi`` passes the hull of its one-sided
+derivatives (its Clarke generalised derivative), for which the mean-value inclusion still
+holds (Lebourg's theorem), and ``[-inf, inf]`` as ``phi''`` where a kink lies in ``Q``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from diffsmf.sets.interval import Interval
+
+__all__ = ["Jet", "as_interval", "chain", "hull", "move", "mul", "nonsmooth", "point"]
+
+
+class Jet:
+    """Interval enclosures of a value and its first two derivatives (tangent dims leading).
+
+    Args:
+        val: value enclosure ``[*E, *s]``.
+        grad: gradient enclosure ``[n, *E, *s]`` or ``None`` (structurally zero).
+        hess: Hessian enclosure ``[n, n, *E, *s]`` or ``None`` (structurally zero).
+        order: 0 (values only), 1 (values and gradients) or 2.
+        n: number of differentiation variables.
+    """
+
+    __slots__ = ("grad", "hess", "n", "order", "val")
+
+    def __init__(
+        self, val: Interval, grad: Interval | None, hess: Interval | None, order: int, n: int
+    ) -> None:
+        self.val = val
+        self.grad = grad if order >= 1 else None
+        self.hess = hess if order >= 2 else None
+        self.order = order
+        self.n = n
+
+    def like(self, val: Interval, grad: Interval | None, hess: Interval | None) -> Jet:
+        """A jet of the same order and variables."""
+        return Jet(val, grad, hess, self.order, self.n)
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.val.lower.shape
+
+    def __repr__(self) -> str:
+        return f"Jet(shape={tuple(self.shape)}, n={self.n}, order={self.order})"
+
+
+def point(t: Tensor) -> Interval:
+    """The degenerate interval ``[t, t]``."""
+    return Interval._make(t, t)
+
+
+def as_interval(x: Any, like: Tensor) -> Interval:
+    """Interval, tensor or number -> Interval of ``like``'s dtype and device."""
+    if isinstance(x, Interval):
+        return x
+    t = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+    return Interval._make(t, t)
+
+
+def move(x: Any, fn: Callable[[Tensor], Tensor]) -> Any:
+    """Apply a value-moving op to both bounds of an Interval (or to a tensor / None)."""
+    if x is None:
+        return None
+    if isinstance(x, Interval):
+        return Interval._make(fn(x.lower), fn(x.upper))
+    return fn(x)
+
+
+def hull(a: Interval, b: Interval) -> Interval:
+    """Elementwise interval hull of two enclosures (broadcast)."""
+    return Interval._make(torch.minimum(a.lower, b.lower), torch.maximum(a.upper, b.upper))
+
+
+def _tangent(t: Interval, k: int) -> Interval:
+    """Insert ``k`` leading singleton dims (to broadcast a ``[*E, *s]`` factor against tangents)."""
+    if k == 0:
+        return t
+    idx = (None,) * k
+    return Interval._make(t.lower[idx], t.upper[idx])
+
+
+def _outer(a: Interval, b: Interval) -> Interval:
+    """``a_i b_j`` over the leading tangent dim -> ``[n, n, ...]``."""
+    left = Interval._make(a.lower.unsqueeze(1), a.upper.unsqueeze(1))
+    return left * Interval._make(b.lower.unsqueeze(0), b.upper.unsqueeze(0))
+
+
+def _outer_sym(g: Interval) -> Interval:
+    """``g_i g_j`` with exact squares on the diagonal (tighter than products)."""
+    o = _outer(g, g)
+    n = g.lower.shape[0]
+    eye = torch.eye(n, dtype=torch.bool, device=g.lower.device)
+    eye = eye.reshape(n, n, *([1] * (g.lower.dim() - 1)))
+    return Interval._make(torch.where(eye, o.lower.clamp_min(0.0), o.lower), o.upper)
+
+
+def hadd(*hs: Interval | None) -> Interval | None:
+    """Sum of enclosures where ``None`` is the structural zero."""
+    out = None
+    for h in hs:
+        if h is not None:
+            out = h if out is None else out + h
+    return out
+
+
+def chain(a: Jet, v: Interval, d1: Interval | None, d2: Interval | None) -> Jet:
+    """``phi(a)`` from enclosures of ``phi``, ``phi'``, ``phi''`` over ``a.val``."""
+    if a.grad is None or d1 is None:
+        return a.like(v, None, None)
+    grad = a.grad * _tangent(d1, 1)
+    hess = None
+    if a.order >= 2:
+        h1 = None if a.hess is None else a.hess * _tangent(d1, 2)
+        h2 = None if d2 is None else _outer_sym(a.grad) * _tangent(d2, 2)
+        hess = hadd(h1, h2)
+    return a.like(v, grad, hess)
+
+
+def mul(a: Jet | Tensor, b: Jet | Tensor) -> Jet:
+    """Product rule, first and second order (``a is b`` uses exact squares)."""
+    if not isinstance(a, Jet):
+        a, b = b, a
+    if not isinstance(b, Jet):  # jet times a constant tensor
+        c = point(torch.as_tensor(b, dtype=a.val.lower.dtype, device=a.val.lower.device))
+        return a.like(a.val * c, _scaled(a.grad, c, 1), _scaled(a.hess, c, 2))
+    if a is b:
+        return a.like(a.val.square(), *_square_derivs(a))
+    grad = hadd(_scaled(a.grad, b.val, 1), _scaled(b.grad, a.val, 1))
+    hess = None
+    if a.order >= 2:
+        cross = None
+        if a.grad is not None and b.grad is not None:
+            o = _outer(a.grad, b.grad)
+            cross = o + Interval._make(o.lower.transpose(0, 1), o.upper.transpose(0, 1))
+        hess = hadd(_scaled(a.hess, b.val, 2), _scaled(b.hess, a.val, 2), cross)
+    return a.like(a.val * b.val, grad, hess)
+
+
+def _square_derivs(a: Jet) -> tuple[Interval | None, Interval | None]:
+    if a.grad is None:
+        return None, None
+    grad = a.grad * _tangent(a.val, 1) * 2.0
+    hess = None
+    if a.order >= 2:
+        hess = hadd(_scaled(a.hess, a.val, 2), _outer_sym(a.grad)) * 2.0
+    return grad, hess
+
+
+def _scaled(t: Interval | None, c: Interval, k: int) -> Interval | None:
+    return None if t is None else t * _tangent(c, k)
+
+
+def nonsmooth(like: Interval) -> Interval:
+    """``[-inf, inf]`` shaped like ``like``: a derivative that does not exist."""
+    inf = torch.full_like(like.lower, torch.inf)
+    return Interval._make(-inf, inf)
