@@ -17,6 +17,7 @@ enclose better by hand, registers an inclusion rule (:func:`inclusion`), or, for
 
 from __future__ import annotations
 
+import functools
 import itertools
 import operator
 import types
@@ -211,6 +212,7 @@ def _affine_input(x: Jet) -> Tensor | bool:
 
 
 # ----------------------------------------------------------------------------- capture
+@functools.lru_cache(maxsize=1)
 def _decompositions() -> dict[Any, Callable]:
     from torch._decomp import core_aten_decompositions
 

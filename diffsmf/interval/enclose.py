@@ -20,7 +20,7 @@ from diffsmf.interval.capture import EngineError, Program, capture, seed, to_tra
 from diffsmf.interval.jet import Jet, point
 from diffsmf.sets.interval import Interval
 
-__all__ = ["Enclosure", "StepModel", "enclose", "program_for"]
+__all__ = ["Enclosure", "StepModel", "enclose", "enclose_dynamics", "program_for"]
 
 _PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _BY_ID: dict[tuple, Program] = {}
@@ -153,3 +153,28 @@ def enclose(fn: Callable[..., Tensor], box: Interval, order: int = 2,
         raise EngineError(f"{prog.name}: must map x [..., n] to [..., k] (keep the batch dims)")
     out = prog.run([seed(box, order, n, 0)])
     return Enclosure(to_trailing(out, order, lo, n, row=False))
+
+
+def enclose_dynamics(
+    f: Callable[..., Tensor],
+    box: Interval,
+    theta: Interval,
+    u: Tensor | None,
+    order: int = 1,
+) -> Enclosure:
+    """Enclose ``f(x, u, theta)`` jointly over ``x`` in ``box [..., n]`` and ``theta`` in
+    ``theta [..., q]`` -> value ``[..., n]`` and (order 1) the Jacobian w.r.t. ``(x, theta)``
+    ``[..., n, n + q]`` (used for the parameter deviation, Song et al. 2017, eq. 18-21).
+    A point ``theta`` (``lower == upper``) is enclosed the same way."""
+    lo = box.lower
+    n, q = lo.shape[-1], theta.lower.shape[-1]
+    sm = StepModel(f, u, theta.lower)
+    prog = sm.program(torch.zeros(1, n, dtype=lo.dtype, device=lo.device))
+    x = Interval._make(lo.unsqueeze(-2), box.upper.unsqueeze(-2))
+    th = Interval._make(theta.lower.unsqueeze(-2), theta.upper.unsqueeze(-2))
+    inputs = [seed(x, order, n + q, 0)]
+    if u is not None:
+        inputs.append(u.unsqueeze(-2))
+    inputs.append(seed(th, order, n + q, n))
+    out = prog.run(inputs)
+    return Enclosure(to_trailing(out, order, lo, n + q, row=True))

@@ -148,6 +148,9 @@ def mul(a: Jet | Tensor, b: Jet | Tensor) -> Jet:
     """Product rule, first and second order (``a is b`` uses exact squares)."""
     if not isinstance(a, Jet):
         a, b = b, a
+    if isinstance(b, (int, float)) and not isinstance(b, bool):  # two products, not four
+        return a.like(a.val * float(b), None if a.grad is None else a.grad * float(b),
+                      None if a.hess is None else a.hess * float(b))
     if not isinstance(b, Jet):  # jet times a constant tensor
         c = point(torch.as_tensor(b, dtype=a.val.lower.dtype, device=a.val.lower.device))
         return a.like(a.val * c, _scaled(a.grad, c, 1), _scaled(a.hess, c, 2))

@@ -22,10 +22,11 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.interval.enclose import enclose_dynamics
 from diffsmf.linearize.jacobians import jacobian
-from diffsmf.linearize.jets import Jet, interval_jacobian, jet_eval
+from diffsmf.linearize.jets import Jet, jet_eval
 from diffsmf.sets.base import ConvexSet
-from diffsmf.sets.interval import Interval, interval_eval
+from diffsmf.sets.interval import Interval
 from diffsmf.utils import materialize, tracing
 
 __all__ = [
@@ -451,14 +452,14 @@ def parameter_deviation(
     th_nom = params.center if theta_nom is None else torch.as_tensor(theta_nom, dtype=S.dtype)
     theta_box = params.hull(Interval(th_nom, th_nom))  # theta_nom may lie outside params
     n = S.dim
-    nat = interval_eval(lambda x, th: f(x, u, th), box, params) - interval_eval(
-        lambda x: f(x, u, th_nom), box
-    )
     batch = torch.broadcast_shapes(box.shape[:-1], theta_box.shape[:-1])
-    zlo = torch.cat([box.lower.expand(*batch, n), theta_box.lower.expand(*batch, q)], -1)
-    zhi = torch.cat([box.upper.expand(*batch, n), theta_box.upper.expand(*batch, q)], -1)
-    Jz = interval_jacobian(lambda z: f(z[..., :n], u, z[..., n:]), Interval(zlo, zhi))
-    Jth = Jz[..., n:]  # [..., n, q]
+    theta_box = Interval._make(theta_box.lower.expand(*batch, q), theta_box.upper.expand(*batch, q))
+    box = Interval._make(box.lower.expand(*batch, n), box.upper.expand(*batch, n))
+    both = enclose_dynamics(f, box, theta_box, u, order=1)  # over X and the theta hull
+    th_pt = torch.as_tensor(th_nom, dtype=S.dtype).expand(*batch, q)
+    nominal = enclose_dynamics(f, box, Interval._make(th_pt, th_pt), u, order=0)
+    nat = both.val - nominal.val  # eq. 20 (over the hull of params and theta_nom)
+    Jth = both.grad[..., n:]  # [..., n, q]
     mv = (Jth * params.__sub__(th_nom).unsqueeze(-2)).sum(-1)
     return nat.intersect(mv)
 
