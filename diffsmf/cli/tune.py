@@ -1,12 +1,12 @@
 """Tune a filter's noise bounds (and step sizes) on simulated data of a built-in system.
 
-    python -m training.tune --system spring_damper --filter hsnsmf --epochs 200 --out runs/sd
-    python -m training.tune --config sd.toml
-    torchrun --nproc_per_node 2 -m training.tune ...      # data-parallel (gloo / NCCL)
+    diffsmf tune --system spring_damper --filter hsnsmf --epochs 200 --out runs/sd
+    diffsmf tune --config sd.toml
+    torchrun --nproc_per_node 2 -m diffsmf tune ...      # data-parallel (gloo / NCCL)
 
 Writes ``hyperparameters.json`` (initial, tuned and true bounds), ``report.json``,
 ``loss_curve.csv`` and ``tuning.png`` (loss curve and mean set area before/after on held-out
-trajectories) to ``--out``. The loop itself is :func:`training.loop.tune`.
+trajectories) to ``--out``. The loop itself is `diffsmf.tuning.loop.tune`.
 """
 
 from __future__ import annotations
@@ -14,24 +14,25 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import types
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import torch
 
+import diffsmf as ds
 from diffsmf.filters.base import SetFilter
-from training import ddp
-from training.config import TuneConfig, load_config
-from training.loop import LOSS_MODES, Data, TuneReport, evaluate, tune
-from training.losses import LossWeights
+from diffsmf.tuning import ddp
+from diffsmf.tuning.config import TuneConfig, load_config
+from diffsmf.tuning.loop import LOSS_MODES, Data, TuneReport, evaluate, simulate_finite, tune
+from diffsmf.tuning.losses import LossWeights
 
-__all__ = ["add_arguments", "build", "main", "simulate_finite", "tune"]
+__all__ = ["add_arguments", "build", "main"]
 
 
 # ---------------------------------------------------------------------------- command line
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``python -m training.tune`` / ``diffsmf tune`` (defaults: :class:`TuneConfig`)."""
+    """Options of ``diffsmf tune`` (defaults: :class:`TuneConfig`)."""
     d = TuneConfig()
     a = parser.add_argument
     a("--config", default=None, help="TOML file of options (command-line values win)")
@@ -93,8 +94,6 @@ def _merge_config(args: argparse.Namespace) -> TuneConfig:
 
 def _check_config(cfg: TuneConfig) -> None:
     """One ``ValueError`` naming the option for each user error in a run configuration."""
-    import diffsmf as ds
-
     ds.systems.check_name(cfg.system, option="--system")
     try:
         ds.filters.by_name(cfg.filter)
@@ -116,9 +115,7 @@ def _check_config(cfg: TuneConfig) -> None:
         raise ValueError(f"--init-scale: must be > 0, got {cfg.init_scale}")
     if not cfg.params:
         raise ValueError("--params: name at least one hyperparameter to tune")
-    from dataclasses import fields as _fields
-
-    known = [f.name for f in _fields(LossWeights)]
+    known = [f.name for f in fields(LossWeights)]
     unknown = sorted(set(cfg.weights) - set(known))
     if unknown:
         raise ValueError(f"config: weights: unknown loss weights {unknown}; allowed: {known}")
@@ -131,35 +128,8 @@ def _check_config(cfg: TuneConfig) -> None:
         raise ValueError(f"--out: cannot create folder {str(out)!r} ({exc.strerror})") from None
 
 
-def simulate_finite(system: Any, steps: int, batch: int, seed: int, noise: str) -> Any:
-    """``system.simulate`` keeping only trajectories that stay finite (first ``batch`` of them).
-
-    Some built-in models leave their domain from parts of the initial set (``spring_damper``
-    with vertex noise diverges from about 25 % of the corners of X0: a softening spring); a
-    filter cannot be tuned or audited on inf. Draws 2x, 4x, ... until enough are finite.
-    """
-    from diffsmf.systems import Trajectory
-
-    draw = batch
-    for _ in range(6):
-        tr = system.simulate(steps, batch=draw, seed=seed, noise=noise)
-        ok = torch.isfinite(tr.x).all(-1).all(-1) & torch.isfinite(tr.y).all(-1).all(-1)
-        if int(ok.sum()) >= batch:
-            idx = ok.nonzero().squeeze(-1)[:batch]
-            return Trajectory(
-                x=tr.x[idx],
-                y=tr.y[idx],
-                u=None if tr.u is None else tr.u[idx],
-                theta=None if tr.theta is None else tr.theta[idx],
-            )
-        draw *= 2
-    raise ValueError(f"system: fewer than {batch} finite trajectories out of {draw}")
-
-
 def build(cfg: TuneConfig) -> tuple[Any, SetFilter, dict[str, Any]]:
     """System, filter (bounds scaled by ``init_scale``) and simulated data of a config."""
-    import diffsmf as ds
-
     system = ds.systems.get(cfg.system)
     try:
         filt = ds.filters.by_name(cfg.filter)(system, **cfg.filter_kwargs)
@@ -315,21 +285,3 @@ def main(args: argparse.Namespace) -> int:
             )
         print(f"  wrote {cfg.out}/hyperparameters.json, loss_curve.csv, tuning.png")
     return 0
-
-
-class _CallableModule(types.ModuleType):
-    """Importing this submodule makes Python rebind the package attribute ``training.tune``
-    (the tuning function) to the module; calling the module runs the function, so
-    ``from training import tune; tune(...)`` works whatever was imported first."""
-
-    def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        return tune(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule
-
-
-if __name__ == "__main__":  # pragma: no cover
-    from diffsmf.cli import run_command  # one-line user errors, defaults in --help
-
-    raise SystemExit(run_command("tune", sys.argv[1:], prog="python -m training.tune"))

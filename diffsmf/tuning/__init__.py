@@ -1,11 +1,11 @@
 """Tuning diffsmf filters by gradient descent on set volume.
 
-``from training import tune`` is the loop (:func:`training.loop.tune`); ``python -m
-training.tune`` is the command line (:mod:`training.tune`).
+``from diffsmf.tuning import tune`` is the loop (`diffsmf.tuning.loop.tune`); ``diffsmf tune``
+is the command line (`diffsmf.cli.tune`; ``python training/tune.py`` from a source checkout).
 """
 
-from training.loop import TuneReport, evaluate, tune
-from training.losses import (
+from diffsmf.tuning.loop import Data, TuneReport, evaluate, simulate_finite, tune
+from diffsmf.tuning.losses import (
     LossWeights,
     consistency_loss,
     containment_loss,
@@ -15,6 +15,7 @@ from training.losses import (
 )
 
 __all__ = [
+    "Data",
     "LossWeights",
     "TuneReport",
     "consistency_loss",
@@ -23,5 +24,6 @@ __all__ = [
     "filter_with_predictions",
     "log_volume_loss",
     "normalised_outside",
+    "simulate_finite",
     "tune",
 ]
