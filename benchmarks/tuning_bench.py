@@ -65,10 +65,10 @@ def measure(
 
 
 def measure_tool(compiled: bool, y: torch.Tensor, epochs: int) -> tuple[float, float]:
-    """The tuning tool itself, ``training.loop.tune`` (consistency loss: ``y`` only, batch =
+    """The tuning tool itself, ``diffsmf.tuning.tune`` (consistency loss: ``y`` only, batch =
     all trajectories, no validation): (s per epoch over ``epochs`` epochs, s of the first
     epoch, which includes the one-off compile)."""
-    from training.loop import tune
+    from diffsmf.tuning import tune
 
     filt = filters.HSNSMF(systems.get("spring_damper"))
     kw = {"batch_size": y.shape[0], "progress": False, "compile": compiled}
@@ -90,9 +90,9 @@ def main() -> None:
     ap.add_argument("--steps-per-call", type=int, nargs="+", default=[1], metavar="K",
                     help="compiled rows with filt.compile(steps_per_call=K), one row per K")
     ap.add_argument("--tool-epochs", type=int, default=0, metavar="N",
-                    help="also time training.loop.tune itself, eager and compile=True, over N "
+                    help="also time diffsmf.tuning.tune itself, eager and compile=True, over N "
                     "epochs (after a first epoch that compiles)")
-    ap.add_argument("--tool-only", action="store_true", help="only the training.loop.tune rows")
+    ap.add_argument("--tool-only", action="store_true", help="only the diffsmf.tuning.tune rows")
     args = ap.parse_args()
     torch.set_num_threads(1)
     system = systems.get("spring_damper")
@@ -110,7 +110,7 @@ def main() -> None:
         print(f"| {name} | {fwd:.3f} | {both:.3f} | {both / fwd:.2f} | {args.epochs * both:.0f} | "
               f"{tc:.0f} | {rec:.3f} | {both / rec:.2f} |", flush=True)
     if args.tool_epochs > 0:
-        print(f"\n`training.loop.tune` (consistency loss, {args.batch} x {args.steps}, one batch "
+        print(f"\n`diffsmf.tuning.tune` (consistency loss, {args.batch} x {args.steps}, one batch "
               f"per epoch, no validation), mean of {args.tool_epochs} epochs:\n")
         print(f"| mode | s per epoch | {args.epochs} epochs s | first epoch s (with compile) |")
         print("|---|---:|---:|---:|")

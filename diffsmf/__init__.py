@@ -13,7 +13,7 @@ from diffsmf.systems import System, Trajectory
 
 __version__ = "0.1.0"
 
-_LAZY = ("audit", "linearize", "observers", "plot", "pwl", "tightness")
+_LAZY = ("audit", "linearize", "observers", "plot", "pwl", "tightness", "tuning")
 
 
 def __getattr__(name: str):

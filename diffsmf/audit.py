@@ -15,23 +15,27 @@ Command line: ``diffsmf audit --system spring_damper --filter hsnsmf --trials 10
 
 from __future__ import annotations
 
-import argparse
-import re
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.optimize import linprog
 from torch import Tensor
 
+from diffsmf.filters import is_guaranteed
+from diffsmf.filters.base import check_filter
+from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
 from diffsmf.sets.base import ConvexSet, as_vector
+from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
+from diffsmf.systems.system import check_system
+from diffsmf.tightness import TightnessReport, inner_bounds, tightness  # noqa: F401 (re-exported)
 from diffsmf.utils import HIGHS_OPTIONS, is_int
 
 __all__ = [
-    "AuditReport", "add_arguments", "containment", "gauge", "has_gaussian_noise", "main",
-    "paper_steps",
+    "AuditReport", "containment", "gauge", "gaussian_note", "has_gaussian_noise", "paper_steps",
 ]
 
 TOL = 1e-9
@@ -78,8 +82,6 @@ class AuditReport:
 
 def _zonotope_gauge_lp(c: np.ndarray, G: np.ndarray, x: np.ndarray) -> float:
     """``min ||a||_inf s.t. G a = x - c`` (scipy linprog) for one point."""
-    from scipy.optimize import linprog
-
     n, m = G.shape
     # variables [a (m), t]; minimise t; -t <= a_i <= t
     cost = np.zeros(m + 1)
@@ -104,8 +106,6 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
     a ConstrainedZonotope (whose centre may lie outside it) certified points get 0 and the
     others ``1 + distance / scale`` (HiGHS distance; > 1 means outside).
     """
-    from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
-
     S = S.detach()
     x = as_vector("x", x, S.center, S.dim).detach()
     c = S.center
@@ -129,8 +129,6 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
             i = tuple(idx)
             g[i] = _zonotope_gauge_lp(cb[i].numpy(), Gb[i].numpy(), xb[i].numpy())
         return g
-    from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
-
     if isinstance(S, ConstrainedZonotope):
         # the centre need not lie in a constrained zonotope: points that ``contains``
         # certifies get gauge 0, the others 1 + (HiGHS distance to the set) / scale, so a
@@ -186,9 +184,6 @@ def containment(
         :class:`AuditReport` over the audited trajectories. ``mean_volume`` averages over
         trajectories and steps 1..T.
     """
-    from diffsmf.filters.base import check_filter
-    from diffsmf.systems.system import check_system
-
     check_filter("filt", filt, None if system is None else check_system("system", system))
     system = filt.system if system is None else system
     if not is_int(trials) or trials < 1:
@@ -208,9 +203,9 @@ def containment(
             f"{trials - 1} of {trials}), got {count!r}"
         )
     steps = paper_steps(system) if steps is None else steps
-    if has_gaussian_noise(system) and _is_guaranteed(filt):
+    if has_gaussian_noise(system) and is_guaranteed(filt):
         warnings.warn(
-            f"containment: {_gaussian_note(system)} (audit {type(filt).__name__} on the system "
+            f"containment: {gaussian_note(system)} (audit {type(filt).__name__} on the system "
             "built without the Gaussian part)",
             stacklevel=2,
         )
@@ -278,104 +273,10 @@ def has_gaussian_noise(system) -> bool:
     return system.process_cov is not None or system.measurement_cov is not None
 
 
-def _gaussian_note(system) -> str:
+def gaussian_note(system) -> str:
     """What the audit says of a system with Gaussian noise (API warning and CLI note)."""
     return (
         f"{system.name} has Gaussian noise (process_cov / measurement_cov) besides its bounded "
         "sets, which no set filter bounds, so pairs outside are expected here and are no "
         "violation of a guarantee"
     )
-
-
-def _is_guaranteed(filt: torch.nn.Module) -> bool:
-    from diffsmf.filters.compare import GUARANTEED
-
-    return type(filt).__name__.upper() in GUARANTEED
-
-
-# ---------------------------------------------------------------------- CLI
-def _positive_int(text: str) -> int:
-    """argparse type: an integer >= 1 (so ``--trials 0`` is a one-line usage error)."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``diffsmf audit``."""
-    parser.add_argument(
-        "--system", required=True,
-        help="built-in system name (see diffsmf.systems.names()); NAME:N for a sized system, "
-        "e.g. oscillator_chain:16",
-    )
-    parser.add_argument(
-        "--filter", required=True, help="hsnsmf | mszm | cdsmf | esmf | czsmf | ekf | combined"
-    )
-    parser.add_argument(
-        "--trials", type=_positive_int, default=1000, help="simulated trajectories (one batch)"
-    )
-    parser.add_argument(
-        "--steps", type=_positive_int, default=None,
-        help="horizon in steps (default: the system's paper horizon, else 100)",
-    )
-    parser.add_argument(
-        "--noise", choices=["vertex", "uniform", "both"], default="both",
-        help="noise draw: vertex (worst case), uniform, or both one after the other",
-    )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated trajectories")
-    parser.add_argument("--json", action="store_true", help="print JSON lines instead of text")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-
-
-def main(args: argparse.Namespace) -> int:
-    """Run the audit; exit status 1 when a guaranteed filter has a violation on a system whose
-    noise is bounded only (with Gaussian noise, pairs outside are expected and noted)."""
-    import json
-
-    from diffsmf import filters, systems
-    from diffsmf.filters.compare import GUARANTEED
-
-    systems.check_name(args.system, option="--system")
-    try:
-        cls = filters.by_name(args.filter)
-    except ValueError:
-        raise ValueError(
-            f"--filter: unknown filter {args.filter!r}; choose from {filters.names()}"
-        ) from None
-    system = systems.get(args.system)
-    filt = cls(system)
-    noises = ["vertex", "uniform"] if args.noise == "both" else [args.noise]
-    bad = False
-    reports = []
-    gaussian = has_gaussian_noise(system)
-    with warnings.catch_warnings():  # said once below, not once per noise kind
-        said = re.escape(f"containment: {_gaussian_note(system)}")
-        warnings.filterwarnings("ignore", message=said)
-        for noise in noises:
-            reports.append(
-                containment(
-                    filt, system, args.trials, args.steps, noise, args.seed,
-                    progress=not getattr(args, "quiet", True),
-                )
-            )
-    # a violation fails the run only for a guaranteed filter on bounded noise
-    must_hold = _is_guaranteed(filt) and not gaussian
-    for rep in reports:
-        print(json.dumps(asdict(rep)) if args.json else rep)
-        bad |= rep.violations > 0 and must_hold
-    if not args.json:
-        guaranteed = ", ".join(sorted(n.lower() for n in GUARANTEED))
-        print(
-            "A pair is outside when the true state's normalised distance from the set exceeds "
-            f"{TOL:g}; guaranteed filters ({guaranteed}) must show 0."
-        )
-        if gaussian:
-            print(f"Note: {_gaussian_note(system)}; they do not fail the audit.")
-    return 1 if bad else 0
-
-
-from diffsmf.tightness import TightnessReport, inner_bounds, tightness  # noqa: E402, F401 (issue 7)

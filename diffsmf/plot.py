@@ -18,6 +18,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
+from diffsmf.sets.ellipsoid import Ellipsoid
+from diffsmf.sets.interval import Interval
+from diffsmf.sets.parallelotope import Parallelotope
+from diffsmf.sets.zonotope import Zonotope
+
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
@@ -37,8 +43,6 @@ __all__ = [
 
 def _project(S: ConvexSet, dims: tuple[int, int] | None) -> ConvexSet:
     """2-D projection ``{(x_i, x_j)}`` of ``S`` (a linear map; boxes stay boxes)."""
-    from diffsmf.sets.interval import Interval
-
     n = S.dim
     if dims is None:
         if n != 2:
@@ -63,12 +67,6 @@ def polygon_2d(S: ConvexSet, dims: tuple[int, int] | None = None, k: int = 200) 
     the outer polygon of their certified support in ``k`` directions
     (``ConstrainedZonotope.outer_polygon_2d``; a certified empty set raises).
     """
-    from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
-    from diffsmf.sets.ellipsoid import Ellipsoid
-    from diffsmf.sets.interval import Interval
-    from diffsmf.sets.parallelotope import Parallelotope
-    from diffsmf.sets.zonotope import Zonotope
-
     if len(S.batch_shape) != 0:
         raise ValueError(f"S: plot one set (batch shape []), got {tuple(S.batch_shape)}")
     P = _project(S, dims)

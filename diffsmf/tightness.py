@@ -25,7 +25,9 @@ import torch
 from scipy.optimize import minimize
 from torch import Tensor
 
+from diffsmf.filters.base import check_filter
 from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
+from diffsmf.systems.system import Trajectory, check_system
 
 __all__ = ["InnerBounds", "TightnessReport", "inner_bounds", "tightness"]
 
@@ -181,9 +183,6 @@ def _solve(
 def _check_args(filt: Any, system: Any, traj: Any) -> None:
     """The filter, the system and the trajectory of :func:`inner_bounds` / :func:`tightness`,
     each checked with a ``ValueError`` naming the argument (swapped arguments included)."""
-    from diffsmf.filters.base import check_filter
-    from diffsmf.systems.system import Trajectory, check_system
-
     check_filter("filt", filt, check_system("system", system))
     if not isinstance(traj, Trajectory):
         raise ValueError(

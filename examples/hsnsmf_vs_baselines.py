@@ -19,7 +19,8 @@ from pathlib import Path
 import torch
 
 from diffsmf import systems
-from diffsmf.filters.compare import _figure, _rows, format_table, run_filters
+from diffsmf.filters.compare import build_filters, format_table, guarantees, rows, run_filters
+from diffsmf.plot import comparison_figure
 
 PAPER_ORDER = ["HSNSMF", "MSZM", "CDSMF"]
 
@@ -29,11 +30,12 @@ def run(name: str, trials: int, outdir: Path, seed: int) -> dict[str, dict[str, 
     steps = system.horizon
     out = {}
     for noise in ("uniform", "vertex"):
-        traj, results, seconds = run_filters(system, PAPER_ORDER, trials, steps, noise, seed)
-        rows = _rows(traj, results, seconds)
+        filts = build_filters(system, PAPER_ORDER)
+        traj, results, seconds = run_filters(system, filts, trials, steps, noise, seed)
+        table = rows(traj, results, seconds, guarantees(filts))
         print(f"\n{name}: {trials} trajectories x {steps} steps, {noise} noise")
-        print(format_table(rows))
-        means = {r["filter"]: r["mean_volume"] for r in rows}
+        print(format_table(table))
+        means = {r["filter"]: r["mean_volume"] for r in table}
         order = sorted(means, key=means.get)
         verdict = "matches" if order == PAPER_ORDER else "DIFFERS from"
         paper = " < ".join(PAPER_ORDER)
@@ -45,7 +47,7 @@ def run(name: str, trials: int, outdir: Path, seed: int) -> dict[str, dict[str, 
         out[noise] = means
         if noise == "uniform":
             path = outdir / f"hsnsmf_{name}.png"
-            _figure(traj, results, path)
+            comparison_figure(traj.x, results, path, guarantees(filts))
             print(f"figure: {path}")
     return out
 

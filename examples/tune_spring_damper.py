@@ -35,9 +35,8 @@ from pathlib import Path
 import torch
 
 import diffsmf as ds
-from training import tune
-from training.loop import Data
-from training.tune import simulate_finite
+from diffsmf.tuning import simulate_finite, tune
+from diffsmf.tuning.loop import Data
 
 torch.set_default_dtype(torch.float64)
 

@@ -13,6 +13,7 @@ import torch
 
 import diffsmf as ds
 from diffsmf import audit, filters, systems
+from diffsmf.cli import audit as audit_cli
 from diffsmf.filters.compare import compare, demo, format_table
 
 
@@ -50,12 +51,12 @@ def test_cli_main_prints_reports(capsys):
     args = argparse.Namespace(
         system="bilinear", filter="mszm", trials=20, steps=4, noise="both", seed=0, json=True
     )
-    assert audit.main(args) == 0
+    assert audit_cli.main(args) == 0
     lines = [json.loads(s) for s in capsys.readouterr().out.strip().splitlines()]
     assert [r["noise"] for r in lines] == ["vertex", "uniform"]
     assert all(r["violations"] == 0 and r["pairs"] == 20 * 5 for r in lines)
     parser = argparse.ArgumentParser()
-    audit.add_arguments(parser)
+    audit_cli.add_arguments(parser)
     ns = parser.parse_args(["--system", "vdp", "--filter", "esmf"])
     assert ns.trials == 1000 and ns.noise == "both"
 
@@ -75,7 +76,7 @@ def test_gaussian_noise_is_said_and_does_not_fail_the_audit(capsys, monkeypatch)
     args = argparse.Namespace(
         system="radar", filter="hsnsmf", trials=2, steps=2, noise="vertex", seed=0, json=False,
     )
-    assert audit.main(args) == 0
+    assert audit_cli.main(args) == 0
     out = capsys.readouterr().out
     outside = re.search(r"HSNSMF on radar \(vertex noise, 2 trajectories x 2 steps\): (\d+)/6", out)
     assert outside is not None and int(outside.group(1)) > 0, out  # outside, yet exit status 0
@@ -83,7 +84,7 @@ def test_gaussian_noise_is_said_and_does_not_fail_the_audit(capsys, monkeypatch)
     liar = lambda s: filters.HSNSMF(s, process_noise=torch.full((2,), 1e-5))  # noqa: E731
     monkeypatch.setattr(filters, "by_name", lambda name: liar)
     args.system, args.trials, args.steps = "spring_damper", 50, 10
-    assert audit.main(args) == 1
+    assert audit_cli.main(args) == 1
     assert "Note:" not in capsys.readouterr().out
 
 
@@ -175,7 +176,7 @@ def test_swapped_or_wrong_filter_system_and_trajectory_are_named():
     "params: none of [...] is a parameter of this filter", ``tune(HSNSMF, traj)`` raised a raw
     TypeError)."""
     from diffsmf.tightness import inner_bounds, tightness
-    from training import evaluate, tune
+    from diffsmf.tuning import evaluate, tune
 
     system = systems.get("spring_damper")
     traj = system.simulate(steps=2, batch=1)
@@ -283,3 +284,36 @@ def test_audit_script_resume(tmp_path, monkeypatch, capsys):
     with pytest.raises(ValueError, match="--resume: needs --log"):
         monkeypatch.setattr("sys.argv", ["x", "--resume", "--systems", "spring_damper"])
         script.main()
+
+
+class MyHSNSMF(filters.HSNSMF):
+    """A user's subclass: it inherits the parent's guarantee, whatever its class name."""
+
+
+def test_guaranteed_is_a_class_attribute_that_subclasses_inherit(tmp_path):
+    expect = {"hsnsmf": True, "mszm": True, "cdsmf": True, "esmf": True, "czsmf": True,
+              "ekf": False, "combined": False}
+    assert {n: filters.by_name(n).guaranteed for n in filters.names()} == expect
+    system = systems.get("spring_damper")
+    mine = MyHSNSMF(system)
+    assert mine.guaranteed and filters.is_guaranteed(mine) and filters.is_guaranteed(MyHSNSMF)
+    rows = compare(system, {"mine": mine, "ekf": filters.EKF(system)}, trials=2, steps=4)
+    assert [r["guaranteed"] for r in rows] == [True, False]
+    # the audit's warning about Gaussian noise is for guaranteed filters: the subclass gets it
+    with pytest.warns(UserWarning, match="radar has Gaussian noise"):
+        audit.containment(MyHSNSMF(systems.get("radar")), trials=2, steps=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        audit.containment(filters.EKF(systems.get("radar")), trials=2, steps=2)
+
+
+def test_a_filter_that_declares_nothing_is_not_guaranteed():
+    class Undeclared(torch.nn.Module):
+        pass
+
+    assert not filters.is_guaranteed(Undeclared())
+
+    class Declared(filters.EKF):
+        guaranteed = True
+
+    assert filters.is_guaranteed(Declared(systems.get("spring_damper")))

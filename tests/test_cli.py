@@ -149,7 +149,7 @@ def test_demo_creates_a_missing_out_folder_and_names_a_file(capsys, tmp_path):
 
 
 def test_systemexit_message_of_a_subcommand_becomes_one_line(capsys, monkeypatch):
-    import diffsmf.demo as demo
+    import diffsmf.cli.demo as demo
 
     def boom(args):
         raise SystemExit("demo: --thing: bad value")
@@ -160,7 +160,7 @@ def test_systemexit_message_of_a_subcommand_becomes_one_line(capsys, monkeypatch
 
 
 def test_a_bug_keeps_its_traceback(monkeypatch):
-    import diffsmf.demo as demo
+    import diffsmf.cli.demo as demo
 
     def bug(args):
         raise RuntimeError("internal")
@@ -188,6 +188,12 @@ def test_console_process_exit_code_and_stderr():
         "diffsmf audit: error: --system: unknown system 'nope'; choose from "
         + str(sorted(diffsmf.systems.names()))
     ]
+
+
+def test_python_dash_m_diffsmf_is_the_command():
+    proc = subprocess.run([sys.executable, "-m", "diffsmf", "--version"],
+                          capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stdout.strip()) == (0, f"diffsmf {diffsmf.__version__}")
 
 
 def test_audit_sized_system_and_czsmf(capsys):

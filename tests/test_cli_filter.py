@@ -13,7 +13,7 @@ import torch
 
 import diffsmf as ds
 from diffsmf.cli import main
-from diffsmf.filter_cli import load_model
+from diffsmf.cli.filter import load_model
 
 T = 8
 

@@ -29,7 +29,7 @@ def _assert_drawn(path, min_bytes: int = 5_000, min_ink: float = 0.01) -> np.nda
 
 
 def test_demo_figures(tmp_path):
-    from diffsmf.demo import main
+    from diffsmf.cli.demo import main
 
     args = argparse.Namespace(out=str(tmp_path), parts="filters,sets", trials=2, steps=8, seed=0)
     assert main(args) == 0

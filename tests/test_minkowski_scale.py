@@ -133,7 +133,7 @@ def test_gradcheck_cdsmf_scale_short_horizon():
 
 
 def test_tune_moves_minkowski_scale():
-    from training.loop import Data, resolve_params, tune  # (training.tune is also a module)
+    from diffsmf.tuning.loop import Data, resolve_params, tune
 
     sys_ = systems.get("spring_damper")
     x, y, _ = _traj(sys_, 6, 6, seed=1)

@@ -120,10 +120,10 @@ def test_decay_objective_and_discrete_envelope():
 
 
 def test_problem_built_once_and_bad_input():
-    lmi_mod._problem.cache_clear()
+    lmi_mod.lmi_problem.cache_clear()
     design_lipschitz_observer(A_VDP, C_VDP, 0.1, 1.0, iters=5)
     design_lipschitz_observer(A_VDP + 0.1, C_VDP, 0.2, 0.5, iters=5)
-    info = lmi_mod._problem.cache_info()
+    info = lmi_mod.lmi_problem.cache_info()
     assert info.misses == 1 and info.hits == 1
     with pytest.raises(ValueError, match="lipschitz"):
         design_lipschitz_observer(A_VDP, C_VDP, -1.0, 1.0)

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from diffsmf.cli import main
+from diffsmf.cli.observer import load_observer_model
 from diffsmf.observers import ContinuousModel
-from diffsmf.observers.cli import load_observer_model
 from diffsmf.observers.pipeline import certified_error, fit_nonlinearity, interval_hess_bound
 
 MODEL = textwrap.dedent('''

@@ -20,7 +20,7 @@ ST_VDP = (np.array([[0.0], [1.0]]), np.eye(2))
 
 def _three_block_mu(A, C, gamma, alpha, structure=None, kappa=None, time="continuous"):
     """Reference: min mu of the documented 3-block LMI (docs/observers.md) at fixed alpha,
-    written here from scratch with constant data (not lmi._problem)."""
+    written here from scratch with constant data (not lmi.lmi_problem)."""
     n, l = A.shape[0], C.shape[0]
     Bf, H = (np.eye(n), np.eye(n)) if structure is None else structure
     nf = Bf.shape[1]
@@ -48,8 +48,8 @@ def _three_block_mu(A, C, gamma, alpha, structure=None, kappa=None, time="contin
 def _reduced_mu(A, C, gamma, alpha, structure=None, kappa=None, time="continuous"):
     n, l = A.shape[0], C.shape[0]
     Bf, H = (np.eye(n), np.eye(n)) if structure is None else structure
-    prob, par, var, con = lmi_mod._problem(n, l, time, False, kappa is not None,
-                                           *lmi_mod._structure_keys(Bf, H))
+    prob, par, var, con = lmi_mod.lmi_problem(n, l, time, False, kappa is not None,
+                                              *lmi_mod.structure_keys(Bf, H))
     par["margin"].value, par["A"].value, par["C"].value, par["g2"].value = 1e-6, A, C, gamma**2
     if kappa is not None:
         par["kappa"].value = kappa

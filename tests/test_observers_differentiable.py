@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from diffsmf.observers import DifferentiableObserverDesign, design_lipschitz_observer
-from diffsmf.observers.lmi import _problem, _Search, _structure_keys
+from diffsmf.observers.lmi import _Search, lmi_problem, structure_keys
 
 # Wang et al. 2009 example: structured nonlinearity B_f phi(H x), gamma = 1; max_gain makes it
 # well-posed
@@ -32,7 +32,7 @@ def layer(design):
 
 def _ref_bound(A, gamma, alpha):
     """Independent re-solve with cvxpy + Clarabel (the design's own SDP) at a fixed alpha."""
-    prob, par, var, con = _problem(2, 1, "continuous", False, True, *_structure_keys(BF, H))
+    prob, par, var, con = lmi_problem(2, 1, "continuous", False, True, *structure_keys(BF, H))
     par["margin"].value, par["kappa"].value = 1e-6, KAPPA
     par["A"].value, par["C"].value, par["g2"].value = A, C0, gamma**2
     pt = _Search(prob, par, var, con, "CLARABEL", 2)(alpha)

@@ -100,7 +100,7 @@ def test_cli_fit_pwl(tmp_path, capsys):
 
 
 def test_demo(tmp_path):
-    from diffsmf.pwl.demo import demo
+    from diffsmf.cli.pwl_demo import demo
 
     text = demo(tmp_path)
     assert "regions" in text and (tmp_path / "pwl_demo.png").exists()

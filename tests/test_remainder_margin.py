@@ -23,7 +23,7 @@ import diffsmf as ds
 from diffsmf import filters, systems
 from diffsmf.audit import containment
 from diffsmf.filters import _common as C
-from training.tune import simulate_finite
+from diffsmf.tuning import simulate_finite
 
 NAMES = ["hsnsmf", "mszm", "cdsmf", "esmf"]
 
@@ -190,7 +190,7 @@ def test_gradcheck_hsnsmf_margin_short_horizon():
 
 
 def test_tune_accepts_remainder_margin():
-    from training.loop import Data, resolve_params, tune  # (training.tune is also a module)
+    from diffsmf.tuning.loop import Data, resolve_params, tune
 
     sys_ = systems.get("bilinear")
     x, y, u = _traj(sys_, 5, 6, seed=1)

@@ -1,4 +1,4 @@
-"""Losses and the tuning loop (training/), on the exact toy interval filter."""
+"""Losses and the tuning loop (diffsmf.tuning), on the exact toy interval filter."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import torch
 from test_training_toy import V_BOUND, W_BOUND, ToyIntervalFilter, toy_system
 
 from diffsmf.sets import Interval
-from training import LossWeights, evaluate, tune
-from training.loop import Data, resolve_params
-from training.losses import (
+from diffsmf.tuning import LossWeights, evaluate, tune
+from diffsmf.tuning.loop import Data, resolve_params
+from diffsmf.tuning.losses import (
     consistency_excess,
     filter_with_predictions,
     log_volume_loss,
@@ -243,13 +243,27 @@ def test_cli_with_toml_config_writes_outputs(tmp_path):
     assert diffsmf_main(["tune", "--config", str(bad), "--out", str(out)]) == 2
 
 
-def test_training_tune_is_callable_after_importing_the_cli_module(data):
-    """``import training.tune`` rebinds the package attribute to the module; it still tunes."""
-    import training
-    import training.tune as cli
+def test_tuning_tune_stays_the_function_after_importing_the_command(data):
+    """The command module (`diffsmf.cli.tune`) does not shadow the library's ``tune``."""
+    import diffsmf.cli.tune  # noqa: F401
+    import diffsmf.tuning
+    from diffsmf.tuning.loop import tune as loop_tune
 
     s, traj = data
     f = ToyIntervalFilter(s, process_noise=2 * W_BOUND)
-    rep, _ = training.tune(f, Data(traj.y), params=("process_noise",), epochs=1,
-                           batch_size=24, progress=False)
-    assert training.tune is cli and rep.params == ["process_noise"]
+    rep, _ = diffsmf.tuning.tune(f, Data(traj.y), params=("process_noise",), epochs=1,
+                                 batch_size=24, progress=False)
+    assert diffsmf.tuning.tune is loop_tune and rep.params == ["process_noise"]
+
+
+def test_the_sample_tuning_config_is_valid():
+    """``training/spring_damper.toml`` (the configuration shipped with the tuning entry points)
+    holds only known keys of the right types."""
+    from pathlib import Path
+
+    from diffsmf.tuning.config import TuneConfig, load_config
+
+    path = Path(__file__).resolve().parents[1] / "training" / "spring_damper.toml"
+    cfg = TuneConfig(**load_config(path))
+    assert (cfg.system, cfg.filter, cfg.init_scale) == ("spring_damper", "hsnsmf", 5.0)
+    assert cfg.window == 10 and cfg.out == "runs/spring_damper"

@@ -14,8 +14,8 @@ import torch
 import diffsmf as ds
 from diffsmf.sets import ConstrainedZonotope, Zonotope
 from diffsmf.sets.base import where
-from training import LossWeights, tune
-from training.losses import consistency_excess, filter_with_predictions, total_loss
+from diffsmf.tuning import LossWeights, tune
+from diffsmf.tuning.losses import consistency_excess, filter_with_predictions, total_loss
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +132,7 @@ def test_cli_compile_option(tmp_path, capsys):
     import argparse
 
     from diffsmf.cli import main as diffsmf_main
-    from training.tune import _merge_config, add_arguments
+    from diffsmf.cli.tune import _merge_config, add_arguments
 
     ap = argparse.ArgumentParser()
     add_arguments(ap)

@@ -10,8 +10,8 @@ import torch
 import torch.multiprocessing as mp
 from test_training_toy import V_BOUND, W_BOUND, ToyIntervalFilter, toy_system
 
-from training import tune
-from training.loop import Data
+from diffsmf.tuning import tune
+from diffsmf.tuning.loop import Data
 
 KW = dict(epochs=4, batch_size=6, lr=0.1, validation=None, progress=False, seed=5, tie=None)
 

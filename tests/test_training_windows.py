@@ -1,4 +1,4 @@
-"""Windowed tuning (training/windows.py): truncated back-propagation with carried states."""
+"""Windowed tuning (diffsmf/tuning/windows.py): truncated back-propagation with carried states."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import pytest
 import torch
 
 import diffsmf as ds
-from training import LossWeights, tune
-from training.loop import Data
-from training.losses import filter_with_predictions, total_loss
-from training.windows import WindowCache, cat_states, take_state, windowed_loss
+from diffsmf.tuning import LossWeights, tune
+from diffsmf.tuning.loop import Data
+from diffsmf.tuning.losses import filter_with_predictions, total_loss
+from diffsmf.tuning.windows import WindowCache, cat_states, take_state, windowed_loss
 
 
 @pytest.fixture(scope="module")

@@ -1,27 +1,6 @@
-"""Tuning diffsmf filters by gradient descent on set volume.
+"""Tuning entry points and configurations for a source checkout (not installed).
 
-``from training import tune`` is the loop (:func:`training.loop.tune`); ``python -m
-training.tune`` is the command line (:mod:`training.tune`).
+The library is `diffsmf.tuning`; the command is ``diffsmf tune`` (`diffsmf.cli.tune`). From the
+repository root, ``python -m training.tune`` (or ``python training/tune.py``) runs the same
+command, e.g. ``python -m training.tune --config training/spring_damper.toml``.
 """
-
-from training.loop import TuneReport, evaluate, tune
-from training.losses import (
-    LossWeights,
-    consistency_loss,
-    containment_loss,
-    filter_with_predictions,
-    log_volume_loss,
-    normalised_outside,
-)
-
-__all__ = [
-    "LossWeights",
-    "TuneReport",
-    "consistency_loss",
-    "containment_loss",
-    "evaluate",
-    "filter_with_predictions",
-    "log_volume_loss",
-    "normalised_outside",
-    "tune",
-]

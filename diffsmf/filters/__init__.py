@@ -21,24 +21,34 @@ __all__ = [
     "FilterState",
     "SetFilter",
     "by_name",
+    "is_guaranteed",
     "names",
 ]
 
-_NAMES = {"hsnsmf": HSNSMF, "mszm": MSZM, "cdsmf": CDSMF, "esmf": ESMF, "ekf": EKF, "czsmf": CZSMF}
+_NAMES: dict[str, type[SetFilter]] = {
+    "hsnsmf": HSNSMF, "mszm": MSZM, "cdsmf": CDSMF, "esmf": ESMF, "ekf": EKF, "czsmf": CZSMF,
+    "combined": CombinedFilter,
+}
 
 
 def names() -> list[str]:
-    """Names accepted by :func:`by_name`."""
-    return [*_NAMES, "combined"]
+    """Names accepted by `by_name`."""
+    return list(_NAMES)
 
 
 def by_name(name: str) -> type[SetFilter]:
-    """Filter class for ``"hsnsmf" | "mszm" | "cdsmf" | "esmf" | "ekf" | "combined"``."""
+    """Filter class for ``"hsnsmf" | "mszm" | "cdsmf" | "esmf" | "ekf" | "czsmf" | "combined"``."""
     key = name.lower().replace("-", "").replace("_", "")
     if key in _NAMES:
         return _NAMES[key]
-    if key == "combined":
-        from diffsmf.filters.combined import CombinedFilter  # lazy: another engineer's module
-
-        return CombinedFilter
     raise ValueError(f"name: unknown filter {name!r}; choose from {names()}")
+
+
+def is_guaranteed(filt: SetFilter | type[SetFilter]) -> bool:
+    """Whether a filter (or filter class) declares ``guaranteed = True``: its set contains every
+    state consistent with the model, the noise bounds and the data.
+
+    The attribute is inherited, so a subclass of `HSNSMF` is guaranteed as `HSNSMF` is; a filter
+    that does not declare it is not (`EKF` and `CombinedFilter` declare False).
+    """
+    return bool(getattr(filt, "guaranteed", False))

@@ -1092,3 +1092,48 @@ def scaled_minkowski_sum(E1: Any, E2: Any, method: str, scale: Tensor) -> Any:
 
     rule_p = minkowski_weight(E1.shape, E2.shape, method)
     return E1.minkowski_sum(E2, p=rule_p * scale)
+
+
+# =============================================================================================
+# Public entry point to the compiled step for time loops other than `SetFilter.forward`
+# (the tuning pass of `diffsmf.tuning.losses`): the loop of `forward`, with a wrapped step.
+# =============================================================================================
+__all__.append("compiled_loop")
+
+
+@contextlib.contextmanager
+def compiled_loop(
+    filt: SetFilter, name: str, fn: Callable[..., Any]
+) -> Iterator[Callable[..., tuple[FilterState, Any] | None] | None]:
+    """A time loop over a compiled wrapper ``fn`` of the filter's step, as in ``forward``.
+
+    ``fn(filt, fields, consistent, bounded, extras, set_type, *args) -> (flat, out)`` takes a
+    state as flat tensors (`state_from_flat` rebuilds it) and returns the new state as
+    `flat_state` gives it, and any output ``out``. It is compiled with the filter's
+    `SetFilter.compile` settings (`SetFilter.compiled_function`, cached under ``name``).
+
+    Yields None when the filter is not compiled (or while tracing): run the loop eagerly.
+    Otherwise yields ``run(state, *args)`` -> ``(new state, out)``, or None for a state that
+    the compiled graph does not serve (run that step eagerly). As in ``forward``, after the
+    first `_GUARDED_STEPS` compiled calls inside the block Dynamo's guard evaluation is
+    skipped for the rest of the block, so call ``run`` inside one block on inputs of one
+    structure (one batch size, the states that ``run`` returned, same-shaped ``args``).
+    """
+    compiled = None if tracing() else filt.compiled_function(name, fn)
+    if compiled is None:
+        yield None
+        return
+    with contextlib.ExitStack() as stack:
+        calls = 0
+
+        def run(state: FilterState, *args: Any) -> tuple[FilterState, Any] | None:
+            nonlocal calls
+            if not filt._compile_ready(state):
+                return None
+            flat, out = compiled(*filt._step_args(state), type(state.set), *args)
+            calls += 1
+            if calls == _GUARDED_STEPS:
+                stack.enter_context(_skip_guards())
+            return filt._unflatten(flat), out
+
+        yield run

@@ -67,6 +67,8 @@ class CDSMF(C.EllipsoidalSetFilter):
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
 
+    #: The set contains every state consistent with the model, the noise bounds and the data.
+    guaranteed: bool = True
     stirling_step = Positive()
     remainder_margin = Positive()
     minkowski_scale = StrictlyPositive()

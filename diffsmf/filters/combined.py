@@ -143,6 +143,9 @@ class CombinedFilter(SetFilter):
     State: ``set = Ellipsoid(a, S)`` ``[B]``, ``extras["covariance"] = P [B, n, n]``.
     """
 
+    #: Not guaranteed in general: with Gaussian noise the set bounds the conditional mean, and
+    #: for nonlinear maps the linearisation error is ignored (module docstring).
+    guaranteed: bool = False
     process_std = Positive()
     measurement_std = Positive()
 

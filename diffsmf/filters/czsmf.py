@@ -95,6 +95,8 @@ class CZSMF(SetFilter):
     ``["upper"]`` hold its certified interval hull ``[B, n]`` (computed once per set).
     """
 
+    #: The set contains every state consistent with the model, the noise bounds and the data.
+    guaranteed: bool = True
     stirling_step = Positive()
     remainder_margin = Positive()
     _constant_set_size = False  # the predicted set has more generators than the capped update

@@ -40,6 +40,9 @@ class EKF(SetFilter):
     State: ``set`` = ``Ellipsoid(x_hat, 9 P)``; ``extras["covariance"] = P [B, n, n]``.
     """
 
+    #: Not a set-membership filter: its set is a 3-sigma ellipsoid, not a bound.
+    guaranteed: bool = False
+
     def __init__(self, system: System, *, initial_set: ConvexSet | None = None, **kw) -> None:
         super().__init__(system, **kw)
         C.check_initial_set("initial_set", initial_set, system.n)

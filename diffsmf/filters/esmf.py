@@ -91,6 +91,8 @@ class ESMF(C.EllipsoidalSetFilter):
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
 
+    #: The set contains every state consistent with the model, the noise bounds and the data.
+    guaranteed: bool = True
     remainder_margin = Positive()
     minkowski_scale = StrictlyPositive()
 

@@ -50,6 +50,8 @@ class HSNSMF(SetFilter):
     State set: ``Parallelotope`` with batch shape ``[B]``.
     """
 
+    #: The set contains every state consistent with the model, the noise bounds and the data.
+    guaranteed: bool = True
     stirling_step = Positive()
     remainder_margin = Positive()
 

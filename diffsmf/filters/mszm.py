@@ -78,6 +78,8 @@ class MSZM(SetFilter):
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
     """
 
+    #: The set contains every state consistent with the model, the noise bounds and the data.
+    guaranteed: bool = True
     stirling_step = Positive()
     remainder_margin = Positive()
 

@@ -2,7 +2,7 @@ r"""Differentiable observer design: the seed-004 LMI as a ``cvxpylayers`` layer 
 
 :class:`DifferentiableObserverDesign` solves, at a FIXED decay rate alpha, the same SDP as
 :func:`~diffsmf.observers.lmi.design_lipschitz_observer` with ``objective="bound"`` (the cvxpy
-problem is built by the same :func:`diffsmf.observers.lmi._problem`, so there is one home for
+problem is built by the same :func:`diffsmf.observers.lmi.lmi_problem`, so there is one home for
 the LMI: the reduced 2-block LMI, equivalent to the 3-block one, see lmi.py)::
 
     min mu  s.t.  R(P, Y, lambda, nu; A, C, gamma^2, alpha) < -margin I,  P >= I,
@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from diffsmf.observers.lmi import _problem, _structure_keys
+from diffsmf.observers.lmi import lmi_problem, structure_keys
 
 __all__ = ["DifferentiableObserverDesign"]
 
@@ -93,8 +93,8 @@ class DifferentiableObserverDesign(torch.nn.Module):
         self.register_buffer("Bf", torch.as_tensor(Bf, dtype=torch.float64))
         self.register_buffer("HtH", torch.as_tensor(H.T @ H, dtype=torch.float64))
         # same SDP as design_lipschitz_observer (uncached copy: the layer owns its problem)
-        prob, par, var, _ = _problem.__wrapped__(n, l, time, False, max_gain is not None,
-                                                 *_structure_keys(Bf, H))
+        prob, par, var, _ = lmi_problem.__wrapped__(n, l, time, False, max_gain is not None,
+                                                    *structure_keys(Bf, H))
         names = _PARAMS + (("kappa",) if max_gain is not None else ())
         args = dict(eps=1e-10, max_iters=100_000)
         args.update(solver_args or {})

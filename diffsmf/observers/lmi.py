@@ -283,7 +283,7 @@ def _unkey(k) -> np.ndarray | None:
     return None if k is None else np.frombuffer(k[1], dtype=float).reshape(k[0]).copy()
 
 
-def _structure_keys(Bf: np.ndarray, H: np.ndarray):
+def structure_keys(Bf: np.ndarray, H: np.ndarray):
     """(B_f, H'H) keys; identities are stored as None so the general case shares one problem."""
     n = Bf.shape[0]
     HtH = H.T @ H
@@ -295,8 +295,8 @@ def _structure_keys(Bf: np.ndarray, H: np.ndarray):
 
 
 @lru_cache(maxsize=32)
-def _problem(n: int, l: int, time: str, fixed_gain: bool, capped: bool, bf_key=None,
-             hth_key=None):
+def lmi_problem(n: int, l: int, time: str, fixed_gain: bool, capped: bool, bf_key=None,
+                hth_key=None):
     """Build ONCE (cached per shape and structure) the reduced SDP (module docstring)::
 
         min mu  s.t.  R(P, Y, lambda, nu; A, C, gamma^2, alpha) << -margin I,   P >> I,
@@ -305,7 +305,7 @@ def _problem(n: int, l: int, time: str, fixed_gain: bool, capped: bool, bf_key=N
 
     A, C, gamma^2 (``g2``), alpha, margin and kappa are cvxpy Parameters (DPP: a re-solve
     skips canonicalisation); B_f and H'H are constants of the cached problem (keys from
-    :func:`_structure_keys`), so their sparsity reaches the solver.
+    :func:`structure_keys`), so their sparsity reaches the solver.
     fixed_gain: analysis of a given L; the Parameter A then holds A - L C and there is no Y.
     Returns (problem, parameters, variables, the LMI constraint R << -margin I).
     """
@@ -574,8 +574,8 @@ def design_lipschitz_observer(
         max_gain = _as_scalar(max_gain, "max_gain", positive=True)
     t0 = _time.perf_counter()
     n, l = A.shape[0], C.shape[0]
-    prob, par, var, con = _problem(n, l, time, False, max_gain is not None,
-                                   *_structure_keys(Bf, H))
+    prob, par, var, con = lmi_problem(n, l, time, False, max_gain is not None,
+                                      *structure_keys(Bf, H))
     par["margin"].value = margin
     par["A"].value, par["C"].value, par["g2"].value = A, C, gamma**2
     if max_gain is not None:
@@ -615,7 +615,7 @@ def analyze_observer_gain(
     alpha_max, margin, iters = _check_search(time, alpha_max, margin, iters)
     n, l = A.shape[0], C.shape[0]
     t0 = _time.perf_counter()
-    prob, par, var, con = _problem(n, l, time, True, False, *_structure_keys(Bf, H))
+    prob, par, var, con = lmi_problem(n, l, time, True, False, *structure_keys(Bf, H))
     par["margin"].value = margin
     par["A"].value, par["g2"].value = A - L @ C, gamma**2
     search = _Search(prob, par, var, con, solver, n)

@@ -25,8 +25,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diffsmf.linearize.jets import interval_hessian
 from diffsmf.observers.lmi import ObserverDesign, design_lipschitz_observer, error_envelope
 from diffsmf.observers.observer import PWLObserver, rk4_step
+from diffsmf.pwl import SCPLNN, fit_scplnn
+from diffsmf.pwl.partition import grid_partition
+from diffsmf.sets import Interval
 
 __all__ = [
     "ContinuousModel",
@@ -121,9 +125,6 @@ def interval_hess_bound(phi: Callable[[Tensor], Tensor]) -> Callable[[Tensor], T
     Hmax = max(|H_lo|, |H_hi|) entrywise, every Hessian in the box has 2-norm <= rho(|H|) <=
     rho(Hmax) = |Hmax|_2 (Perron-Frobenius). Returns [M, r] (times 1 + 1e-9 for rounding).
     """
-    from diffsmf.linearize.jets import interval_hessian
-    from diffsmf.sets import Interval
-
     def bound(V: Tensor) -> Tensor:
         box = Interval(V.amin(-2), V.amax(-2))
         try:
@@ -194,9 +195,6 @@ def certified_error(model, phi: Callable[[Tensor], Tensor], hess_bound) -> float
 
 
 def _grid_model(sysm: ContinuousModel, cells: list[int]):
-    from diffsmf.pwl import SCPLNN
-    from diffsmf.pwl.partition import grid_partition
-
     lo, hi = torch.as_tensor(sysm.lower), torch.as_tensor(sysm.upper)
     V, S = grid_partition(lo, hi, cells)
     with torch.no_grad():
@@ -257,8 +255,6 @@ def fit_nonlinearity(
 def _scplnn_model(sysm: ContinuousModel, eps: float, samples: int, max_regions: int, seed: int,
                   info: dict, progress: bool | None = False):
     """fit_scplnn on uniform random samples of phi; certified when sysm.hess_bound is given."""
-    from diffsmf.pwl import fit_scplnn
-
     g = torch.Generator().manual_seed(seed)
     lo, hi = torch.as_tensor(sysm.lower), torch.as_tensor(sysm.upper)
     X = lo + torch.rand(samples, lo.shape[0], generator=g, dtype=torch.float64) * (hi - lo)

@@ -30,6 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
+from diffsmf.observers.pipeline import (
+    ContinuousModel,
+    design_observer_pipeline,
+    plot_pipeline,
+)
+from diffsmf.utils import load_object
+
 __all__ = ["add_arguments", "load_observer_model", "main"]
 
 SYSTEMS = ("vdp",)
@@ -67,9 +74,6 @@ def load_observer_model(spec: str, what: str = "--model"):
     file, import failure, no such function, FUNC() failing or returning something else), each
     naming ``what`` and the problem in one line.
     """
-    from diffsmf.observers.pipeline import ContinuousModel
-    from diffsmf.utils import load_object
-
     model = load_object(str(spec), what)
     if not isinstance(model, ContinuousModel):
         func = str(spec).rpartition(":")[2]
@@ -90,8 +94,6 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from diffsmf.observers.pipeline import design_observer_pipeline, plot_pipeline
-
     _check_args(args)
     quiet = bool(getattr(args, "quiet", False))
     model = getattr(args, "model", None)

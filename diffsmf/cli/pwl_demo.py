@@ -7,6 +7,8 @@ from pathlib import Path
 
 import torch
 
+from diffsmf.pwl.fit import fit_scplnn
+
 
 def demo(outdir: Path) -> str:
     """Fit -x1^2 x2 on a 41x41 grid of [-2, 2]^2 to eps = 0.1; write ``pwl_demo.png`` (partition
@@ -15,8 +17,6 @@ def demo(outdir: Path) -> str:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from diffsmf.pwl.fit import fit_scplnn
 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)

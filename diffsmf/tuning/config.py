@@ -1,4 +1,4 @@
-"""Run configuration of ``python -m training.tune`` (command line and ``--config file.toml``)."""
+"""Run configuration of ``diffsmf tune`` (command line and ``--config file.toml``)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ class TuneConfig:
     ``tie``: ``noise`` (one shared scale for all noise bounds), ``none``, or ``auto`` (``noise``
     without ground truth, where the split between process and measurement noise is not
     identifiable, else ``none``); ``window``: steps per window of truncated
-    back-propagation (``tune(window=...)``, :mod:`training.windows`), 0 = the whole horizon;
+    back-propagation (``tune(window=...)``, :mod:`diffsmf.tuning.windows`), 0 = the whole horizon;
     ``compile``: tune through the compiled step (``tune(compile=True)``: a one-off compile,
     then 5-8x faster epochs, measured).
     """

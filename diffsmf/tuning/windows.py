@@ -30,8 +30,8 @@ from torch import Tensor
 
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.sets.base import ConvexSet, align, cat
-from training import ddp
-from training.losses import LossWeights, filter_with_predictions, total_loss
+from diffsmf.tuning import ddp
+from diffsmf.tuning.losses import LossWeights, filter_with_predictions, total_loss
 
 __all__ = ["WindowCache", "windowed_loss"]
 
@@ -129,7 +129,7 @@ class WindowCache:
 
     def sync(self, glob: Tensor) -> None:
         """Under ``torch.distributed``: give every process the start states that each one
-        stored for its round-robin shard (:func:`training.ddp.shard`) of the global
+        stored for its round-robin shard (:func:`diffsmf.tuning.ddp.shard`) of the global
         mini-batch ``glob``, so all processes keep the same cache (a no-op otherwise).
 
         Each row comes from exactly one process and the others add zeros, so the all-reduced

@@ -18,6 +18,11 @@ from pathlib import Path
 
 import torch
 
+from diffsmf.cli.pwl_demo import demo as pwl_demo
+from diffsmf.filters.compare import demo as filters_demo
+from diffsmf.plot import plot_set
+from diffsmf.sets import Strip, Zonotope
+
 __all__ = ["add_arguments", "filters_demo", "main", "sets_demo"]
 
 
@@ -39,44 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-def filters_demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
-    """Wang et al. 2022 comparison on ``spring_damper``: table text + figure ``filters_demo.png``.
-
-    HSNSMF, MSZM, CDSMF (guaranteed) and the EKF (not guaranteed: its 3-sigma ellipsoid) on
-    ``trials`` worst-case (vertex-noise) trajectories; the figure
-    (:func:`diffsmf.plot.comparison_figure`) shows the mean set area over time and, for
-    trajectory 0, each state's bounds relative to the true state.
-    """
-    from diffsmf import systems
-    from diffsmf.filters.compare import GUARANTEED, _rows, format_table, run_filters
-    from diffsmf.plot import comparison_figure
-
-    system = systems.get("spring_damper")
-    names = ["HSNSMF", "MSZM", "CDSMF", "EKF"]
-    traj, results, seconds = run_filters(system, names, trials, steps, "vertex", seed)
-    rows = _rows(traj, results, seconds)
-    fig_path = Path(outdir) / "filters_demo.png"
-    comparison_figure(traj.x, results, fig_path, {n: n in GUARANTEED for n in names})
-    text = [
-        f"Wang et al. 2022 comparison on spring_damper: {trials} trajectories x {steps} steps, "
-        "worst-case (vertex) noise.",
-        "Each filter bounds the state by a set; smaller area = tighter bound. 'outside' counts",
-        "(trajectory, step) pairs whose true state left the set (0 is required of a guaranteed",
-        "filter); the EKF's set is its 3-sigma ellipsoid, shown for reference only.",
-        "",
-        format_table(rows),
-        "",
-        f"Figure (set area over time; x1, x2 bounds minus the truth, trajectory 0): {fig_path}",
-    ]
-    return "\n".join(text)
-
-
 def sets_demo(outdir: Path) -> str:
     """Wang et al. 2022 worked example (under eq. 22) and a strip intersection; writes sets.png."""
     from matplotlib.figure import Figure
-
-    from diffsmf.plot import plot_set
-    from diffsmf.sets import Strip, Zonotope
 
     f64 = torch.float64
     Z = Zonotope(
@@ -139,8 +109,6 @@ def main(args: argparse.Namespace) -> int:
         elif part == "sets":
             text = sets_demo(outdir)
         else:
-            from diffsmf.pwl.demo import demo as pwl_demo
-
             text = pwl_demo(outdir)
         print(text)
         print(f"  ({part} part: {time.perf_counter() - t0:.1f} s)\n")

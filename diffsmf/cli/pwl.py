@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from diffsmf.pwl.fit import fit_scplnn
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("csv", type=Path, help="CSV file with a header row")
@@ -72,8 +74,6 @@ def main(args: argparse.Namespace) -> int:
     """Read the CSV, fit, print the report, write the model JSON; exit status 0 if the fit
     converged, 1 if not. User errors raise ValueError / FileNotFoundError, which the
     ``diffsmf`` command prints as one line (exit 2)."""
-    from diffsmf.pwl.fit import fit_scplnn
-
     if args.out is not None:
         parent = args.out.resolve().parent
         if not parent.is_dir():

@@ -17,13 +17,15 @@ import os
 import sys
 from typing import NoReturn
 
+from diffsmf import __version__
+
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("diffsmf.demo", "run the built-in demo (filters on spring_damper, sets, PWL fit)"),
-    "filter": ("diffsmf.filter_cli", "run a set-membership filter on your model and logged data"),
-    "audit": ("diffsmf.audit", "containment audit of a filter on a built-in system"),
-    "fit-pwl": ("diffsmf.pwl.cli", "fit an SCPLNN piecewise-linear model to a CSV file"),
-    "design-observer": ("diffsmf.observers.cli", "PWL model + LMI observer design pipeline"),
-    "tune": ("training.tune", "tune filter hyperparameters by gradient descent on set volume"),
+    "demo": ("diffsmf.cli.demo", "run the built-in demo (filters on spring_damper, sets, PWL fit)"),
+    "filter": ("diffsmf.cli.filter", "run a set-membership filter on your model and logged data"),
+    "audit": ("diffsmf.cli.audit", "containment audit of a filter on a built-in system"),
+    "fit-pwl": ("diffsmf.cli.pwl", "fit an SCPLNN piecewise-linear model to a CSV file"),
+    "design-observer": ("diffsmf.cli.observer", "PWL model + LMI observer design pipeline"),
+    "tune": ("diffsmf.cli.tune", "tune filter hyperparameters by gradient descent on set volume"),
 }
 
 #: Exceptions that mean "the user gave something wrong" (one-line error, exit 2). Configuration
@@ -73,8 +75,6 @@ def format_user_error(exc: BaseException) -> str:
 
 
 def _version() -> str:
-    from diffsmf import __version__
-
     return f"diffsmf {__version__}"
 
 
@@ -109,8 +109,8 @@ def build_subparser(name: str, prog: str | None = None) -> tuple[argparse.Argume
 def run_command(name: str, argv: list[str], prog: str | None = None) -> int:
     """Parse ``argv`` for sub-command ``name`` and run it; user errors -> one line, status 2.
 
-    ``prog`` names the command in messages (default ``diffsmf NAME``; ``python -m
-    training.tune`` uses its own).
+    ``prog`` names the command in messages (default ``diffsmf NAME``; the script
+    ``training/tune.py`` uses its own).
     """
     prog = prog or f"diffsmf {name}"
     try:
@@ -149,6 +149,3 @@ def main(argv: list[str] | None = None) -> int:
         parser.parse_args(argv[:1])  # --version, or the one-line error: exits (0 or 2)
     return run_command(argv[0], argv[1:])
 
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -20,24 +20,24 @@ from __future__ import annotations
 
 import contextlib
 import warnings
-from collections.abc import Callable
+import weakref
 from dataclasses import asdict, dataclass
-from typing import Any
 
 import torch
 from torch import Tensor
 from torch._dynamo.exc import TorchDynamoException
 
 from diffsmf.filters.base import (
-    _GUARDED_STEPS,
     FilterResult,
     FilterState,
     SetFilter,
-    _skip_guards,
+    compiled_loop,
     flat_state,
     state_from_flat,
 )
+from diffsmf.linearize import jacobian
 from diffsmf.sets.base import ConvexSet, where
+from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.utils import tracing
 
 __all__ = [
@@ -154,9 +154,6 @@ def consistency_excess(filt: SetFilter, predicted: ConvexSet, y: Tensor) -> Tens
     the noise, set the units). A constrained zonotope is not symmetric about its centre: its
     range ``[-h(-J_i), h(J_i)]`` is taken from both support values.
     """
-    from diffsmf.linearize import jacobian
-    from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
-
     c = predicted.center
     h = filt.system.h
     J = jacobian(h, c.detach())  # [B, m, n]; a direction only, so no gradient through it
@@ -208,28 +205,21 @@ def filter_with_predictions(
     state = filt.initial_state(batch=B) if state is None else state
     if state.set.batch_shape != (B,):
         raise ValueError(f"state: expected batch shape [{B}], got {list(state.set.batch_shape)}")
-    compiled = _compiled_guarded_step(filt)
     states = [state]
     excess = []
-    with contextlib.ExitStack() as stack:
-        calls = 0
+    with _compiled_guarded_steps(filt) as run:
         for k in range(T):
             uk = None if u is None else u[:, k]
-            flat = None
-            if compiled is not None and filt._compile_ready(state):
-                args = (*filt._step_args(state), uk, y[:, k], type(state.set), guard_empty)
+            out = None
+            if run is not None:
                 try:
-                    flat, e = compiled(*args)
+                    out = run(state, uk, y[:, k], guard_empty)
                 except TorchDynamoException as err:  # no C++ compiler, a graph break, ...
                     _stop_compiling(filt, err)
-                    compiled = None
-            if flat is not None:
-                state = filt._unflatten(flat)
-                calls += 1
-                if calls == _GUARDED_STEPS:  # as in SetFilter.forward: the inputs' structure
-                    stack.enter_context(_skip_guards())  # is now known to pass the guards
-            else:
-                state, e = _guarded_step(filt, state, uk, y[:, k], guard_empty)
+                    run = None
+            if out is None:
+                out = _guarded_step(filt, state, uk, y[:, k], guard_empty)
+            state, e = out
             excess.append(e)
             states.append(state)
     return PassOutput(result=filt.collect(states), excess=torch.stack(excess, 1), final=state)
@@ -259,14 +249,28 @@ def _guarded_step(
     return guarded, excess
 
 
-def _flat_guarded_step(filt: SetFilter, *flat: Any) -> tuple[tuple, Tensor]:
-    """:func:`_guarded_step` on flat tensors (what ``filt.compile()`` traces for tuning, like
-    :meth:`SetFilter._flat_step`): ``flat = (*filt._step_args(state), u, y, set_type,
-    guard_empty)`` -> ``(flat state, excess)``."""
-    *fields_to_extras, u, y, set_type, guard_empty = flat
-    state = state_from_flat(*fields_to_extras, set_type)
+def _flat_guarded_step(
+    filt: SetFilter,
+    fields: tuple[Tensor, ...],
+    consistent: Tensor,
+    bounded: Tensor,
+    extras: dict[str, Tensor],
+    set_type: type,
+    u: Tensor | None,
+    y: Tensor,
+    guard_empty: bool,
+) -> tuple[tuple, Tensor]:
+    """`_guarded_step` on flat tensors (what ``filt.compile()`` traces for tuning, through
+    `diffsmf.filters.base.compiled_loop`) -> ``(flat state, excess)``."""
+    state = state_from_flat(fields, consistent, bounded, extras, set_type)
     new, excess = _guarded_step(filt, state, u, y, guard_empty)
     return flat_state(new), excess
+
+
+_STEP_NAME = "guarded_step"
+#: Filters whose compiled tuning step failed, with the compiled function that failed: they
+#: tune eagerly until their next ``compile()`` (which makes a new compiled function).
+_FAILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _stop_compiling(filt: SetFilter, err: Exception) -> None:
@@ -277,20 +281,20 @@ def _stop_compiling(filt: SetFilter, err: Exception) -> None:
         f"compile: the tuning step of {type(filt).__name__} could not be compiled ({first}); "
         "tuning eagerly", RuntimeWarning, stacklevel=4,
     )
-    filt._guarded_step_failed = True
+    _FAILED[filt] = filt.compiled_function(_STEP_NAME, _flat_guarded_step)
 
 
-def _compiled_guarded_step(filt: SetFilter) -> Callable[..., Any] | None:
-    """The compiled :func:`_flat_guarded_step` of a filter after ``filt.compile()`` (None
-    before, while tracing, and for filters whose guarded set would change size: CZSMF's
-    predicted set has more generators than its capped update, so the branch-free guard
-    would pad every state)."""
+def _compiled_guarded_steps(filt: SetFilter) -> contextlib.AbstractContextManager:
+    """`compiled_loop` over `_flat_guarded_step`; it yields None (tune eagerly) before
+    ``filt.compile()``, after the compiled step failed, and for filters whose guarded set
+    would change size (CZSMF's predicted set has more generators than its capped update, so
+    the branch-free guard would pad every state)."""
     if tracing() or not getattr(filt, "_constant_set_size", True):
-        return None
-    if filt.__dict__.get("_guarded_step_failed", False):
-        return None
-    fn = getattr(filt, "compiled_function", None)
-    return None if fn is None else fn("guarded_step", _flat_guarded_step)
+        return contextlib.nullcontext()
+    fn = filt.compiled_function(_STEP_NAME, _flat_guarded_step)
+    if fn is None or (filt in _FAILED and _FAILED[filt] is fn):
+        return contextlib.nullcontext()
+    return compiled_loop(filt, _STEP_NAME, _flat_guarded_step)
 
 
 def _output_centre(filt: SetFilter, predicted: ConvexSet) -> Tensor:

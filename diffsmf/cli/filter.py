@@ -30,6 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import diffsmf as ds
+from diffsmf.filters import names as filter_names
+from diffsmf.plot import bounds_figure
+from diffsmf.systems import System
 from diffsmf.utils import load_object  # the shared FILE.py:FUNC loader (re-exported)
 
 __all__ = [
@@ -50,8 +54,6 @@ def load_model(spec: str, what: str = "--model"):
 
     As :func:`load_object`, and a ``ValueError`` naming ``what`` when the result is not a System.
     """
-    from diffsmf.systems import System
-
     system = load_object(spec, what)
     if not isinstance(system, System):
         func = spec.rpartition(":")[2]
@@ -278,8 +280,6 @@ def write_bounds(out: Path, run: FilterRun, fmt: str = "csv") -> Path:
 # ------------------------------------------------------------------ command line
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``diffsmf filter``."""
-    from diffsmf.filters import names as filter_names
-
     a = parser.add_argument
     a("--model", required=True, metavar="FILE.py:FUNC",
       help="Python file and the function in it that returns your diffsmf.System")
@@ -306,8 +306,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run ``diffsmf filter``; exit status 0 (also when steps were inconsistent: see summary)."""
-    import diffsmf as ds
-
     try:
         cls = ds.filters.by_name(args.filter)
     except ValueError:
@@ -369,10 +367,8 @@ def main(args: argparse.Namespace) -> int:
     bounds_path = write_bounds(out, run, args.format)
     files = {"bounds": bounds_path.name}
     name = type(filt).__name__
-    guaranteed = not isinstance(filt, ds.filters.EKF)  # every other filter bounds guaranteed
+    guaranteed = ds.filters.is_guaranteed(filt)
     if args.figure:
-        from diffsmf.plot import bounds_figure
-
         title = f"{name} on {system.name}: {T} steps of {Path(args.data).name}"
         bounds_figure(run.lower, run.upper, out / "bounds.png", consistent=run.consistent,
                       title=title, guaranteed=guaranteed)

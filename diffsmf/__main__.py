@@ -1,0 +1,7 @@
+"""``python -m diffsmf`` is the ``diffsmf`` command (`diffsmf.cli.main`)."""
+
+import sys
+
+from diffsmf.cli import main
+
+sys.exit(main())
