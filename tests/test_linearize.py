@@ -140,40 +140,34 @@ def test_interval_jets_enclose_every_supported_op():
 
 def test_unsupported_op_raises_naming_it():
     box = Interval(torch.zeros(2), torch.ones(2))
-    with pytest.raises(NotImplementedError, match="erf"):
-        interval_hessian(lambda x: torch.erf(x), box)
-    with pytest.raises(NotImplementedError, match="abs"):
-        interval_hessian(lambda x: x.abs(), Interval(-torch.ones(2), torch.ones(2)))
+    with pytest.raises(NotImplementedError, match="floor"):
+        interval_hessian(lambda x: torch.floor(x) * x, box)
 
 
 @pytest.mark.parametrize(
     "fn, match",
     [
-        (lambda x: 0.9 * x.detach(), "'detach' is not supported"),
-        (lambda x: x.float(), "'float' is not supported"),
-        (lambda x: x.mul_(0.9), "'mul_' is not supported"),
-        (lambda x: x * torch.where(x > 0, 1.0, -1.0), "comparison of state-dependent values"),
-        (lambda x: x if x[..., 0] else -x, "truth value"),
-        (lambda x: torch.clamp(x, 0.0, 1.0), "'clamp' is not supported"),
+        (lambda x: 0.9 * x.detach(), "detach"),
+        (lambda x: x.float() * 2, "cast of the state"),
+        (lambda x: x if x[..., 0] else -x, "reads a value of the state in Python"),
+        (lambda x: x * float(x.sum()), "reads a value of the state in Python"),
     ],
 )
 def test_model_errors_in_jets_are_user_errors(fn, match):
-    """What a model may not do in jets raises a JetError (ValueError: one line in the CLI)."""
+    """What the engine cannot enclose raises a JetError (ValueError: one line in the CLI)."""
     from diffsmf.linearize import JetError
 
     box = Interval(torch.zeros(2), torch.ones(2))
     with pytest.raises(JetError, match=match) as info:
         interval_hessian(fn, box)
     assert isinstance(info.value, ValueError) and isinstance(info.value, NotImplementedError)
-    assert "smooth composition of torch operations" in str(info.value)
-    x = jet_eval(lambda z: z, box)
-    assert not hasattr(x, "detach") and not hasattr(x, "__array__")  # hasattr still works
 
 
-def test_domain_errors_say_how_far_the_set_leaves_the_domain():
-    with pytest.raises(ValueError, match=r"log needs lower >= 0, its argument reaches -0\.5"):
-        interval_hessian(lambda x: torch.log(x), Interval(torch.tensor([-0.5, 1.0]),
-                                                          torch.tensor([1.0, 2.0])))
+def test_domain_exit_is_nan_for_that_element_only():
+    box = Interval(torch.tensor([[-0.5, 1.0], [0.5, 1.0]]), torch.tensor([[1.0, 2.0], [1.0, 2.0]]))
+    out = jet_eval(lambda x: torch.log(x), box)
+    assert torch.isnan(out.val.lower[0, 0]) and torch.isnan(out.hess.lower[0, 0]).all()
+    assert torch.isfinite(out.val.lower[1]).all() and torch.isfinite(out.hess.lower[1]).all()
 
 
 def _system_fns(sys):

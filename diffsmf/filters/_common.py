@@ -31,7 +31,7 @@ def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor
     ``u [B, p]`` is closed over; :mod:`diffsmf.linearize` puts extra point dims (stencils,
     vertices) in *leading* positions, so ``u`` broadcasts against them.
     """
-    from diffsmf.interval.enclose import StepModel
+    from diffsmf.interval.engine import StepModel
 
     return StepModel(system.f, u, system.theta_nominal)
 

@@ -4,7 +4,7 @@
 * :mod:`~diffsmf.interval.jet`: interval jets (value, gradient and Hessian enclosures);
 * :mod:`~diffsmf.interval.rules`: one inclusion rule per ATen op, in a registry;
 * :mod:`~diffsmf.interval.capture`: a model captured once as an ATen graph, evaluated by rules;
-* :mod:`~diffsmf.interval.enclose`: the entry point, :func:`enclose`.
+* :mod:`~diffsmf.interval.engine`: the entry point, :func:`enclose`.
 
 The box set and the interval array class live in :mod:`diffsmf.sets` (``Interval``).
 """
@@ -21,9 +21,9 @@ __all__ = ["EngineError", "Enclosure", "StepModel", "down", "enclose", "inclusio
 _LAZY = {
     "EngineError": "diffsmf.interval.errors",
     "inclusion": "diffsmf.interval.capture",
-    "Enclosure": "diffsmf.interval.enclose",
-    "StepModel": "diffsmf.interval.enclose",
-    "enclose": "diffsmf.interval.enclose",
+    "Enclosure": "diffsmf.interval.engine",
+    "StepModel": "diffsmf.interval.engine",
+    "enclose": "diffsmf.interval.engine",
     "supported_ops": "diffsmf.interval.rules",
 }
 

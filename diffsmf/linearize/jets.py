@@ -13,7 +13,7 @@ from collections.abc import Callable
 from typing import Any
 
 from diffsmf.interval.capture import EngineError
-from diffsmf.interval.enclose import Enclosure, enclose
+from diffsmf.interval.engine import Enclosure, enclose
 from diffsmf.sets.interval import Interval
 
 __all__ = ["Jet", "JetError", "interval_hessian", "interval_jacobian", "jet_eval"]

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.interval.enclose import enclose_dynamics
+from diffsmf.interval.engine import enclose_dynamics
 from diffsmf.linearize.jacobians import jacobian
 from diffsmf.linearize.jets import Jet, jet_eval
 from diffsmf.sets.base import ConvexSet

@@ -1,0 +1,181 @@
+"""The guarantee engine against sampling: every rule encloses sampled values and autograd
+derivatives on random boxes; non-smooth models, branches, domains and the extension point."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import diffsmf as ds
+from diffsmf.interval import enclose, inclusion
+from diffsmf.interval.rules import supported_ops
+from diffsmf.sets import Interval
+
+torch.set_default_dtype(torch.float64)
+M = torch.tensor([[0.5, -1.0, 0.2], [0.3, 0.4, -0.7], [1.1, 0.0, 0.6]])
+NET = torch.nn.Sequential(torch.nn.Linear(3, 6), torch.nn.ReLU(), torch.nn.Linear(6, 6),
+                          torch.nn.Tanh(), torch.nn.Linear(6, 6), torch.nn.SiLU(),
+                          torch.nn.Linear(6, 3)).double()
+
+#: one model per op family: name -> (model, category of the main op)
+MODELS = {
+    "polynomial": lambda x: torch.stack([x[..., 0] ** 2 * x[..., 1], x[..., 1] * x[..., 2],
+                                         x[..., 0] ** 3 - x[..., 2]], -1),
+    "exp_log": lambda x: torch.exp(x) + torch.log(x ** 2 + 1) + torch.log1p(x ** 2)
+    + torch.expm1(x),
+    "roots": lambda x: torch.sqrt(x ** 2 + 0.5) + torch.rsqrt(x ** 2 + 1) + (x ** 2 + 1) ** 1.5,
+    "trig": lambda x: torch.sin(x) * torch.cos(x) + torch.tan(0.3 * x) + torch.atan(x),
+    "arc": lambda x: torch.asin(0.3 * x) + torch.acos(0.3 * x),
+    "hyperbolic": lambda x: torch.sinh(x) + torch.cosh(x) + torch.tanh(x),
+    "smooth_act": lambda x: torch.sigmoid(x) + torch.erf(x) + F.softplus(x) + F.gelu(x)
+    + F.silu(x) + torch.reciprocal(x ** 2 + 1),
+    "kinks": lambda x: torch.relu(x) + F.leaky_relu(x, 0.1) + F.elu(x) + F.hardtanh(x)
+    + torch.clamp(x, -0.2, 0.3) + x.abs() + torch.maximum(x, x.flip(-1))
+    + torch.minimum(x, 0.1 * x),
+    "moving": lambda x: torch.roll(x, 1, -1) * x.flip(-1) + x.unsqueeze(-1).squeeze(-1)
+    + x.reshape(*x.shape[:-1], 3, 1).transpose(-1, -2).reshape(x.shape)
+    + torch.cat([x[..., 1:], x[..., :1]], -1) + torch.stack(x.unbind(-1), -1),
+    "reductions": lambda x: x.sum(-1, keepdim=True) + x.mean(-1, keepdim=True)
+    + x.prod(-1, keepdim=True) + torch.cumsum(x, -1) + x.amax(-1, keepdim=True)
+    + torch.linalg.vector_norm(x, dim=-1, keepdim=True) + torch.logsumexp(x, -1, keepdim=True),
+    "linalg": lambda x: torch.einsum("ij,...j->...i", M, x) + F.linear(x, M, torch.ones(3))
+    + (x @ M) * (M @ x.unsqueeze(-1)).squeeze(-1),
+    "atan2": lambda x: torch.stack([torch.atan2(x[..., 0] + 3, x[..., 1]),
+                                    torch.atan2(x[..., 1], x[..., 2] + 3), x[..., 0]], -1),
+    "mlp": NET,
+}
+
+
+def _derivatives(fn, xs):
+    xs = xs.clone().requires_grad_(True)
+    y = fn(xs)
+    k = y.shape[-1]
+    J = torch.stack([torch.autograd.grad(y[..., i].sum(), xs, create_graph=True)[0]
+                     for i in range(k)], -2)
+    H = torch.stack([torch.stack([
+        torch.autograd.grad(J[..., i, j].sum(), xs, retain_graph=True, allow_unused=True)[0]
+        if J.requires_grad else torch.zeros_like(xs) for j in range(3)], -2) for i in range(k)], -3)
+    return y.detach(), J.detach(), H.detach()
+
+
+def _inside(v, I, tol=1e-10):
+    return bool(((v >= I.lower - tol) & (v <= I.upper + tol)).all())
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([1e-3, 0.1, 0.6]))
+def test_rules_enclose_sampled_values_and_derivatives(name, seed, scale):
+    fn = MODELS[name]
+    g = torch.Generator().manual_seed(seed)
+    c = torch.randn(4, 3, generator=g) * 0.6
+    r = torch.rand(4, 3, generator=g) * scale
+    box = Interval(c - r, c + r)
+    E = enclose(fn, box, 2)
+    xs = c + r * (2 * torch.rand(300, 4, 3, generator=g) - 1)
+    xs = torch.cat([xs, box.lower[None], box.upper[None], c[None]])
+    y, J, H = _derivatives(fn, xs)
+    assert _inside(y, E.val)
+    # the rules enclose the derivatives where they exist (away from the kinks of "kinks")
+    assert _inside(J, E.grad)
+    assert _inside(H, E.hess, 1e-8)
+
+
+def test_every_registered_category_is_documented():
+    cats = supported_ops()
+    for cat in ("elementwise", "non-smooth", "branch", "moving", "reduction",
+                "linear algebra", "activation"):
+        assert cat in cats and cats[cat]
+
+
+def test_branch_on_the_state_encloses_values_and_gives_no_derivative():
+    box = Interval(torch.tensor([[-0.5], [0.2]]), torch.tensor([[0.5], [0.6]]))
+    E = enclose(lambda x: torch.where(x > 0, x ** 2, -x), box, 2)
+    assert E.val.lower[0, 0] <= 0.0 and E.val.upper[0, 0] >= 0.5  # hull of both branches
+    assert torch.isinf(E.grad.upper[0]).all()  # undecided: the function may jump
+    assert torch.isfinite(E.grad.upper[1]).all() and E.val.lower[1, 0] >= 0.04 - 1e-12
+
+
+def test_domain_exit_is_nan_only_for_that_element():
+    lo = torch.tensor([[-0.1, 1.0], [0.5, 1.0]])
+    E = enclose(lambda x: torch.sqrt(x) + torch.asin(0.5 * x), Interval(lo, lo + 0.5), 2)
+    assert torch.isnan(E.val.lower[0, 0])
+    assert torch.isfinite(E.val.lower[1]).all() and torch.isfinite(E.hess.lower[1]).all()
+
+
+def test_user_inclusion_rule_is_used_as_a_leaf():
+    calls = []
+
+    def rule(lo, hi):
+        calls.append(1)
+        return torch.tanh(lo), torch.tanh(hi), (1 - torch.tanh(hi.abs().maximum(lo.abs())) ** 2
+                                                ).unsqueeze(-2) * torch.eye(lo.shape[-1]), \
+            torch.eye(lo.shape[-1]).expand(*lo.shape, lo.shape[-1])
+
+    @inclusion(rule)
+    def sat(x):
+        return torch.tanh(x)
+
+    box = Interval(torch.full((2, 2), -0.3), torch.full((2, 2), 0.4))
+    E = enclose(lambda x: 2.0 * sat(x), box, 2)
+    assert calls and _inside(2 * torch.tanh(box.sample(50)).movedim(-2, 0), E.val)
+    assert torch.isinf(E.hess.upper).any()  # a leaf has a first-order bound only
+    assert torch.allclose(sat(box.lower), torch.tanh(box.lower))  # unchanged outside
+
+
+def test_enclosure_bounds_are_differentiable():
+    def bounds(c):
+        E = enclose(lambda x: torch.sin(x) * x[..., :1] + F.softplus(x), Interval(c - 0.1, c + 0.1),
+                    2)
+        return E.val.upper.sum() + E.grad.lower.sum() + E.hess.upper.sum()
+
+    c = torch.tensor([[0.3, -0.2]], requires_grad=True)
+    assert torch.autograd.gradcheck(bounds, (c,))
+
+
+def _ring(n):
+    def f(x, u, th):
+        return 0.8 * x + 0.1 * torch.tanh(torch.roll(x, 1, -1)) - 0.05 * torch.clamp(x, -0.3, 0.3)
+
+    def h(x):
+        return x[..., ::2] + 0.1 * torch.relu(x[..., 1::2])
+
+    w = 0.01 * torch.ones(n)
+    v = 0.02 * torch.ones(n // 2)
+    return ds.System(f, h, Interval(-0.5 * torch.ones(n), 0.5 * torch.ones(n)),
+                     Interval(-w, w), Interval(-v, v))
+
+
+@pytest.mark.parametrize("filt", ["HSNSMF", "MSZM"])
+def test_nonsmooth_ring_model_is_contained(filt):
+    """A ring of coupled states (roll, tanh, clamp) measured through relu: vertex noise."""
+    sys_ = _ring(16)
+    traj = sys_.simulate(steps=8, batch=3, seed=1, noise="vertex")
+    with torch.no_grad():
+        res = getattr(ds.filters, filt)(sys_)(traj.y)
+    assert bool(res.bounded.all()) and bool(res.sets.contains(traj.x).all())
+
+
+def test_relu_mlp_dynamics_is_contained():
+    torch.manual_seed(3)
+    net = torch.nn.Sequential(torch.nn.Linear(2, 16), torch.nn.ReLU(), torch.nn.Linear(16, 2))
+    with torch.no_grad():
+        for p in net.parameters():
+            p.mul_(0.3)
+
+    def f(x, u, th):
+        return 0.9 * x + 0.1 * net(x)
+
+    sys_ = ds.System(f, lambda x: x[..., :1], Interval(-0.5 * torch.ones(2), 0.5 * torch.ones(2)),
+                     Interval(-0.01 * torch.ones(2), 0.01 * torch.ones(2)),
+                     Interval(-0.02 * torch.ones(1), 0.02 * torch.ones(1)))
+    traj = sys_.simulate(steps=15, batch=8, seed=0, noise="vertex")
+    with torch.no_grad():
+        res = ds.filters.HSNSMF(sys_)(traj.y)
+    assert bool(res.bounded.all()) and bool(res.sets.contains(traj.x).all())
+    assert float(res.volume[:, -1].max()) < 1.0 and math.isfinite(float(res.volume.sum()))
