@@ -1,0 +1,215 @@
+"""Exact ranges of a continuous piecewise-linear model and of its gradients over boxes.
+
+A continuous PWL function ``f`` on a conforming simplicial partition is affine on every simplex
+``S_k``, so its minimum and maximum over a box ``B`` are attained at vertices of the polytopes
+``B ∩ S_k``. A vertex ``v`` of ``B ∩ S_k`` lies in the relative interior of a face ``F`` of the
+partition (dimension ``d``, spanned by ``d + 1`` partition vertices) and of a face ``G`` of the
+box, and ``aff F ∩ aff G = {v}``. Among the coordinates that ``G`` fixes at a bound, ``d``
+already determine the point on ``aff F`` (a nonsingular ``d x d`` system), so every such vertex
+is found by enumerating, for every face ``F`` of the partition, every set ``I`` of ``d``
+coordinates and every choice of lower/upper bound for them, the point ``x`` of ``aff F`` with
+``x_I`` at those bounds, and keeping the points that lie in ``F`` (barycentric weights >= 0)
+and in the box. Their values (``F``'s vertex weights mixed by the barycentric weights) give the
+exact range; a face with a valid point meets the box, and so does every simplex containing it,
+which gives the exact set of pieces that meet the box and the hull of their gradients (the
+interval hull of the Clarke generalised Jacobian over the box).
+
+Everything that depends only on the partition (faces, inverses of the ``d x d`` systems) is
+tabulated once (:func:`face_tables`); a query is then a few batched tensor products per face
+dimension, with no data-dependent shapes (no host synchronisation).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["FaceTables", "box_enclosure", "face_tables", "jet_apply"]
+
+#: Relative tolerance of the membership tests (barycentric weights and box bounds, the latter
+#: scaled by the domain's width): a point this close to a face or the box is kept, so that
+#: rounding never drops a true vertex; it can only widen the result by ``L * TOL * width``.
+TOL = 1e-10
+#: Two ``d x d`` systems whose Hadamard ratio ``|det| / prod(column norms)`` (columns scaled by
+#: the domain's width) is below this are treated as singular (a face parallel to a box face):
+#: the points they would give are found from other faces and box faces.
+SINGULAR = 1e-12
+#: Elements per chunk of the batched query (memory cap).
+CHUNK_ELEMS = 4_000_000
+
+
+@dataclass
+class FaceDim:
+    """Faces of one dimension d and their point systems (see module docstring).
+
+    faces ``[F, d+1]`` (vertex ids), combos ``[C, d]`` (coordinate sets I), u0 ``[F, n]`` (first
+    vertex), D ``[F, n, d]`` (edge vectors from u0), Einv ``[F, C, d, d]`` (inverse of
+    ``D[I]``, identity where singular), ok ``[F, C]`` (nonsingular), u0I ``[F, C, d]``.
+    """
+
+    faces: Tensor
+    combos: Tensor
+    u0: Tensor
+    D: Tensor
+    Einv: Tensor
+    ok: Tensor
+    u0I: Tensor
+
+    @property
+    def n_faces(self) -> int:
+        return self.faces.shape[0]
+
+
+@dataclass
+class FaceTables:
+    """Faces of every dimension 0..n and, per simplex, the ids of its faces ``[M, 2^(n+1)-1]``
+    (numbered consecutively over the dimensions, dimension 0 first)."""
+
+    dims: list[FaceDim]
+    simplex_faces: Tensor
+    width: Tensor
+
+
+def face_tables(vertices: Tensor, simplices: Tensor) -> FaceTables:
+    """Tabulate the faces of a partition (``vertices [nv, n]``, ``simplices [M, n+1]``)."""
+    n = vertices.shape[1]
+    width = (vertices.amax(0) - vertices.amin(0)).clamp_min(1e-300)
+    dims, cols, offset = [], [], 0
+    for d in range(n + 1):
+        subsets = list(itertools.combinations(range(n + 1), d + 1))
+        rows = simplices[:, subsets].sort(-1).values  # [M, s, d+1]
+        faces, inv = torch.unique(rows.reshape(-1, d + 1), dim=0, return_inverse=True)
+        cols.append(inv.reshape(simplices.shape[0], len(subsets)) + offset)
+        offset += faces.shape[0]
+        dims.append(_face_dim(vertices, faces, d, width))
+    return FaceTables(dims=dims, simplex_faces=torch.cat(cols, 1), width=width)
+
+
+def _face_dim(vertices: Tensor, faces: Tensor, d: int, width: Tensor) -> FaceDim:
+    n = vertices.shape[1]
+    P = vertices[faces]  # [F, d+1, n]
+    u0 = P[:, 0]
+    D = (P[:, 1:] - u0[:, None]).transpose(-1, -2)  # [F, n, d]
+    combos = torch.tensor(list(itertools.combinations(range(n), d)), dtype=torch.long)
+    combos = combos.reshape(-1, d) if d else torch.zeros(1, 0, dtype=torch.long)
+    E = D[:, combos]  # [F, C, d, d]: rows I of the edge matrix
+    Es = E / width[combos][None, :, :, None]
+    norms = (D / width[:, None]).norm(dim=-2)  # [F, d] scaled edge lengths
+    if d == 0:
+        ok = torch.ones(E.shape[:2], dtype=torch.bool)
+    else:
+        ratio = torch.linalg.det(Es).abs() / norms.prod(-1)[:, None]
+        ok = ratio > SINGULAR
+    eye = torch.eye(d, dtype=E.dtype).expand_as(E)
+    Einv = torch.linalg.inv(torch.where(ok[..., None, None], E, eye))
+    return FaceDim(faces=faces, combos=combos, u0=u0, D=D, Einv=Einv, ok=ok,
+                   u0I=u0[:, combos])
+
+
+def _per_box_elems(tables: FaceTables, p: int) -> int:
+    n = tables.width.shape[0]
+    tot = 0
+    for d, fd in enumerate(tables.dims):
+        tot += fd.n_faces * fd.combos.shape[0] * (2**d) * (n + p + d + 2)
+    return tot + tables.simplex_faces.numel() + tables.simplex_faces.shape[0] * p * n
+
+
+def box_enclosure(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi: Tensor
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Exact range and gradient hull over boxes ``lo, hi [B, n]`` (inside the domain or not).
+
+    Args:
+        tables: :func:`face_tables` of the partition.
+        weight: vertex values ``[nv, p]``.
+        A: slopes of the pieces ``[M, p, n]``.
+
+    Returns:
+        ``val_lo, val_hi [B, p]`` (min / max of the model over box ∩ domain; +inf / -inf where
+        the box misses the domain), ``jac_lo, jac_hi [B, p, n]`` (entrywise min / max of the
+        slopes of the pieces that meet the box; +inf / -inf where none does) and ``corners
+        [B]``: whether every corner of the box lies in the domain (for a convex domain: the box
+        is inside it).
+    """
+    step = max(1, CHUNK_ELEMS // max(1, _per_box_elems(tables, weight.shape[1])))
+    outs = [_chunk(tables, weight, A, lo[i:i + step], hi[i:i + step])
+            for i in range(0, lo.shape[0], step)]
+    return tuple(torch.cat(parts) for parts in zip(*outs))  # type: ignore[return-value]
+
+
+def _chunk(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi: Tensor
+           ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    B, n = lo.shape
+    p = weight.shape[1]
+    tx = TOL * tables.width
+    inf = torch.full((), torch.inf, dtype=lo.dtype, device=lo.device)
+    vmin = inf.expand(B, p)
+    vmax = -vmin
+    valid_faces = []
+    corners = None
+    for d, fd in enumerate(tables.dims):
+        val, valid = _candidates(fd, weight, lo, hi, tx, d)  # [B, F, C, 2^d, p], [B, F, C, 2^d]
+        vmin = torch.minimum(vmin, torch.where(valid[..., None], val, inf).amin((1, 2, 3)))
+        vmax = torch.maximum(vmax, torch.where(valid[..., None], val, -inf).amax((1, 2, 3)))
+        valid_faces.append(valid.flatten(2).any(-1))  # [B, F]
+        if d == n:  # one combo (all coordinates): its 2^n points are the box's corners
+            corners = valid[:, :, 0].any(1).all(-1)
+    fv = torch.cat(valid_faces, 1)  # [B, total faces]
+    meet = fv[:, tables.simplex_faces].any(-1)  # [B, M]
+    m4 = meet[:, :, None, None]
+    jlo = torch.where(m4, A, inf).amin(1)
+    jhi = torch.where(m4, A, -inf).amax(1)
+    assert corners is not None
+    return vmin, vmax, jlo, jhi, corners
+
+
+def _candidates(fd: FaceDim, weight: Tensor, lo: Tensor, hi: Tensor, tx: Tensor, d: int
+                ) -> tuple[Tensor, Tensor]:
+    """Points of ``aff F`` with ``d`` coordinates at box bounds, their values and validity."""
+    W = weight[fd.faces]  # [F, d+1, p]
+    if d == 0:
+        x = fd.u0  # [F, n]: the vertices themselves
+        inside = ((x >= lo[:, None] - tx) & (x <= hi[:, None] + tx)).all(-1)  # [B, F]
+        return W[:, 0][None, :, None, None].expand(lo.shape[0], -1, 1, 1, -1), inside[
+            :, :, None, None]
+    bits = ((torch.arange(2**d)[:, None] >> torch.arange(d)[None]) & 1).bool()  # [2^d, d]
+    loI, hiI = lo[:, fd.combos], hi[:, fd.combos]  # [B, C, d]
+    c = torch.where(bits, hiI[:, :, None], loI[:, :, None])  # [B, C, 2^d, d]
+    rhs = c[:, None] - fd.u0I[None, :, :, None]  # [B, F, C, 2^d, d]
+    t = (fd.Einv[None, :, :, None] @ rhs[..., None]).squeeze(-1)  # [B, F, C, 2^d, d]
+    x = fd.u0[None, :, None, None] + (fd.D[None, :, None, None] @ t[..., None]).squeeze(-1)
+    lo5, hi5 = lo[:, None, None, None], hi[:, None, None, None]
+    valid = ((t >= -TOL).all(-1) & (t.sum(-1) <= 1 + TOL)
+             & ((x >= lo5 - tx) & (x <= hi5 + tx)).all(-1) & fd.ok[None, :, :, None])
+    W0 = W[:, 0]  # [F, p]
+    DW = (W[:, 1:] - W0[:, None]).transpose(-1, -2)  # [F, p, d]
+    val = W0[None, :, None, None] + (DW[None, :, None, None] @ t[..., None]).squeeze(-1)
+    return val, valid
+
+
+def jet_apply(x: object, enclosure: Callable[[Tensor, Tensor], tuple[Tensor, ...]]) -> object:
+    """First-order interval jet of a model given by its box enclosure (chain rule).
+
+    ``x`` is a first-order ``diffsmf.linearize.jets.Jet`` of shape ``[..., d]`` (value box
+    ``x.val``, gradient enclosure ``x.grad [..., d, n]`` w.r.t. the input box);
+    ``enclosure(lo, hi) -> (val_lo, val_hi [..., k], jac_lo, jac_hi [..., k, d])``. Returns
+    the jet ``[..., k]``: value enclosure over ``x.val`` and gradient ``[J] x.grad`` in
+    outward-rounded interval arithmetic. Second-order jets (Hessian enclosures) raise a
+    ``JetError``: a piecewise-linear model has no Hessian at its kinks; use the first-order
+    (mean-value) remainder, ``remainder="mean-value"``.
+    """
+    from diffsmf.linearize.jets import Jet, JetError
+    from diffsmf.sets.interval import Interval
+
+    assert isinstance(x, Jet)
+    if x.order != 1:
+        raise JetError(
+            "interval jets: a piecewise-linear model (SCPLNN) has no Hessian enclosure at its "
+            "kinks; use a first-order remainder: remainder='mean-value'")
+    vl, vh, jl, jh = enclosure(x.val.lower, x.val.upper)
+    J = Interval._make(jl, jh)  # [..., k, d]
+    grad = (J.unsqueeze(-1) * x.grad.unsqueeze(-3)).sum(-2)  # [..., k, n]
+    return Jet(Interval._make(vl, vh), grad, None, 1)
