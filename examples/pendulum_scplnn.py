@@ -133,12 +133,12 @@ def figure(out: dict, path: str | Path, every: int = 5) -> None:
     T = x.shape[0] - 1
     for k in range(1, T + 1, every):
         plot_set(ax, res.sets[0, k], fill=False, edgecolor="tab:blue", lw=0.8,
-                 label="HSNSMF set (every %d steps)" % every if k == 1 else None)
+                 label=f"HSNSMF set (every {every} steps)" if k == 1 else None)
     ax.plot(x[:, 0], x[:, 1], ".-", color="k", ms=2.5, lw=0.6, label="true state")
     ax.set_xlabel("theta [rad]")
     ax.set_ylabel("omega [rad/s]")
-    ax.set_title("Pendulum, SCPLNN model (%d regions): sets and true states"
-                 % out["model"].n_regions, fontsize=9)
+    ax.set_title(f"Pendulum, SCPLNN model ({out['model'].n_regions} regions): sets and true "
+                 "states", fontsize=9)
     ax.legend(fontsize=8, loc="upper right")
     box = res.sets[0].interval_hull()
     t = torch.arange(T + 1) * DT

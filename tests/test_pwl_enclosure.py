@@ -212,6 +212,25 @@ def test_batch_dims_broadcast_and_chunks(monkeypatch):
         assert torch.equal(a, b.reshape(a.shape)) and torch.equal(a, c)
 
 
+def test_dense_path_equals_sparse_path_and_runs_under_vmap():
+    """Fixed-shape evaluation of every (box, face) pair (used under tracing) = the pruned one."""
+    from diffsmf.pwl.enclosure import box_enclosure
+
+    model = _fitted_2d(2)
+    lo, hi = _random_boxes(2, 25, 6)
+    tables, A = model._get("encl"), model.regions().A.detach()
+    W = model.weight.detach()
+    sparse = box_enclosure(tables, W, A, lo, hi, sparse=True)
+    dense = box_enclosure(tables, W, A, lo, hi, sparse=False)
+    for a, b in zip(sparse, dense):
+        assert torch.equal(a, b)
+    with torch.no_grad():
+        vm = torch.func.vmap(lambda a, b: model.interval_enclosure(a, b))(lo, hi)
+        ref = model.interval_enclosure(lo, hi)
+    for a, b in zip(vm, ref):
+        assert torch.equal(a, b)
+
+
 # ---------------------------------------------------------------- outside the domain
 def test_box_leaving_domain_gives_nan_or_clamped_enclosure():
     model = _kuhn_2d()

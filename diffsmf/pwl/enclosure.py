@@ -48,7 +48,9 @@ class FaceDim:
 
     faces ``[F, d+1]`` (vertex ids), combos ``[C, d]`` (coordinate sets I), u0 ``[F, n]`` (first
     vertex), D ``[F, n, d]`` (edge vectors from u0), Einv ``[F, C, d, d]`` (inverse of
-    ``D[I]``, identity where singular), ok ``[F, C]`` (nonsingular), u0I ``[F, C, d]``.
+    ``D[I]``, identity where singular), ok ``[F, C]`` (nonsingular), u0I ``[F, C, d]``, bmin /
+    bmax ``[F, n]`` (bounding box of the face, padded by ``(n + 2) TOL`` of the domain width so
+    that it holds every point the tolerant membership test keeps).
     """
 
     faces: Tensor
@@ -58,6 +60,8 @@ class FaceDim:
     Einv: Tensor
     ok: Tensor
     u0I: Tensor
+    bmin: Tensor
+    bmax: Tensor
 
     @property
     def n_faces(self) -> int:
@@ -106,26 +110,30 @@ def _face_dim(vertices: Tensor, faces: Tensor, d: int, width: Tensor) -> FaceDim
         ok = ratio > SINGULAR
     eye = torch.eye(d, dtype=E.dtype).expand_as(E)
     Einv = torch.linalg.inv(torch.where(ok[..., None, None], E, eye))
-    return FaceDim(faces=faces, combos=combos, u0=u0, D=D, Einv=Einv, ok=ok,
-                   u0I=u0[:, combos])
+    pad = (n + 2) * TOL * width
+    return FaceDim(faces=faces, combos=combos, u0=u0, D=D, Einv=Einv.contiguous(), ok=ok,
+                   u0I=u0[:, combos], bmin=P.amin(1) - pad, bmax=P.amax(1) + pad)
 
 
 def _per_box_elems(tables: FaceTables, p: int) -> int:
     n = tables.width.shape[0]
     tot = 0
     for d, fd in enumerate(tables.dims):
-        tot += fd.n_faces * fd.combos.shape[0] * (2**d) * (n + p + d + 2)
+        tot += fd.n_faces * fd.combos.shape[0] * (2**d) * (n + p + 2 * d + 2)
     return tot + tables.simplex_faces.numel() + tables.simplex_faces.shape[0] * p * n
 
 
-def box_enclosure(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi: Tensor
-                  ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def box_enclosure(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi: Tensor,
+                  sparse: bool = True) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Exact range and gradient hull over boxes ``lo, hi [B, n]`` (inside the domain or not).
 
     Args:
         tables: :func:`face_tables` of the partition.
         weight: vertex values ``[nv, p]``.
         A: slopes of the pieces ``[M, p, n]``.
+        sparse: only the (box, face) pairs whose bounding boxes overlap are evaluated (one
+            data-dependent ``nonzero``: a host synchronisation on a GPU); False evaluates every
+            pair (fixed shapes: traceable, compilable). Same result.
 
     Returns:
         ``val_lo, val_hi [B, p]`` (min / max of the model over box ∩ domain; +inf / -inf where
@@ -134,59 +142,93 @@ def box_enclosure(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi:
         [B]``: whether every corner of the box lies in the domain (for a convex domain: the box
         is inside it).
     """
-    step = max(1, CHUNK_ELEMS // max(1, _per_box_elems(tables, weight.shape[1])))
-    outs = [_chunk(tables, weight, A, lo[i:i + step], hi[i:i + step])
+    per = 1 if sparse else _per_box_elems(tables, weight.shape[1])
+    step = max(1, CHUNK_ELEMS // per)
+    outs = [_chunk(tables, weight, A, lo[i:i + step], hi[i:i + step], sparse)
             for i in range(0, lo.shape[0], step)]
     return tuple(torch.cat(parts) for parts in zip(*outs))  # type: ignore[return-value]
 
 
-def _chunk(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi: Tensor
-           ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def _pairs(fd: FaceDim, lo: Tensor, hi: Tensor, sparse: bool) -> tuple[Tensor, Tensor]:
+    """(box ids, face ids) ``[K]`` of the pairs to evaluate."""
+    B, F = lo.shape[0], fd.n_faces
+    if not sparse:
+        return (torch.arange(B, device=lo.device).repeat_interleave(F),
+                torch.arange(F, device=lo.device).repeat(B))
+    over = ((fd.bmin[None] <= hi[:, None]) & (fd.bmax[None] >= lo[:, None])).all(-1)
+    ib, jf = over.nonzero(as_tuple=True)
+    return ib, jf
+
+
+def _chunk(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi: Tensor,
+           sparse: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     B, n = lo.shape
     p = weight.shape[1]
     tx = TOL * tables.width
     inf = torch.full((), torch.inf, dtype=lo.dtype, device=lo.device)
-    vmin = inf.expand(B, p)
+    vmin = inf.expand(B, p).clone()
     vmax = -vmin
     valid_faces = []
-    corners = None
+    corners = torch.ones(B, dtype=torch.bool, device=lo.device)
     for d, fd in enumerate(tables.dims):
-        val, valid = _candidates(fd, weight, lo, hi, tx, d)  # [B, F, C, 2^d, p], [B, F, C, 2^d]
-        vmin = torch.minimum(vmin, torch.where(valid[..., None], val, inf).amin((1, 2, 3)))
-        vmax = torch.maximum(vmax, torch.where(valid[..., None], val, -inf).amax((1, 2, 3)))
-        valid_faces.append(valid.flatten(2).any(-1))  # [B, F]
+        ib, jf = _pairs(fd, lo - tx, hi + tx, sparse)
+        val, valid = _candidates(fd, weight, lo, hi, tx, d, ib, jf)  # [K, C, 2^d, p], [K, C, 2^d]
+        idx = ib[:, None].expand(-1, p)
+        vmin = vmin.scatter_reduce(0, idx, torch.where(valid[..., None], val, inf).amin((1, 2)),
+                                   "amin")
+        vmax = vmax.scatter_reduce(0, idx, torch.where(valid[..., None], val, -inf).amax((1, 2)),
+                                   "amax")
+        fv = torch.zeros(B, fd.n_faces, dtype=torch.bool, device=lo.device)
+        valid_faces.append(fv.index_put((ib, jf), valid.flatten(1).any(-1)))
         if d == n:  # one combo (all coordinates): its 2^n points are the box's corners
-            corners = valid[:, :, 0].any(1).all(-1)
-    fv = torch.cat(valid_faces, 1)  # [B, total faces]
-    meet = fv[:, tables.simplex_faces].any(-1)  # [B, M]
-    m4 = meet[:, :, None, None]
-    jlo = torch.where(m4, A, inf).amin(1)
-    jhi = torch.where(m4, A, -inf).amax(1)
-    assert corners is not None
+            hits = torch.zeros(B, 2**n, dtype=lo.dtype, device=lo.device)
+            corners = hits.index_add(0, ib, valid[:, 0].to(lo.dtype)).gt(0).all(-1)
+    meet = torch.cat(valid_faces, 1)[:, tables.simplex_faces].any(-1)  # [B, M]
+    jlo, jhi = _slope_hull(meet, A, sparse)
     return vmin, vmax, jlo, jhi, corners
 
 
-def _candidates(fd: FaceDim, weight: Tensor, lo: Tensor, hi: Tensor, tx: Tensor, d: int
-                ) -> tuple[Tensor, Tensor]:
-    """Points of ``aff F`` with ``d`` coordinates at box bounds, their values and validity."""
-    W = weight[fd.faces]  # [F, d+1, p]
+def _slope_hull(meet: Tensor, A: Tensor, sparse: bool) -> tuple[Tensor, Tensor]:
+    """Entrywise min / max ``[B, p, n]`` of the slopes ``A [M, p, n]`` where ``meet [B, M]``."""
+    B, (M, p, n) = meet.shape[0], A.shape
+    if not sparse:
+        inf = torch.full((), torch.inf, dtype=A.dtype, device=A.device)
+        m4 = meet[:, :, None, None]
+        return torch.where(m4, A, inf).amin(1), torch.where(m4, A, -inf).amax(1)
+    ib, k = meet.nonzero(as_tuple=True)
+    idx = ib[:, None].expand(-1, p * n)
+    Ak = A.reshape(M, p * n)[k]
+    full = torch.full((B, p * n), torch.inf, dtype=A.dtype, device=A.device)
+    jlo = full.scatter_reduce(0, idx, Ak, "amin")
+    jhi = (-full).scatter_reduce(0, idx, Ak, "amax")
+    return jlo.reshape(B, p, n), jhi.reshape(B, p, n)
+
+
+def _candidates(fd: FaceDim, weight: Tensor, lo: Tensor, hi: Tensor, tx: Tensor, d: int,
+                ib: Tensor, jf: Tensor) -> tuple[Tensor, Tensor]:
+    """For pairs (box ``ib``, face ``jf``) ``[K]``: the points of ``aff F`` with ``d``
+    coordinates at the box's bounds, their values ``[K, C, 2^d, p]`` and validity
+    ``[K, C, 2^d]`` (nonsingular system, in F and in the box up to the tolerances)."""
+    W = weight[fd.faces[jf]]  # [K, d+1, p]
+    lo3, hi3 = lo[ib][:, None, None], hi[ib][:, None, None]  # [K, 1, 1, n]
+    u0 = fd.u0[jf][:, None, None]  # [K, 1, 1, n]
     if d == 0:
-        x = fd.u0  # [F, n]: the vertices themselves
-        inside = ((x >= lo[:, None] - tx) & (x <= hi[:, None] + tx)).all(-1)  # [B, F]
-        return W[:, 0][None, :, None, None].expand(lo.shape[0], -1, 1, 1, -1), inside[
-            :, :, None, None]
-    bits = ((torch.arange(2**d)[:, None] >> torch.arange(d)[None]) & 1).bool()  # [2^d, d]
-    loI, hiI = lo[:, fd.combos], hi[:, fd.combos]  # [B, C, d]
-    c = torch.where(bits, hiI[:, :, None], loI[:, :, None])  # [B, C, 2^d, d]
-    rhs = c[:, None] - fd.u0I[None, :, :, None]  # [B, F, C, 2^d, d]
-    t = (fd.Einv[None, :, :, None] @ rhs[..., None]).squeeze(-1)  # [B, F, C, 2^d, d]
-    x = fd.u0[None, :, None, None] + (fd.D[None, :, None, None] @ t[..., None]).squeeze(-1)
-    lo5, hi5 = lo[:, None, None, None], hi[:, None, None, None]
+        inside = ((u0 >= lo3 - tx) & (u0 <= hi3 + tx)).all(-1)  # [K, 1, 1]
+        return W[:, None, None, 0], inside
+    bits = ((torch.arange(2**d, device=lo.device)[:, None] >> torch.arange(
+        d, device=lo.device)[None]) & 1).bool()  # [2^d, d]
+    combos = fd.combos
+    c = torch.where(bits, hi[ib][:, combos][:, :, None], lo[ib][:, combos][:, :, None])
+    rhs = c - fd.u0I[jf][:, :, None]  # [K, C, 2^d, d]
+    Einv = fd.Einv[jf][:, :, None]  # [K, C, 1, d, d]
+    t = sum(Einv[..., j] * rhs[..., j, None] for j in range(d))  # [K, C, 2^d, d]
+    D = fd.D[jf][:, None, None]  # [K, 1, 1, n, d]
+    x = u0 + sum(D[..., j] * t[..., j, None] for j in range(d))  # [K, C, 2^d, n]
+    W0 = W[:, None, None, 0]  # [K, 1, 1, p]
+    DW = (W[:, 1:] - W[:, :1])[:, None, None]  # [K, 1, 1, d, p]
+    val = W0 + sum(DW[..., j, :] * t[..., j, None] for j in range(d))
     valid = ((t >= -TOL).all(-1) & (t.sum(-1) <= 1 + TOL)
-             & ((x >= lo5 - tx) & (x <= hi5 + tx)).all(-1) & fd.ok[None, :, :, None])
-    W0 = W[:, 0]  # [F, p]
-    DW = (W[:, 1:] - W0[:, None]).transpose(-1, -2)  # [F, p, d]
-    val = W0[None, :, None, None] + (DW[None, :, None, None] @ t[..., None]).squeeze(-1)
+             & ((x >= lo3 - tx) & (x <= hi3 + tx)).all(-1) & fd.ok[jf][:, :, None])
     return val, valid
 
 

@@ -394,7 +394,8 @@ class SCPLNN(nn.Module):
         lc = torch.minimum(torch.maximum(lo2, L), U)
         hc = torch.minimum(torch.maximum(hi2, L), U)
         A = self.regions().A
-        vl, vh, jl, jh, corners = box_enclosure(self._get("encl"), self.weight, A, lc, hc)
+        sparse = lc.device.type == "cpu" and not _tracing()
+        vl, vh, jl, jh, corners = box_enclosure(self._get("encl"), self.weight, A, lc, hc, sparse)
         leave = exits.any(-1)
         if self._box and outside == "clamp":
             e3 = exits[:, None, :]
