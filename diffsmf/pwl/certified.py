@@ -6,10 +6,10 @@ The chain of guarantees::
     model step  x+ = f(x, u) + w',         w' in W ⊕ [-e, e]      (f the SCPLNN)
 
 holds for every x in the model's domain D when ``|g_i - f_i| <= e_i`` on D. That bound is an
-:class:`ErrorCertificate`, computed per simplex by :func:`certify_error` from g (its values at
+`ErrorCertificate`, computed per simplex by `certify_error` from g (its values at
 the partition's vertices and a bound of its Hessian), not measured on samples. The System built
-by :func:`as_system` adds ``e`` to the process noise and bounds the model over the filter's sets
-with :meth:`SCPLNN.interval_enclosure` in the domain exit mode: a set whose box leaves D gets NaN
+by `as_system` adds ``e`` to the process noise and bounds the model over the filter's sets
+with `SCPLNN.interval_enclosure` in the domain exit mode: a set whose box leaves D gets NaN
 bounds, so the filter flags that trajectory unbounded (guarantee lost, said per trajectory)
 instead of using the model where the certificate says nothing. While the sets stay in D, every
 state consistent with the true system, the noise bounds and the data stays in them (by induction
@@ -56,8 +56,8 @@ class ErrorCertificate:
 
     bound ``[p]``; lower / upper ``[n]``: the bounding box of the domain D (D itself is the
     union of the model's simplices, the box for box domains); method: how the bound was
-    obtained (``"certified"``: :func:`certify_error`; ``"given"``: stated by the user,
-    :meth:`given`, checked only for belonging to the model and against samples).
+    obtained (``"certified"``: `certify_error`; ``"given"``: stated by the user,
+    `given`, checked only for belonging to the model and against samples).
     """
 
     bound: Tensor
@@ -114,7 +114,7 @@ def simplex_hessian_bound(fn: Callable[[Tensor], Tensor]) -> Callable[[Tensor], 
 
 def certify_error(model: SCPLNN, fn: Callable[[Tensor], Tensor],
                   hess_bound: Callable[[Tensor], Tensor] | None = None) -> ErrorCertificate:
-    """Certified ``sup_D |fn_i - model_i|`` per output (an :class:`ErrorCertificate`).
+    """Certified ``sup_D |fn_i - model_i|`` per output (an `ErrorCertificate`).
 
     Per simplex S with vertices v_j and model weights W_j: ``|fn - model| <= max_j |fn(v_j) -
     W_j| + (1/8) r' H r`` with ``r [n]`` the coordinate ranges of S and ``H [n, n]`` an
@@ -128,7 +128,7 @@ def certify_error(model: SCPLNN, fn: Callable[[Tensor], Tensor],
     Args:
         fn: the true map ``[..., n] -> [..., p]`` (torch ops).
         hess_bound: ``V [M, n+1, n] -> [M, p, n, n]`` entrywise Hessian bounds; default
-            :func:`simplex_hessian_bound` (interval arithmetic).
+            `simplex_hessian_bound` (interval arithmetic).
     """
     with torch.no_grad():
         err = simplex_error(model.vertices[model.simplices], model.weight[model.simplices],
@@ -139,7 +139,7 @@ def certify_error(model: SCPLNN, fn: Callable[[Tensor], Tensor],
 
 def simplex_error(V: Tensor, W: Tensor, fn: Callable[[Tensor], Tensor],
                   hess_bound: Callable[[Tensor], Tensor]) -> Tensor:
-    """Per-simplex bound ``[M, p]`` of :func:`certify_error`; ``V [M, n+1, n]`` simplex
+    """Per-simplex bound ``[M, p]`` of `certify_error`; ``V [M, n+1, n]`` simplex
     vertices, ``W [M, n+1, p]`` their weights (usable as ``fit_scplnn(region_bound=...)``)."""
     with torch.no_grad():
         vert = (fn(V).reshape(W.shape) - W).abs().amax(-2)  # [M, p]
@@ -154,7 +154,7 @@ class SCPLNNDynamics(nn.Module):
 
     Points outside the domain are evaluated on the clamped model (centres and difference
     stencils of a filter step never raise); box enclosures end at the domain: a box leaving it
-    gives NaN bounds (:meth:`interval_enclosure`), because the certified error holds on the
+    gives NaN bounds (`interval_enclosure`), because the certified error holds on the
     domain only. ``theta`` is ignored (no mismatched parameters).
 
     Args:
@@ -217,8 +217,8 @@ def as_system(
         x0_set: initial set; must lie in the model's domain (ValueError otherwise).
         process_noise: the true system's process noise set W (None: zero).
         measurement_noise: measurement noise set V.
-        certificate: :func:`certify_error` (or :meth:`ErrorCertificate.given`) for this model;
-            checked (:meth:`ErrorCertificate.check`), then ``[-bound, bound]`` is added to W.
+        certificate: `certify_error` (or `ErrorCertificate.given`) for this model;
+            checked (`ErrorCertificate.check`), then ``[-bound, bound]`` is added to W.
         n_inputs: p, the inputs of the model (``f(x, u) = model([x, u])``).
         samples: optional ``(X, Y)`` that the certificate must not contradict.
 

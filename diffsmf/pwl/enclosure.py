@@ -15,7 +15,7 @@ which gives the exact set of pieces that meet the box and the hull of their grad
 interval hull of the Clarke generalised Jacobian over the box).
 
 Everything that depends only on the partition (faces, inverses of the ``d x d`` systems) is
-tabulated once (:func:`face_tables`); a query is then a few batched tensor products per face
+tabulated once (`face_tables`); a query is then a few batched tensor products per face
 dimension, with no data-dependent shapes (no host synchronisation).
 """
 
@@ -128,7 +128,7 @@ def box_enclosure(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi:
     """Exact range and gradient hull over boxes ``lo, hi [B, n]`` (inside the domain or not).
 
     Args:
-        tables: :func:`face_tables` of the partition.
+        tables: `face_tables` of the partition.
         weight: vertex values ``[nv, p]``.
         A: slopes of the pieces ``[M, p, n]``.
         sparse: only the (box, face) pairs whose bounding boxes overlap are evaluated (one

@@ -210,6 +210,11 @@ class SCPLNN(nn.Module):
         a fixed-shape gather, and inside those transforms the data-dependent checks are
         skipped (NaN in x is not reported and ``outside="error"`` returns the extrapolated
         value instead of raising).
+
+        A first-order interval jet x (``diffsmf.linearize.jets.Jet``, what the guaranteed
+        ``remainder="mean-value"`` evaluates a model on) gives the jet of the model from
+        `interval_enclosure` (chain rule with the gradient hull; NaN bounds where the box
+        leaves the domain, unless ``outside="clamp"``); a second-order jet raises ``JetError``.
         """
         outside = outside or self.outside
         if outside not in _OUTSIDE:
