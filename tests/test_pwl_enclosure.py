@@ -252,6 +252,20 @@ def test_box_leaving_domain_gives_nan_or_clamped_enclosure():
     assert bool((J >= jl[0]).all() and (J <= jh[0]).all())
 
 
+def test_simplex_domain_exact_inside_and_nan_when_leaving():
+    """A non-box domain (the enclosing simplex): exact inside, NaN for a box not inside."""
+    g = _gen(11)
+    X = torch.rand(1500, 2, generator=g, dtype=F64) * 2 - 1
+    model, _ = fit_scplnn(X, torch.sin(2 * X[:, 0]) + X[:, 1] ** 2, eps=0.1, domain="simplex")
+    assert not bool(model.box_domain)
+    lo, hi = _random_boxes(2, 15, 12, -1.0, 1.0)  # the simplex contains the samples' box
+    _assert_equal_ref(model, lo, hi, _reference_2d)
+    V = model.vertices
+    far = V[V[:, 0].argmax()]  # a corner of the domain simplex: boxes around it leave it
+    out = model.interval_enclosure((far - 0.05)[None], (far + 0.05)[None], outside="clamp")
+    assert all(bool(t.isnan().all()) for t in out)
+
+
 def test_bad_boxes_raise_naming_the_argument():
     model = _kuhn_2d()
     with pytest.raises(ValueError, match="lo, hi"):

@@ -98,17 +98,19 @@ def _face_dim(vertices: Tensor, faces: Tensor, d: int, width: Tensor) -> FaceDim
     P = vertices[faces]  # [F, d+1, n]
     u0 = P[:, 0]
     D = (P[:, 1:] - u0[:, None]).transpose(-1, -2)  # [F, n, d]
-    combos = torch.tensor(list(itertools.combinations(range(n), d)), dtype=torch.long)
-    combos = combos.reshape(-1, d) if d else torch.zeros(1, 0, dtype=torch.long)
+    dev = vertices.device
+    combos = torch.tensor(list(itertools.combinations(range(n), d)), dtype=torch.long,
+                          device=dev)
+    combos = combos.reshape(-1, d) if d else torch.zeros(1, 0, dtype=torch.long, device=dev)
     E = D[:, combos]  # [F, C, d, d]: rows I of the edge matrix
     Es = E / width[combos][None, :, :, None]
     norms = (D / width[:, None]).norm(dim=-2)  # [F, d] scaled edge lengths
     if d == 0:
-        ok = torch.ones(E.shape[:2], dtype=torch.bool)
+        ok = torch.ones(E.shape[:2], dtype=torch.bool, device=dev)
     else:
         ratio = torch.linalg.det(Es).abs() / norms.prod(-1)[:, None]
         ok = ratio > SINGULAR
-    eye = torch.eye(d, dtype=E.dtype).expand_as(E)
+    eye = torch.eye(d, dtype=E.dtype, device=dev).expand_as(E)
     Einv = torch.linalg.inv(torch.where(ok[..., None, None], E, eye))
     pad = (n + 2) * TOL * width
     return FaceDim(faces=faces, combos=combos, u0=u0, D=D, Einv=Einv.contiguous(), ok=ok,
