@@ -212,6 +212,17 @@ def test_batch_dims_broadcast_and_chunks(monkeypatch):
         assert torch.equal(a, b.reshape(a.shape)) and torch.equal(a, c)
 
 
+def test_invariant_to_the_order_of_simplices_and_of_their_vertices():
+    model = _fitted_2d(0)
+    g = _gen(4)
+    S = model.simplices[torch.randperm(model.n_regions, generator=g)]
+    S = torch.gather(S, 1, torch.argsort(torch.rand(S.shape, generator=g), 1))
+    other = SCPLNN(model.vertices, S, model.weight.detach())
+    lo, hi = _random_boxes(2, 30, 5)
+    for a, b in zip(model.interval_enclosure(lo, hi), other.interval_enclosure(lo, hi)):
+        assert torch.allclose(a, b, atol=1e-12, rtol=0)
+
+
 def test_dense_path_equals_sparse_path_and_runs_under_vmap():
     """Fixed-shape evaluation of every (box, face) pair (used under tracing) = the pruned one."""
     from diffsmf.pwl.enclosure import box_enclosure

@@ -76,6 +76,7 @@ class FaceTables:
     dims: list[FaceDim]
     simplex_faces: Tensor
     width: Tensor
+    top_simplex: Tensor  # [M]: simplex id of each n-dimensional face (faces are sorted)
 
 
 def face_tables(vertices: Tensor, simplices: Tensor) -> FaceTables:
@@ -90,7 +91,11 @@ def face_tables(vertices: Tensor, simplices: Tensor) -> FaceTables:
         cols.append(inv.reshape(simplices.shape[0], len(subsets)) + offset)
         offset += faces.shape[0]
         dims.append(_face_dim(vertices, faces, d, width))
-    return FaceTables(dims=dims, simplex_faces=torch.cat(cols, 1), width=width)
+    top = torch.empty_like(cols[-1][:, 0])
+    top[cols[-1][:, 0] - (offset - dims[-1].n_faces)] = torch.arange(
+        simplices.shape[0], device=top.device)
+    return FaceTables(dims=dims, simplex_faces=torch.cat(cols, 1), width=width,
+                      top_simplex=top)
 
 
 def _face_dim(vertices: Tensor, faces: Tensor, d: int, width: Tensor) -> FaceDim:
@@ -182,27 +187,27 @@ def _chunk(tables: FaceTables, weight: Tensor, A: Tensor, lo: Tensor, hi: Tensor
                                    "amax")
         fv = torch.zeros(B, fd.n_faces, dtype=torch.bool, device=lo.device)
         valid_faces.append(fv.index_put((ib, jf), valid.flatten(1).any(-1)))
-        if d == n:  # one combo (all coordinates): its 2^n points are the box's corners
+        if d == n:  # simplices; one combo (all coordinates): its 2^n points are the corners
             hits = torch.zeros(B, 2**n, dtype=lo.dtype, device=lo.device)
             corners = hits.index_add(0, ib, valid[:, 0].to(lo.dtype)).gt(0).all(-1)
-    meet = torch.cat(valid_faces, 1)[:, tables.simplex_faces].any(-1)  # [B, M]
-    jlo, jhi = _slope_hull(meet, A, sparse)
+            simplex_pairs = (ib, tables.top_simplex[jf])
+    jlo, jhi = _slope_hull(torch.cat(valid_faces, 1), tables.simplex_faces, A, *simplex_pairs)
     return vmin, vmax, jlo, jhi, corners
 
 
-def _slope_hull(meet: Tensor, A: Tensor, sparse: bool) -> tuple[Tensor, Tensor]:
-    """Entrywise min / max ``[B, p, n]`` of the slopes ``A [M, p, n]`` where ``meet [B, M]``."""
-    B, (M, p, n) = meet.shape[0], A.shape
-    if not sparse:
-        inf = torch.full((), torch.inf, dtype=A.dtype, device=A.device)
-        m4 = meet[:, :, None, None]
-        return torch.where(m4, A, inf).amin(1), torch.where(m4, A, -inf).amax(1)
-    ib, k = meet.nonzero(as_tuple=True)
+def _slope_hull(valid_faces: Tensor, simplex_faces: Tensor, A: Tensor, ib: Tensor, jf: Tensor
+                ) -> tuple[Tensor, Tensor]:
+    """Entrywise min / max ``[B, p, n]`` of the slopes ``A [M, p, n]`` of the simplices that
+    meet each box: among the pairs (box ``ib``, simplex ``jf``) ``[K]``, those with a face that
+    has a kept point (``valid_faces [B, total faces]``)."""
+    B, (M, p, n) = valid_faces.shape[0], A.shape
+    meet = valid_faces[ib[:, None], simplex_faces[jf]].any(-1)  # [K]
+    Ak = A.reshape(M, p * n)[jf]
     idx = ib[:, None].expand(-1, p * n)
-    Ak = A.reshape(M, p * n)[k]
     full = torch.full((B, p * n), torch.inf, dtype=A.dtype, device=A.device)
-    jlo = full.scatter_reduce(0, idx, Ak, "amin")
-    jhi = (-full).scatter_reduce(0, idx, Ak, "amax")
+    inf = full[:1, :1].squeeze()
+    jlo = full.scatter_reduce(0, idx, torch.where(meet[:, None], Ak, inf), "amin")
+    jhi = (-full).scatter_reduce(0, idx, torch.where(meet[:, None], Ak, -inf), "amax")
     return jlo.reshape(B, p, n), jhi.reshape(B, p, n)
 
 
