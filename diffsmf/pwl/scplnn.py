@@ -144,8 +144,9 @@ class SCPLNN(nn.Module):
     def _get(self, name: str) -> Any:
         if torch.compiler.is_compiling():  # no data_ptr / cache checks inside a graph
             if name not in self._cache:
-                raise RuntimeError("SCPLNN: evaluate the model once (or call prepare()) before "
-                                   "torch.compile, so that its point locator is built")
+                raise RuntimeError("SCPLNN: evaluate the model once (or call prepare(); "
+                                   "prepare(enclosure=True) for interval_enclosure) before "
+                                   "torch.compile, so that its tables are built")
             return self._cache[name]
         if self._cache.get("key") != self._key():
             self._cache = {"key": self._key()}
@@ -162,10 +163,13 @@ class SCPLNN(nn.Module):
                                                      self._get("bary"))
         return self._cache[name]
 
-    def prepare(self) -> SCPLNN:
+    def prepare(self, enclosure: bool = False) -> SCPLNN:
         """Build the barycentric matrices and the point locator now (they are otherwise built
-        on first use); needed once before ``torch.compile``. Returns self."""
+        on first use); needed once before ``torch.compile``. ``enclosure=True`` also builds the
+        face tables of `interval_enclosure` (needed before compiling it). Returns self."""
         self._get("locator")
+        if enclosure:
+            self._get("encl")
         return self
 
     @property
@@ -375,7 +379,8 @@ class SCPLNN(nn.Module):
         F or the box (relative tolerance 1e-10) dropped; a face with a kept point meets the box
         and so does every simplex containing it. Cost per box: about ``sum_d F_d C(n, d) 2^d``
         candidate points (2-D: ``nv + 4 edges + 4 M``), so meant for models up to a few
-        thousand regions in low dimension. Call once before ``torch.compile`` (tables cached).
+        thousand regions in low dimension. Before ``torch.compile``: call it once, or
+        ``prepare(enclosure=True)`` (the face tables are cached).
         """
         from diffsmf.pwl.enclosure import box_enclosure
 
