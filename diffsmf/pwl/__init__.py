@@ -7,18 +7,30 @@
 
 from typing import Any
 
+from diffsmf.pwl.certified import (
+    ErrorCertificate,
+    SCPLNNDynamics,
+    as_system,
+    certify_error,
+    simplex_error,
+)
 from diffsmf.pwl.fit import FitReport, fit_partition, fit_scplnn
 from diffsmf.pwl.hinging import HingingHyperplanes
 from diffsmf.pwl.scplnn import SCPLNN, Regions
 
 __all__ = [
     "SCPLNN",
+    "ErrorCertificate",
     "FitReport",
     "HingingHyperplanes",
     "PWLRegressor",
     "Regions",
+    "SCPLNNDynamics",
+    "as_system",
+    "certify_error",
     "fit_partition",
     "fit_scplnn",
+    "simplex_error",
 ]
 
 

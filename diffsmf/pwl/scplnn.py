@@ -144,24 +144,32 @@ class SCPLNN(nn.Module):
     def _get(self, name: str) -> Any:
         if torch.compiler.is_compiling():  # no data_ptr / cache checks inside a graph
             if name not in self._cache:
-                raise RuntimeError("SCPLNN: evaluate the model once (or call prepare()) before "
-                                   "torch.compile, so that its point locator is built")
+                raise RuntimeError("SCPLNN: evaluate the model once (or call prepare(); "
+                                   "prepare(enclosure=True) for interval_enclosure) before "
+                                   "torch.compile, so that its tables are built")
             return self._cache[name]
         if self._cache.get("key") != self._key():
             self._cache = {"key": self._key()}
         if name not in self._cache:
             if name == "bary":
                 self._cache[name] = barycentric_matrices(self.vertices, self.simplices)
+            elif name == "encl":
+                from diffsmf.pwl.enclosure import face_tables
+
+                self._cache[name] = face_tables(self.vertices, self.simplices)
             elif name == "locator":
                 with single_thread():
                     self._cache[name] = PointLocator(self.vertices, self.simplices,
                                                      self._get("bary"))
         return self._cache[name]
 
-    def prepare(self) -> SCPLNN:
+    def prepare(self, enclosure: bool = False) -> SCPLNN:
         """Build the barycentric matrices and the point locator now (they are otherwise built
-        on first use); needed once before ``torch.compile``. Returns self."""
+        on first use); needed once before ``torch.compile``. ``enclosure=True`` also builds the
+        face tables of `interval_enclosure` (needed before compiling it). Returns self."""
         self._get("locator")
+        if enclosure:
+            self._get("encl")
         return self
 
     @property
@@ -206,10 +214,19 @@ class SCPLNN(nn.Module):
         a fixed-shape gather, and inside those transforms the data-dependent checks are
         skipped (NaN in x is not reported and ``outside="error"`` returns the extrapolated
         value instead of raising).
+
+        A first-order interval jet x (``diffsmf.linearize.jets.Jet``, what the guaranteed
+        ``remainder="mean-value"`` evaluates a model on) gives the jet of the model from
+        `interval_enclosure` (chain rule with the gradient hull; NaN bounds where the box
+        leaves the domain, unless ``outside="clamp"``); a second-order jet raises ``JetError``.
         """
         outside = outside or self.outside
         if outside not in _OUTSIDE:
             raise ValueError(f"outside: must be one of {_OUTSIDE}, got {outside!r}")
+        if not isinstance(x, Tensor) and type(x).__name__ == "Jet":  # interval jets
+            from diffsmf.pwl.enclosure import jet_apply
+
+            return jet_apply(x, lambda a, b: self.interval_enclosure(a, b, outside, check=False))
         traced = _tracing()
         x = torch.as_tensor(x, dtype=self.weight.dtype)
         if self.n_inputs == 1 and (x.dim() == 0 or x.shape[-1] != 1):
@@ -321,6 +338,90 @@ class SCPLNN(nn.Module):
         f_lo = torch.where(meet[..., None], f_lo, big)
         f_hi = torch.where(meet[..., None], f_hi, -big)
         return f_lo.amin(1), f_hi.amax(1)
+
+    def interval_enclosure(
+        self, lo: Tensor, hi: Tensor, outside: str | None = None, margin: float = 1e-10,
+        check: bool = True,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Exact range of the model and hull of its gradients over boxes.
+
+        The extension point of the guaranteed remainders: any model with this method is
+        bounded over a box by these enclosures (first-order, mean-value remainder).
+
+        Args:
+            lo, hi: box bounds ``[..., n]`` (any leading batch dims, broadcast together).
+            outside: policy for boxes that leave the domain (default: the model's
+                ``outside``). ``"clamp"``: the range and gradients of the clamped model
+                ``x -> f(clamp(x))`` (box domains); the gradient hull of a coordinate along
+                which the box leaves the domain also holds 0. ``"error"`` / ``"extrapolate"``:
+                NaN bounds for that element (a domain exit; no ValueError, so that a filter
+                step needs no host synchronisation). A non-box domain gives NaN for every box
+                not inside it, whatever the policy.
+            margin: outward padding, relative: the value bounds move by ``margin (1 + max|W|)``
+                and the gradient bounds by ``margin (1 + max|A|)`` (rounding of ``forward`` and
+                of autograd); 0 gives the computed extremes themselves.
+            check: raise ValueError (naming ``lo`` / ``hi``) for NaN bounds or ``lo > hi``
+                outside tracing (one host synchronisation); with ``check=False`` such elements
+                get NaN bounds.
+
+        Returns:
+            ``(val_lo, val_hi [..., p], jac_lo, jac_hi [..., p, n])``: ``val_lo = min`` and
+            ``val_hi = max`` of the model over the box (exact up to rounding), and the
+            entrywise min / max of the slopes ``A_k`` of every piece whose simplex meets the
+            box, touching included (the interval hull of the Clarke generalised Jacobian over
+            the box; the autograd gradient at any point of the box lies in it).
+            Differentiable in ``lo``, ``hi`` (value bounds) and ``weight`` (all four).
+
+        Algorithm (exact, diffsmf.pwl.enclosure): the extremes of a continuous PWL function
+        over a box are attained at vertices of ``box ∩ simplex``; every such vertex is the
+        point of a partition face F (dimension d) with d coordinates at box bounds. All faces,
+        coordinate sets and bound choices are enumerated in batched tensor code, points outside
+        F or the box (relative tolerance 1e-10) dropped; a face with a kept point meets the box
+        and so does every simplex containing it. Cost per box: about ``sum_d F_d C(n, d) 2^d``
+        candidate points (2-D: ``nv + 4 edges + 4 M``), so meant for models up to a few
+        thousand regions in low dimension. Before ``torch.compile``: call it once, or
+        ``prepare(enclosure=True)`` (the face tables are cached).
+        """
+        from diffsmf.pwl.enclosure import box_enclosure
+
+        outside = outside or self.outside
+        if outside not in _OUTSIDE:
+            raise ValueError(f"outside: must be one of {_OUTSIDE}, got {outside!r}")
+        lo = torch.as_tensor(lo, dtype=_F64)
+        hi = torch.as_tensor(hi, dtype=_F64)
+        lo, hi = torch.broadcast_tensors(lo, hi)
+        n, p = self.n_inputs, self.n_outputs
+        if lo.shape[-1:] != (n,):
+            raise ValueError(f"lo: expected [..., {n}], got {tuple(lo.shape)}")
+        bad = ~(lo <= hi).all(-1)  # NaN or lo > hi
+        if check and not _tracing() and bool(bad.any()):
+            raise ValueError("lo, hi: bounds must not be NaN and lower <= upper elementwise")
+        batch = lo.shape[:-1]
+        lo2, hi2 = lo.reshape(-1, n), hi.reshape(-1, n)
+        L, U = self.lower, self.upper
+        tol = self.atol * (U - L)
+        exits = (lo2 < L - tol) | (hi2 > U + tol)  # [N, n]
+        lc = torch.minimum(torch.maximum(lo2, L), U)
+        hc = torch.minimum(torch.maximum(hi2, L), U)
+        A = self.regions().A
+        sparse = lc.device.type == "cpu" and not _tracing()
+        vl, vh, jl, jh, corners = box_enclosure(self._get("encl"), self.weight, A, lc, hc, sparse)
+        leave = exits.any(-1)
+        if self._box and outside == "clamp":
+            e3 = exits[:, None, :]
+            jl = torch.where(e3, jl.clamp_max(0.0), jl)
+            jh = torch.where(e3, jh.clamp_min(0.0), jh)
+            nan = bad.reshape(-1)
+        else:
+            nan = bad.reshape(-1) | leave | ~corners
+        nan = nan | ~torch.isfinite(vl).all(-1)
+        pad_v = margin * (1 + self.weight.detach().abs().max())
+        pad_j = margin * (1 + A.detach().abs().max())
+        vl = torch.where(nan[:, None], torch.nan, vl - pad_v).reshape(batch + (p,))
+        vh = torch.where(nan[:, None], torch.nan, vh + pad_v).reshape(batch + (p,))
+        jl = torch.where(nan[:, None, None], torch.nan, jl - pad_j).reshape(batch + (p, n))
+        jh = torch.where(nan[:, None, None], torch.nan, jh + pad_j).reshape(batch + (p, n))
+        return vl, vh, jl, jh
 
     # ------------------------------------------------------------------ max-min forms (eq. 12)
     def maxmin_basis(self, x: Tensor) -> Tensor:
