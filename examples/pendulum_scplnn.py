@@ -17,7 +17,7 @@ system; the true pendulum's states are audited for containment (vertex noise).
 
 HSNSMF's default remainder needs Hessians, which a piecewise-linear model has not; the example
 first tries ``HSNSMF(system)`` and, where the remainder engine of this version refuses the
-model, uses the first-order bound ``HSNSMF(system, remainder="mean-value")`` (exact
+model, uses ``HSNSMF(system)`` (the engine bounds the PWL model to first order; exact
 enclosures of the model and of its generalised gradients, ``SCPLNN.interval_enclosure``) and
 says so.
 """
@@ -90,19 +90,8 @@ def model_system(model, cert, X, Y) -> ds.System:
 
 
 def make_filter(system: ds.System, y: torch.Tensor):
-    """HSNSMF(system) if the remainder engine takes the PWL model, else the first-order
-    (mean-value) remainder. Returns (filter, note)."""
-    from diffsmf.linearize.jets import JetError
-
-    filt = ds.filters.HSNSMF(system)
-    try:
-        with torch.no_grad():
-            filt(y[:1, :2])
-        return filt, "HSNSMF (default remainder)"
-    except JetError as exc:
-        note = ("HSNSMF's default remainder refused the PWL model ("
-                + str(exc).split(";")[0] + "); using remainder='mean-value'")
-        return ds.filters.HSNSMF(system, remainder="mean-value"), note
+    """HSNSMF with its default remainder on the fitted model. Returns (filter, note)."""
+    return ds.filters.HSNSMF(system), "HSNSMF (default remainder)"
 
 
 def run(trials: int = 100, steps: int = 100, samples: int = 20_000, eps: float = 0.004,

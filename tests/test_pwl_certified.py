@@ -164,20 +164,14 @@ def test_pendulum_hsnsmf_first_order_remainder_contains_the_true_states(pendulum
     assert rep.violations == 0 and rep.unbounded == 0 and rep.mean_volume > 0
 
 
-def test_pendulum_hsnsmf_default_remainder_when_the_engine_takes_pwl_models(pendulum):
-    """``HSNSMF(system)`` with its default remainder: runs once the remainder engine bounds
-    non-smooth models itself; with the interval-jet engine (second-order jets, which a PWL model
-    has not) it raises JetError and the test is skipped, saying so."""
+def test_pendulum_hsnsmf_default_remainder(pendulum):
+    """``HSNSMF(system)`` with its default remainder: the engine bounds the PWL model as a
+    leaf (first order where the set meets several pieces)."""
     from diffsmf.audit import containment
-    from diffsmf.linearize.jets import JetError
 
     ex, model, report, cert, X, Y = pendulum
     system, truth = ex.model_system(model, cert, X, Y), ex.true_system()
-    filt = ds.filters.HSNSMF(system)
-    try:
-        rep = containment(filt, truth, trials=8, steps=30, noise="vertex")
-    except JetError as exc:
-        pytest.skip(f"the remainder engine refuses PWL models with the default remainder ({exc})")
+    rep = containment(ds.filters.HSNSMF(system), truth, trials=8, steps=30, noise="vertex")
     assert rep.violations == 0 and rep.unbounded == 0
 
 

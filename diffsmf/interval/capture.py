@@ -164,12 +164,14 @@ def _patched_leaves(fn: Any):
     """While capturing, modules with ``interval_enclosure`` become one opaque leaf op."""
     global _CAPTURING
     patched = []
+    inner: set[int] = set()  # submodules of a leaf run inside it, unpatched
     for m in _reachable_modules(fn):
-        if hasattr(m, "interval_enclosure"):
+        if hasattr(m, "interval_enclosure") and id(m) not in inner:
+            inner.update(id(s) for s in m.modules())
             key = _leaf_key(m)
             raw = m.forward
             m._diffsmf_raw = raw  # type: ignore[attr-defined]
-            m.forward = (lambda k: lambda x: _leaf_op(x, k))(key)  # type: ignore[method-assign]
+            m.forward = _leaf_forward(key)  # type: ignore[method-assign]
             patched.append((m, raw))
     _CAPTURING = True
     try:
@@ -179,6 +181,17 @@ def _patched_leaves(fn: Any):
         for m, _raw in patched:
             del m.forward
             del m._diffsmf_raw
+
+
+def _leaf_forward(key: int) -> Callable[..., Tensor]:
+    def forward(x: Tensor, *rest: Any, **kwargs: Any) -> Tensor:
+        if any(r is not None for r in (*rest, *kwargs.values())):
+            raise EngineError("a module with interval_enclosure is enclosed in its first "
+                              "argument only; its other arguments (inputs, parameters) must be "
+                              "None")
+        return _leaf_op(x, key)
+
+    return forward
 
 
 @register(torch.ops.diffsmf.inclusion_leaf, category="extension")

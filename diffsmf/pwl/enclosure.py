@@ -22,13 +22,12 @@ dimension, with no data-dependent shapes (no host synchronisation).
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-__all__ = ["FaceTables", "box_enclosure", "face_tables", "jet_apply"]
+__all__ = ["FaceTables", "box_enclosure", "face_tables"]
 
 #: Relative tolerance of the membership tests (barycentric weights and box bounds, the latter
 #: scaled by the domain's width): a point this close to a face or the box is kept, so that
@@ -237,28 +236,3 @@ def _candidates(fd: FaceDim, weight: Tensor, lo: Tensor, hi: Tensor, tx: Tensor,
     valid = ((t >= -TOL).all(-1) & (t.sum(-1) <= 1 + TOL)
              & ((x >= lo3 - tx) & (x <= hi3 + tx)).all(-1) & fd.ok[jf][:, :, None])
     return val, valid
-
-
-def jet_apply(x: object, enclosure: Callable[[Tensor, Tensor], tuple[Tensor, ...]]) -> object:
-    """First-order interval jet of a model given by its box enclosure (chain rule).
-
-    ``x`` is a first-order ``diffsmf.linearize.jets.Jet`` of shape ``[..., d]`` (value box
-    ``x.val``, gradient enclosure ``x.grad [..., d, n]`` w.r.t. the input box);
-    ``enclosure(lo, hi) -> (val_lo, val_hi [..., k], jac_lo, jac_hi [..., k, d])``. Returns
-    the jet ``[..., k]``: value enclosure over ``x.val`` and gradient ``[J] x.grad`` in
-    outward-rounded interval arithmetic. Second-order jets (Hessian enclosures) raise a
-    ``JetError``: a piecewise-linear model has no Hessian at its kinks; use the first-order
-    (mean-value) remainder, ``remainder="mean-value"``.
-    """
-    from diffsmf.linearize.jets import Jet, JetError
-    from diffsmf.sets.interval import Interval
-
-    assert isinstance(x, Jet)
-    if x.order != 1:
-        raise JetError(
-            "interval jets: a piecewise-linear model (SCPLNN) has no Hessian enclosure at its "
-            "kinks; use a first-order remainder: remainder='mean-value'")
-    vl, vh, jl, jh = enclosure(x.val.lower, x.val.upper)
-    J = Interval._make(jl, jh)  # [..., k, d]
-    grad = (J.unsqueeze(-1) * x.grad.unsqueeze(-3)).sum(-2)  # [..., k, n]
-    return Jet(Interval._make(vl, vh), grad, None, 1)

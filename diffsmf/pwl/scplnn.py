@@ -223,10 +223,6 @@ class SCPLNN(nn.Module):
         outside = outside or self.outside
         if outside not in _OUTSIDE:
             raise ValueError(f"outside: must be one of {_OUTSIDE}, got {outside!r}")
-        if not isinstance(x, Tensor) and type(x).__name__ == "Jet":  # interval jets
-            from diffsmf.pwl.enclosure import jet_apply
-
-            return jet_apply(x, lambda a, b: self.interval_enclosure(a, b, outside, check=False))
         traced = _tracing()
         x = torch.as_tensor(x, dtype=self.weight.dtype)
         if self.n_inputs == 1 and (x.dim() == 0 or x.shape[-1] != 1):
