@@ -15,11 +15,9 @@ system; the true pendulum's states are audited for containment (vertex noise).
     python examples/pendulum_scplnn.py [--trials 100] [--steps 100] [--eps 0.004]
         [--out docs/figures/pendulum_scplnn.png]
 
-HSNSMF's default remainder needs Hessians, which a piecewise-linear model has not; the example
-first tries ``HSNSMF(system)`` and, where the remainder engine of this version refuses the
-model, uses ``HSNSMF(system)`` (the engine bounds the PWL model to first order; exact
-enclosures of the model and of its generalised gradients, ``SCPLNN.interval_enclosure``) and
-says so.
+HSNSMF runs with its default remainder: the engine encloses the PWL model as one operation,
+with exact enclosures of its values and generalised gradients (``SCPLNN.interval_enclosure``),
+and bounds it to first order where the set meets several pieces.
 """
 
 from __future__ import annotations

@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from diffsmf.linearize.jacobians import jacobian
 from diffsmf.sets.base import ConvexSet, check_nonempty
+from diffsmf.systems.model import Dynamics, as_dynamics, check_dtype
 from diffsmf.utils import is_int
 
 __all__ = ["System", "Trajectory", "check_system"]
@@ -101,7 +102,7 @@ class System(nn.Module):
         if len(x0_set.batch_shape) != 0:
             raise ValueError("x0_set: must have an empty batch shape")
         check_nonempty("x0_set", x0_set)
-        self.f = f
+        self.f = as_dynamics(f)
         self.h = h
         self.x0_set = x0_set
         self.n = x0_set.dim
@@ -130,6 +131,7 @@ class System(nn.Module):
         self.inputs = _as_schedule("inputs", inputs)
         self.n_inputs = _infer_n_inputs(self.inputs, n_inputs)
         self._check_f()
+        self._check_engine()
         self.theta_schedule = _as_schedule("theta_schedule", theta_schedule)
         self.process_cov = _check_cov("process_cov", process_cov, self.n)
         self.measurement_cov = _check_cov("measurement_cov", measurement_cov, self.m)
@@ -157,6 +159,22 @@ class System(nn.Module):
                 f"{self.n}] it returned {got}"
             )
         _check_model_call("f", lambda z: self.f(z, u, th), x, out)
+
+    def _check_engine(self) -> None:
+        """Capture ``f`` and ``h`` with the guarantee engine now, so that a model it cannot
+        enclose (an op without a rule, a Python branch on the state, a cast) is reported when
+        the system is built, naming the function; and require float64."""
+        from diffsmf.interval.engine import StepModel, program_for
+
+        x = self.x0_set.center.detach().unsqueeze(0)
+        u = None if self.n_inputs == 0 else torch.zeros(1, self.n_inputs, dtype=x.dtype)
+        th = None if self.parameters is None else self.parameters.center.detach().unsqueeze(0)
+        with torch.no_grad():
+            check_dtype("f", self.f.fn if isinstance(self.f, Dynamics) else self.f,
+                        self.f(x, u, th))
+            check_dtype("h", self.h, self.h(x))
+        StepModel(self.f, u, th).program(x)
+        program_for(self.h, self.h, [torch.zeros_like(x)], "h")
 
     @property
     def theta_nominal(self) -> Tensor | None:
