@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-__all__ = ["Dynamics", "as_dynamics", "check_dtype", "positional_arity"]
+__all__ = ["Dynamics", "as_dynamics", "check_dtype", "check_module_dtype", "positional_arity"]
 
 
 def positional_arity(fn: Callable[..., Tensor]) -> int | None:
@@ -84,3 +84,17 @@ def check_dtype(name: str, fn: Callable[..., Tensor], out: Tensor) -> None:
             "compute in float64 (torch.set_default_dtype(torch.float64) or float64 constants)")
         raise ValueError(f"{name}: computes in {dt}; diffsmf's guaranteed sets need float64: "
                          f"{hint}")
+
+
+def check_module_dtype(name: str, fn: Callable[..., Tensor]) -> None:
+    """An ``nn.Module`` model must hold float64 parameters (before it is first called).
+
+    Raises:
+        ValueError: naming ``name``: call ``.double()`` on the module.
+    """
+    if not isinstance(fn, nn.Module):
+        return
+    for p in fn.parameters():
+        if p.is_floating_point() and p.dtype != torch.float64:
+            raise ValueError(f"{name}: the module holds {p.dtype} parameters; diffsmf's "
+                             "guaranteed sets need float64: call .double() on the module")

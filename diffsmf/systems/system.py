@@ -25,7 +25,7 @@ from torch import Tensor, nn
 
 from diffsmf.linearize.jacobians import jacobian
 from diffsmf.sets.base import ConvexSet, check_nonempty
-from diffsmf.systems.model import Dynamics, as_dynamics, check_dtype
+from diffsmf.systems.model import Dynamics, as_dynamics, check_dtype, check_module_dtype
 from diffsmf.utils import is_int
 
 __all__ = ["System", "Trajectory", "check_system"]
@@ -102,6 +102,8 @@ class System(nn.Module):
         if len(x0_set.batch_shape) != 0:
             raise ValueError("x0_set: must have an empty batch shape")
         check_nonempty("x0_set", x0_set)
+        check_module_dtype("f", f)
+        check_module_dtype("h", h)
         self.f = as_dynamics(f)
         self.h = h
         self.x0_set = x0_set
