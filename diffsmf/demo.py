@@ -44,7 +44,7 @@ def filters_demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0)
 
     HSNSMF, MSZM, CDSMF (guaranteed) and the EKF (not guaranteed: its 3-sigma ellipsoid) on
     ``trials`` worst-case (vertex-noise) trajectories; the figure
-    (:func:`diffsmf.plot.comparison_figure`) shows the mean set area over time and, for
+    (`diffsmf.plot.comparison_figure`) shows the mean set area over time and, for
     trajectory 0, each state's bounds relative to the true state.
     """
     from diffsmf import systems

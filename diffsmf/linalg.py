@@ -59,7 +59,7 @@ SMALL_MATMUL_ELEMS = 64
 
 def matmul(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B`` for ``A [..., p, q]``, ``B [..., q, r]`` (broadcast batch) -> ``[..., p, r]``:
-    an elementwise multiply-and-sum when p, q, r <= :data:`SMALL_MATMUL_MAX` or
+    an elementwise multiply-and-sum when p, q, r <= `SMALL_MATMUL_MAX` or
     ``p q r <= SMALL_MATMUL_ELEMS``, else ``@``."""
     p, q, r = A.shape[-2], A.shape[-1], B.shape[-1]
     small = max(p, q, r) <= SMALL_MATMUL_MAX or p * q * r <= SMALL_MATMUL_ELEMS
@@ -165,7 +165,7 @@ def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
 
     Closed form up to n = 2 (no LAPACK call, no host sync: ``torch.linalg.eigh`` checks its
     result on the host, and at n = 2 each call cost about 50 us in a compiled step): the
-    eigenvalues of :func:`eigvalsh` and the rotation ``[[c, -s], [s, c]]`` by ``theta =
+    eigenvalues of `eigvalsh` and the rotation ``[[c, -s], [s, c]]`` by ``theta =
     atan2(b, (a - d) / 2) / 2``, columns reordered to ``[[-s, c], [c, s]]`` for ascending
     eigenvalues (``b = (S_01 + S_10) / 2``; ``S`` diagonal with ``a = d`` gives the identity).
     Eigenvector signs may differ from LAPACK's. Not differentiable at repeated eigenvalues (the

@@ -1,7 +1,7 @@
 """Tuning diffsmf filters by gradient descent on set volume.
 
-``from training import tune`` is the loop (:func:`training.loop.tune`); ``python -m
-training.tune`` is the command line (:mod:`training.tune`).
+``from training import tune`` is the loop (`training.loop.tune`); ``python -m
+training.tune`` is the command line (`training.tune`).
 """
 
 from training.loop import TuneReport, evaluate, tune

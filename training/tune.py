@@ -6,7 +6,7 @@
 
 Writes ``hyperparameters.json`` (initial, tuned and true bounds), ``report.json``,
 ``loss_curve.csv`` and ``tuning.png`` (loss curve and mean set area before/after on held-out
-trajectories) to ``--out``. The loop itself is :func:`training.loop.tune`.
+trajectories) to ``--out``. The loop itself is `training.loop.tune`.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ __all__ = ["add_arguments", "build", "main", "simulate_finite", "tune"]
 
 # ---------------------------------------------------------------------------- command line
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``python -m training.tune`` / ``diffsmf tune`` (defaults: :class:`TuneConfig`)."""
+    """Options of ``python -m training.tune`` / ``diffsmf tune`` (defaults: `TuneConfig`)."""
     d = TuneConfig()
     a = parser.add_argument
     a("--config", default=None, help="TOML file of options (command-line values win)")

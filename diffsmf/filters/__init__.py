@@ -28,7 +28,7 @@ _NAMES = {"hsnsmf": HSNSMF, "mszm": MSZM, "cdsmf": CDSMF, "esmf": ESMF, "ekf": E
 
 
 def names() -> list[str]:
-    """Names accepted by :func:`by_name`."""
+    """Names accepted by `by_name`."""
     return [*_NAMES, "combined"]
 
 

@@ -3,7 +3,7 @@
 ``compare(system, ["hsnsmf", "mszm", "cdsmf"], trials=20, steps=100)`` simulates one batch of
 trajectories and runs every filter on the same data; each row reports the mean set area
 (volume) after step 3 (Wang et al. 2022 compares the areas "for every k > 3"), the containment
-violations (see :mod:`diffsmf.audit`), the worst normalised distance outside, the number of
+violations (see `diffsmf.audit`), the worst normalised distance outside, the number of
 inconsistent steps and the wall time.
 """
 
@@ -88,7 +88,7 @@ def _rows(traj: Trajectory, results: dict[str, FilterResult], seconds: dict[str,
 
 
 def format_table(rows: list[dict]) -> str:
-    """Plain-text table of :func:`compare` rows."""
+    """Plain-text table of `compare` rows."""
     head = (
         f"{'filter':<8} {'mean area/volume (k>3)':>23} {'outside/pairs':>15} "
         f"{'worst dist.':>11} {'inconsistent':>12} {'time [s]':>9}"
@@ -106,7 +106,7 @@ def format_table(rows: list[dict]) -> str:
 
 def demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
     """Wang et al. 2022 comparison on ``spring_damper`` (the ``diffsmf demo`` part): table text and
-    ``filters_demo.png``; see :func:`diffsmf.demo.filters_demo` (one implementation)."""
+    ``filters_demo.png``; see `diffsmf.demo.filters_demo` (one implementation)."""
     from diffsmf.demo import filters_demo
 
     Path(outdir).mkdir(parents=True, exist_ok=True)
@@ -114,7 +114,7 @@ def demo(outdir: Path, trials: int = 10, steps: int = 60, seed: int = 0) -> str:
 
 
 def _figure(traj: Trajectory, results: dict[str, FilterResult], path: Path) -> None:
-    """The comparison figure of :func:`diffsmf.plot.comparison_figure` (one home for it):
+    """The comparison figure of `diffsmf.plot.comparison_figure` (one home for it):
     set size over time and, per state, the bounds minus the truth; the EKF marked as not
     guaranteed."""
     from diffsmf.plot import comparison_figure

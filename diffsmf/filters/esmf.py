@@ -72,7 +72,7 @@ class ESMF(C.EllipsoidalSetFilter):
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
-            :func:`~diffsmf.filters._common.register_remainder_margin`).
+            `register_remainder_margin`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of every Minkowski
             sum of the prediction (eq. 14-17 used in eq. 29-31, eq. 32 and eq. 34-35):
             ``p = s * p_trace`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_trace =
@@ -86,7 +86,7 @@ class ESMF(C.EllipsoidalSetFilter):
             infinite values.
         remainder: guaranteed remainder bound by name (default ``"lagrange"``, Song et al. 2017, eq.
             26-28; also ``"dc-vertices"``, ``"mean-value"``, ``"auto"``; see
-            :func:`~diffsmf.linearize.resolve_remainder`).
+            `resolve_remainder`).
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """

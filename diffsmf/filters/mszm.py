@@ -1,7 +1,7 @@
 """MSZM: zonotope set-membership filter of Alamo, Bravo & Camacho (Automatica 2005).
 
 The baseline "minimum segments zonotopic method" of Wang et al. 2022 (ref. [19]). Same Stirling
-linearisation and DC remainder as :class:`~diffsmf.filters.HSNSMF`, evaluated over the interval
+linearisation and DC remainder as `HSNSMF`, evaluated over the interval
 hull of the zonotope (Alamo 2005 bounds the remainder over the box hull; Wang et al. 2022, sec. 4.1
 names exactly this outer box as a source of the baselines' conservatism; the 2^m vertices of a
 zonotope with m generators would also be far too many); the set is a zonotope:
@@ -67,13 +67,13 @@ class MSZM(SetFilter):
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
-            :func:`~diffsmf.filters._common.register_remainder_margin`).
+            `register_remainder_margin`).
         remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
         14-18,
             2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
             n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
-            :func:`~diffsmf.linearize.resolve_remainder`).
+            `resolve_remainder`).
 
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
     """

@@ -1,7 +1,7 @@
 """Second-order forward-mode interval "jets": guaranteed Jacobian / Hessian enclosures over a box.
 
-A :class:`Jet` carries, for every entry of a tensor-valued intermediate quantity ``q(x)`` of a
-user function, three :class:`~diffsmf.sets.Interval` arrays enclosing, over all ``x`` in the
+A `Jet` carries, for every entry of a tensor-valued intermediate quantity ``q(x)`` of a
+user function, three `Interval` arrays enclosing, over all ``x`` in the
 input box, its value ``q [...]``, its gradient ``dq/dx [..., n]`` and its Hessian
 ``d2q/dx2 [..., n, n]``. The propagation rules are the ordinary first/second-order chain, sum
 and product rules, evaluated in the outward-rounded Moore arithmetic of ``Interval``
@@ -16,7 +16,7 @@ argument can take. Supported: ``+ - * /``, powers, ``exp log sqrt sin cos tanh s
 square reciprocal abs atan2`` (abs only away from 0 for Hessians, atan2 away from its cut),
 indexing, ``torch.stack/cat``,
 ``sum``, ``@`` / ``F.linear`` with constant matrices, mixing with constant tensors, numbers.
-Anything else raises :class:`JetError` (a ``NotImplementedError`` and a ``ValueError``) naming
+Anything else raises `JetError` (a ``NotImplementedError`` and a ``ValueError``) naming
 the operation: an unsupported torch function, a tensor method or attribute jets do not have
 (``.detach()``, ``.numpy()``, ``.float()``, in-place ``.mul_()``), or a comparison of
 state-dependent values (``x > 0``: a branch, which the remainder bounds cannot follow).
@@ -36,7 +36,7 @@ from diffsmf.sets.interval import Interval
 
 __all__ = ["Jet", "JetError", "interval_hessian", "interval_jacobian", "jet_eval"]
 
-#: What a model function may use, said in every :class:`JetError`.
+#: What a model function may use, said in every `JetError`.
 SUPPORTED = (
     "supported: + - * / **, exp log sqrt sin cos tanh sigmoid atan atan2 square reciprocal abs, "
     "indexing, stack, cat, sum, matmul / linear with constant matrices"
@@ -54,7 +54,7 @@ class JetError(NotImplementedError, ValueError):
 
 
 class _JetAttributeError(JetError, AttributeError):
-    """A tensor method or attribute a :class:`Jet` does not have (keeps ``hasattr`` working)."""
+    """A tensor method or attribute a `Jet` does not have (keeps ``hasattr`` working)."""
 
 
 def _model_hint(what: str) -> str:
@@ -120,7 +120,7 @@ class Jet:
     ``hess`` is ``None`` in first-order mode (interval Jacobians only). In second-order mode
     the Hessian is stored as ``None`` while it is *structurally* zero (inputs, constants and
     affine expressions of them), so affine parts cost no Hessian arithmetic and an affine
-    function is recognised exactly (:attr:`hess_is_zero`); :attr:`hess` materialises zeros.
+    function is recognised exactly (`hess_is_zero`); `hess` materialises zeros.
     """
 
     __slots__ = ("_h", "grad", "order", "val")
