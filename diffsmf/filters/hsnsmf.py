@@ -38,9 +38,9 @@ class HSNSMF(SetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             `register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
-        14-18,
-            2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"``
+            (Wang et al. 2022, eqs. 14-18, 2^n vertices), ``"lagrange"`` (interval Hessian,
+            vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
             n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
             `resolve_remainder`).
