@@ -172,9 +172,10 @@ def containment(
         progress: show a progress bar over trajectories with the running counts of outside
             pairs and inconsistent steps (the batch is then filtered in chunks of at most
             `CHUNK` trajectories; the counts are the same).
-        first, count: audit only the trajectories ``first .. first + count - 1`` of the
+        first: audit only the trajectories ``first .. first + count - 1`` of the
             ``trials`` simulated ones (default: all), e.g. to split a long audit into runs;
             the trajectories are the same as in the whole audit.
+        count: see ``first`` (default: up to the last trajectory).
         on_chunk: called after each chunk of at most `CHUNK` trajectories (chunking
             as with ``progress``) with a dict of its counts: ``start``, ``stop`` (trajectory
             indices), ``violations``, ``pairs``, ``worst_distance``, ``volume_sum`` (over

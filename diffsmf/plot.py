@@ -196,7 +196,8 @@ def bounds_figure(
     """Bounds of every state over time for one trajectory -> a Figure (saved to ``path``).
 
     Args:
-        lower, upper: ``[T+1, n]`` (row 0 = the initial set).
+        lower: ``[T+1, n]`` lower bounds (row 0 = the initial set).
+        upper: ``[T+1, n]`` upper bounds.
         consistent: ``[T+1]`` bool; inconsistent steps are marked in red.
         truth: ``[T+1, n]`` true states, drawn when known (simulations).
         guaranteed: False for a filter whose bounds carry no guarantee (EKF); the legend

@@ -419,7 +419,8 @@ class SetFilter(nn.Module):
 
     Args:
         system: the `System` to filter.
-        process_noise, measurement_noise: half-width overrides ``[n]`` / ``[m]``.
+        process_noise: process noise half-width override ``[n]``.
+        measurement_noise: measurement noise half-width override ``[m]``.
         skip_nan: skip the update of a batch element whose measurement has NaN (else raise).
     """
 

@@ -129,12 +129,15 @@ class CombinedFilter(SetFilter):
             ``"set"`` (``K = S H' (H S H' + E)^-1``, a pure ellipsoidal set-membership filter
             that ignores P), or ``"auto"`` (``"kalman"`` when R is positive definite, else
             ``"set"``).
-        levels, point_weights, axes: statistical linearisation options (point count
-            ``2 len(levels) n + 1``, weights l_i of eq. 52-53, semi-axes), see
+        levels: statistical linearisation levels (point count ``2 len(levels) n + 1``), see
             `diffsmf.linearize.statistical_linearization`.
-        process_shape, measurement_shape: override D ``[n, n]`` / E ``[m, m]`` (PSD; a
-            degenerate ellipsoid such as ``Gamma D Gamma'`` is allowed; it must cover the noise).
-        process_cov, measurement_cov: override Q / R.
+        point_weights: statistical linearisation point weights l_i (eq. 52-53).
+        axes: statistical linearisation semi-axes (see `diffsmf.linearize.axis_points`).
+        process_shape: override D ``[n, n]`` (PSD; a degenerate ellipsoid such as
+            ``Gamma D Gamma'`` is allowed; it must cover the noise).
+        measurement_shape: override E ``[m, m]`` (PSD, as ``process_shape``).
+        process_cov: override Q.
+        measurement_cov: override R.
 
     Learnable (softplus-positive): ``process_noise [n]``, ``measurement_noise [m]`` (interval
     hull half-widths of D, E: ``D = diag(r/r0) D0 diag(r/r0)``), ``process_std [n]``,

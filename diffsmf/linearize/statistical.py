@@ -201,7 +201,8 @@ def statistical_linearization(
     Args:
         fn: ``fn(x [K, ..., n]) -> [K, ..., k]`` (batched torch function).
         center: ``[..., n]``; shape: ``[..., n, n]`` positive definite.
-        levels, axes: see `axis_points`.
+        levels: see `axis_points`.
+        axes: see `axis_points`.
         weights: point weights ``l_i``: ``None`` (all 1), ``[K]`` (one per point, in the order
             of `axis_points`) or ``[1 + len(levels)]`` (centre, then one per level).
 

@@ -54,8 +54,13 @@ def oscillator_chain(
 
     Args:
         n: state dimension (even, >= 2).
-        dt, stiffness, coupling, cubic, damping: model constants (positive).
-        w, v: process / measurement noise half-widths (>= 0).
+        dt: time step (positive).
+        stiffness: linear spring constant (positive).
+        coupling: spring constant between neighbouring masses (positive).
+        cubic: hardening cubic spring constant (positive).
+        damping: damping constant (positive).
+        w: process noise half-width (>= 0).
+        v: measurement noise half-width (>= 0).
         x0_radius: half-width of the initial box (> 0).
         horizon: the simulation length used by examples and benchmarks.
     """

@@ -73,7 +73,8 @@ class System(nn.Module):
             whose inputs come from logged data: filters and ``simulate`` then require ``u``.
         theta_schedule: the true parameter used by ``simulate`` at step k (``k -> [q]``,
             or a tensor ``[T, q]``); default: the midpoint of ``parameters``.
-        process_cov, measurement_cov: optional Gaussian covariances Q ``[n, n]``, R ``[m, m]``.
+        process_cov: optional Gaussian process covariance Q ``[n, n]``.
+        measurement_cov: optional Gaussian measurement covariance R ``[m, m]``.
         name: a label for tables and figures.
     """
 
