@@ -104,7 +104,8 @@ def sets_demo(outdir: Path) -> str:
     ax.set_ylabel("x2")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0)
-    ax.set_title("Wang et al. 2022 worked example (eq. 22) and a strip intersection", fontsize=10)
+    ax.set_title("A zonotope, its minimal outer parallelotope and a strip intersection\n"
+                 "(worked example of Wang et al. 2022, eq. 22)", fontsize=10)
     fig.tight_layout()
     fig.savefig(outdir / "sets.png", dpi=110, bbox_inches="tight")
     rows = ("[" + ", ".join(f"{v:.4f}" for v in row) + "]" for row in P.T.tolist())
