@@ -379,4 +379,4 @@ def main(args: argparse.Namespace) -> int:
     return 1 if bad else 0
 
 
-from diffsmf.tightness import TightnessReport, inner_bounds, tightness  # noqa: E402, F401 (issue 7)
+from diffsmf.tightness import TightnessReport, inner_bounds, tightness  # noqa: E402, F401

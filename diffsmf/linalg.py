@@ -4,7 +4,7 @@ The set filters call ``det``, ``solve`` and ``eigvalsh`` on many tiny matrices p
 Chisci basis search alone solves one ``n x n`` system per candidate basis and batch element).
 LAPACK handles each matrix with a separate call (about 1 us per matrix, 10-30 us of fixed cost
 per batched call on a CPU, and no fusion under ``torch.compile``), so at n = 1-3 these calls
-dominated the step (issue 11: about 40 % of a compiled HS-NSMF step at B = 10,000). Here the
+dominated the step (about 40 % of a compiled HS-NSMF step at B = 10,000). Here the
 small sizes use closed forms built from elementwise ops, which ``torch.compile`` fuses with
 their neighbours and which cost one pass over the batch in eager mode; larger sizes fall back
 to ``torch.linalg``. The closed forms are differentiable by autograd.

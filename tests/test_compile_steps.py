@@ -1,4 +1,4 @@
-"""The compile-ready filter step (issue 11), continued: CZSMF's graph, several steps per
+"""The compile-ready filter step, continued: CZSMF's graph, several steps per
 compiled call, many compiled filters in one process, and the Inductor options.
 
 Split from ``tests/test_compile.py`` so that ``--dist loadfile`` spreads the compile tests

@@ -1,5 +1,5 @@
-"""Linear system, linear output: each filter equals its classical linear counterpart (issue 13
-part 1), checked against independent numpy references at every step.
+"""Linear system, linear output: each filter equals its classical linear counterpart,
+checked against independent numpy references at every step.
 
 System: ``x+ = A x + w``, ``|w_i| <= W_i`` (box), ``y = C x + v``, ``|v_j| <= SIGMA_j``, two
 states, two outputs (the strips are intersected one by one, output 0 first).

@@ -1,4 +1,4 @@
-"""Noise sets used as given (issue 13 part 1): a zonotope or ellipsoidal W is not replaced by
+"""Noise sets used as given: a zonotope or ellipsoidal W is not replaced by
 its interval hull.
 
 References: a numpy implementation of Alamo et al. 2005 (zonotope prediction with the noise

@@ -69,7 +69,7 @@ def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
     box half-widths [n], generators [n, q] or None)``.
 
     A box W (the built-ins) is ``(c, r, None)`` as before (bit for bit); a zonotope or
-    parallelotope W keeps its own generators (``(c, 0, G)``: exact Minkowski sum, issue 13); an
+    parallelotope W keeps its own generators (``(c, 0, G)``: exact Minkowski sum); an
     ellipsoid, which a zonotope cannot hold exactly, enters by its interval hull.
     """
     from diffsmf.sets.zonotope import Zonotope

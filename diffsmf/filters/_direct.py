@@ -3,7 +3,7 @@
 A call of a ``torch.compile``-d step passes through Dynamo's frame (guard evaluation, or
 entering and leaving its skip-guards stance) and AOTAutograd's and Inductor's wrappers before
 the kernels run. For a 2-state EKF at batch 1 that was about 200 us of a 250 us online step
-(docs/filter_core_log.md). Inside `SetFilter.streaming` the filter does not change (its
+(docs/filter_core.md). Inside `SetFilter.streaming` the filter does not change (its
 documented contract), so the guards have nothing to check. There the step is
 
 1. captured once per input structure with ``make_fx`` on fake tensors, running the same

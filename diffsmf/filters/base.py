@@ -216,7 +216,7 @@ _SMALL_Y = 64
 #: Inductor options of `SetFilter.compile`. A filter step is hundreds of operations on
 #: ``[B, n, n]`` tensors with n = 1-32: Inductor vectorises along the innermost dimension, so
 #: for small n its SIMD code is mostly tails and remainders, and g++ takes twice as long to build
-#: it. Measured on spring_damper (HSNSMF, 1 thread, cold cache, same session): no-grad compile
+#: it. Measured on spring_damper (HSNSMF, 1 thread, cold cache, one run each): no-grad compile
 #: 46 -> 33 s at B = 1 and 59 -> 30 s at B = 10,000 (run time 2,275 -> 3,194 and 205k -> 214k
 #: trajectory-steps/s); the B = 64 gradient graphs 145 -> 78 s, run time 18k -> 33k
 #: trajectory-steps/s. The sets are the same (the same operations in scalar code).
@@ -224,7 +224,7 @@ _SMALL_Y = 64
 #: and stride checks, library calls) in C++ instead of Python; at B = 1 that code was most of
 #: a compiled step. Same sets and gradients; A/B in one process, 8 interleaved runs each
 #: (spring_damper, B = 1, 1 thread): HSNSMF 0.749 -> 0.421 ms per step, ESMF 1.707 -> 0.973,
-#: EKF 0.104 -> 0.095; cold compile times within 25 % (docs/filter_core_log.md).
+#: EKF 0.104 -> 0.095; cold compile times within 25 %.
 #: ``memory_planning``: the intermediate buffers of a call come from one planned pool instead
 #: of one allocation each (a 4-step CombinedFilter graph allocated 236 tensors per call). Same
 #: sets and gradients (bit for bit in the checks); A/B in one process, interleaved runs
@@ -508,8 +508,8 @@ class SetFilter(nn.Module):
         ``W_s = c + diag(s) (W - c)`` with ``s = process_noise / (half-width of W's interval
         hull)``: for a box this is exactly `process_noise_box`; a ``Zonotope`` /
         ``Parallelotope`` keeps its generators (``diag(s) G``) and an ``Ellipsoid`` its shape
-        (``diag(s) S diag(s)``), so no filter pays for the interval hull of a non-box W
-        (issue 13). ``s = 1`` (the default) is the system's set. Differentiable in
+        (``diag(s) S diag(s)``), so no filter pays for the interval hull of a non-box W.
+        ``s = 1`` (the default) is the system's set. Differentiable in
         ``process_noise``. A component with a zero hull half-width stays zero.
         """
         return self._scaled_noise_set(
@@ -738,7 +738,7 @@ class SetFilter(nn.Module):
         type, tensor shapes, strides, dtypes, devices, ``u`` given or not) with ``make_fx``,
         from the same branch-free code that ``torch.compile`` traces, and compiled by Inductor
         (seconds, once; reused by later blocks of the same configuration). The EKF's online
-        step at B = 1 went from 0.25 to 0.06 ms (docs/filter_core_log.md). The inputs are still
+        step at B = 1 went from 0.25 to 0.06 ms (docs/filter_core.md). The inputs are still
         validated (``y`` shape, inf / NaN; ``u`` by the system). ``forward`` called inside
         the block runs the same captured step in its loop. While autograd records (or
         with another backend) a call runs the Dynamo-compiled step and skips its guard checks
@@ -1030,7 +1030,7 @@ class SetFilter(nn.Module):
         compiled graphs with a dynamic batch dimension (one each whatever B and T): in 2-D the
         traced volume sums the generator-pair table in one fused loop
         (`PAIR_TABLE_MAX_M`) instead of the eager angle sort, which
-        was about a quarter of a compiled MSZM ``forward`` at B = 10,000 (issue 11). The two
+        was about a quarter of a compiled MSZM ``forward`` at B = 10,000. The two
         volumes agree to a few ``m eps`` relative; the sets are untouched. Other set types
         (one batched determinant for their volume) and recorded gradients stay eager.
         """

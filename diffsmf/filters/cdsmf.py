@@ -114,7 +114,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         box = Interval(-rad, rad)
         # p = minkowski_scale * rule p (any p > 0 is an outer bound; 1 = the rule exactly)
         new = scaled_minkowski_sum(lin, box.to_ellipsoid(), self.sum_method, self.minkowski_scale)
-        if Well is not None:  # an ellipsoidal / zonotope W as given (issue 13), not its hull
+        if Well is not None:  # an ellipsoidal / zonotope W as given, not its hull
             new = scaled_minkowski_sum(new, Well, self.sum_method, self.minkowski_scale)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
         return state.replace(set=new, extras=C.spent_initial_box(state.extras)).and_bounded(bounded)

@@ -161,7 +161,7 @@ class CZSMF(SetFilter):
         return self.remainder_fn
 
     def _noise(self) -> tuple[Tensor, Tensor, ConstrainedZonotope | None]:
-        """The process noise W as given (issue 13 item 1) -> ``(center [n], box half-widths
+        """The process noise W as given -> ``(center [n], box half-widths
         [n], W0)``, ``W = center + box(half-widths) (+) W0``.
 
         * box W (every built-in): ``(c, r, None)``, added as the diagonal box generators, bit

@@ -12,7 +12,7 @@ Minkowski sum (eq. 30-35 = eq. 15-17) with the trace-minimal weight times the le
 Update (sec. 4.3, eq. 36-40): intersection of the prior with the linearised observation set
 ``{x : (y - h(c) - H (x - c))' Rhat^-1 (...) <= 1}``, ``Rhat`` the covering ellipsoid of the
 measurement-noise box plus the Lagrange remainder of ``h`` (an ellipsoidal or zonotope V is
-used as given, summed with the remainder's ellipsoid: issue 13).
+used as given, summed with the remainder's ellipsoid).
 
 Deviations (guarantee fixes, also in docs/filters.md): the parameter deviation is bounded over
 the whole current box, not only at the centre (eq. 20 evaluates it at ``x_hat`` only, which does
@@ -128,7 +128,7 @@ class ESMF(C.EllipsoidalSetFilter):
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
         R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
         s = self.minkowski_scale  # p = s * trace rule in every sum (s = 1: the paper)
-        Well = C.noise_ellipsoid(self)  # an ellipsoidal / zonotope W as given (issue 13)
+        Well = C.noise_ellipsoid(self)  # an ellipsoidal / zonotope W as given
         Wq = self.process_noise_box().to_ellipsoid() if Well is None else Well
         Qhat = scaled_minkowski_sum(R.to_ellipsoid(), Wq, "trace", s)  # eq. 29-31
         if self.system.parameters is not None:  # eq. 18-23, 30, 32
@@ -148,7 +148,7 @@ class ESMF(C.EllipsoidalSetFilter):
 
         A box V (the paper's case): the covering ellipsoid ``diag(m r^2)`` of the box
         ``V + Rh`` (eq. 23 with the n-D erratum). An ellipsoidal V is used as given and a
-        zonotope V through its covering ellipsoid (issue 13: not via its interval hull), each
+        zonotope V through its covering ellipsoid (not via its interval hull), each
         summed with the covering ellipsoid of the remainder box by the trace-minimal outer
         Minkowski sum (Song et al. 2017, eq. 14-17). Widened for rounding.
         """

@@ -12,7 +12,7 @@ zonotope with m generators would also be far too many); the set is a zonotope:
   Property 2, weight by ``strip_method``), then the result is reduced to the same
   ``order * n`` generators (zero-padded), so every step has the same generator count.
 
-Default ``order=12`` (issue 13, chosen from ``benchmarks/mszm_order_bench.py``: Girard
+Default ``order=12`` (chosen from ``benchmarks/mszm_order_bench.py``: Girard
 reduction, F-radius strips, 25 vertex-noise steps, tightness relative to order 60, which never
 reduces there; ms per filter step, B = 10, 1 thread, shared 2-core machine, +-20 %):
 
@@ -169,7 +169,7 @@ def _stable_partition(keep: Tensor, count: Tensor) -> Tensor:
     """Destination of each column ``[..., M]`` (int64) in the stable partition that puts the
     ``keep`` columns first, each group in its original order; ``count [...]`` the number of
     kept columns. The permutation of a stable sort of ``~keep``, from one running sum instead
-    of a sort (an extern call under ``torch.compile``; issue 11): with ``s_j`` the kept columns
+    of a sort (an extern call under ``torch.compile``): with ``s_j`` the kept columns
     up to ``j``, a kept column goes to ``s_j - 1`` and a dropped one to ``count + j - s_j``
     (``j + 1 - s_j`` dropped columns up to ``j``)."""
     s = torch.cumsum(keep.to(torch.int64), -1)

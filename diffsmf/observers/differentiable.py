@@ -1,4 +1,4 @@
-r"""Differentiable observer design: the seed-004 LMI as a ``cvxpylayers`` layer (optional extra).
+r"""Differentiable observer design: the observer LMI as a ``cvxpylayers`` layer (optional extra).
 
 `DifferentiableObserverDesign` solves, at a FIXED decay rate alpha, the same SDP as
 `design_lipschitz_observer` with ``objective="bound"`` (the cvxpy

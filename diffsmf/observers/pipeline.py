@@ -153,7 +153,7 @@ def _vdp_hess_bound(V: Tensor) -> Tensor:
 
 
 def vdp_model() -> ContinuousModel:
-    """Wang et al. 2009, eq. 23 with the seed's x(0) = [1.2, 0.5], x̂(0) = [1.5, 0.7], u = sin t.
+    """Wang et al. 2009, eq. 23 with the paper's x(0) = [1.2, 0.5], x̂(0) = [1.5, 0.7], u = sin t.
     The domain covers the forced limit cycle (|x1| <= 2.38, |x2| <= 3.77 on t in [0, 30])."""
     return ContinuousModel(
         name="vdp",

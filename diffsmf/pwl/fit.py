@@ -1,7 +1,7 @@
 """Adaptive least-squares fitting of SCPLNN models (Wang et al. 2009, sec. 3.1.2).
 
 Step 1: least-squares affine fit; stop if its max sample error is below eps.
-Step 2: an initial partition. Default (``rule="rivara"``, issue 15): the Kuhn triangulation of
+Step 2: an initial partition. Default (``rule="rivara"``): the Kuhn triangulation of
 the box. Older rules: connect the max-error sample p1 to the domain's vertices
 (`cone_partition`); p1 closer than ``snap`` (relative) to a side of the box is first
 moved onto it, else the cones over the near facets are slivers that no later split repairs.
@@ -285,7 +285,7 @@ def fit_scplnn(
             eps, `BisectionRefiner`, starting from the Kuhn
             triangulation of the box; no slivers), ``"interior"`` (Wang et al. 2009: connect the
             sample to the region's vertices when it is well inside, else cut the longest edge; the
-            default before issue 15), ``"edge"`` (always the longest edge of the sample's
+            earlier default), ``"edge"`` (always the longest edge of the sample's
             region) or ``"paper"`` (always connect the sample to the vertices; stalls on
             slivers).
         edge_clip: where the longest edge is cut: the sample's projection clipped to

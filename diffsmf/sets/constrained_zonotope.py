@@ -310,7 +310,7 @@ class ConstrainedZonotope(ConvexSet):
         are polished by `feasible_residual` (alternating
         projections, then active-set least squares). False means "not certified"; on
         spring_damper's CZSMF sets with vertex noise, 97 % of the true states were certified
-        by the iterate alone and all of them after the polish (stop 30). `excludes`
+        by the iterate alone and all of them after the polish. `excludes`
         certifies non-membership.
         """
         x = as_tensor("x", x, like=self._c, min_dim=1)

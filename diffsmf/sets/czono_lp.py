@@ -85,10 +85,10 @@ def _rounding(g_abs: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
 
 def _step_length(r: Tensor) -> Tensor:
     """``min(1, _TAU / r)`` for ``r = 1 / (largest feasible step)``, and 1 where no
-    component blocks the step (``r <= 0``, including ``-0.0``). Before stop 29 this was
+    component blocks the step (``r <= 0``, including ``-0.0``). An earlier version used
     ``(_TAU / r).clamp(max=1)``, which gave a *negative* step for ``r < 0`` (every ``dz_j``
     and ``dw_j`` positive, as in a corrector step) and ``-inf`` for ``r = -0.0``: the iterate
-    left the interior (measured: 2-7 of about 10^6 LP iterations of a CZSMF run on the seed
+    left the interior (measured: 2-7 of about 10^6 LP iterations of a CZSMF run on the built-in
     systems; the 1-D infeasible ``xi = 5`` was not certified empty). For ``r > 0`` both forms
     give the same bits (and NaN stays NaN), so only LPs that met ``r <= 0`` change: the audit
     probes kept their fingerprints (docs/constrained_zonotopes.md)."""

@@ -106,7 +106,7 @@ class Ellipsoid(ConvexSet):
 
         Up to n = 2 from the closed-form determinant (`diffsmf.linalg.det`; 0.4 ms
         instead of 12 ms for the Cholesky factors of 110,000 2 x 2 shapes, one thread: most of
-        an ellipsoidal filter's compiled ``forward`` after its loop, issue 11), equal to the
+        an ellipsoidal filter's compiled ``forward`` after its loop), equal to the
         Cholesky form to rounding, when every shape is positive definite (``S_11 > 0`` and
         ``det S > 0``); otherwise the Cholesky form, which raises for a shape that is not.
         While traced for ``torch.compile`` (no host check) such elements give NaN.
@@ -331,7 +331,7 @@ class Ellipsoid(ConvexSet):
 
         One output (``m = 1``, ``n > 1``) with ``method="volume"``: the family's
         minimal-volume member in closed form (Fogel-Huang, `_one_output_update`) instead
-        of about 150 evaluations of the bracketing search (issue 11: two thirds of a compiled
+        of about 150 evaluations of the bracketing search (two thirds of a compiled
         ESMF step), and emptiness decided exactly.
         """
         H = as_tensor("H", H, like=self.center_, min_dim=2)
@@ -735,7 +735,7 @@ class _MeasFamily:
 #: ZOOM_POINTS - 1 intervals (a factor 1/4), 13 stages narrow the bracket to 4^-13 = 1.5e-8 of
 #: its width, below the 36-step golden-section search it replaced (0.618^36 = 2.9e-8), in 13
 #: vectorised evaluations instead of 36 sequential ones (a third of the graph under
-#: torch.compile; issue 11).
+#: torch.compile).
 ZOOM_POINTS = 9
 ZOOM_STAGES = 13
 

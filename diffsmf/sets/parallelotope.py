@@ -94,7 +94,7 @@ class Parallelotope(ConvexSet):
         The determinant in closed form up to n = 3 (`diffsmf.linalg.det`; equal to
         LAPACK's LU to rounding): 45x faster than ``torch.linalg.det`` on 110,000 2 x 2
         matrices (0.2 vs 9 ms, one thread), which was most of a compiled HSNSMF ``forward``'s
-        time after its loop (issue 11). Not used inside a filter step.
+        time after its loop. Not used inside a filter step.
         """
         return (2.0**self.dim) * linalg.det(self.T).abs()
 

@@ -106,7 +106,7 @@ def _planar_area(G: Tensor) -> Tensor:
     Absolute rounding error a few ``m eps (sum_j |g_j|)^2``, the order of the pair table's
     (`_planar_pair_area`, each ``a_i b_j - b_i a_j`` has error ``eps |g_i| |g_j|``);
     clamped at 0. ``Zonotope.volume`` in 2-D: the pair table's ``m^2`` products were a
-    quarter of a compiled MSZM forward at B = 10,000 (issue 11). Same subgradient as the sum
+    quarter of a compiled MSZM forward at B = 10,000. Same subgradient as the sum
     of ``|det|`` (every term enters with its sign).
     """
     Gs = _angle_sorted(G)
@@ -118,7 +118,7 @@ def _planar_area(G: Tensor) -> Tensor:
 #: (`_planar_pair_area`, which Inductor fuses into one loop without a sort); above, the
 #: ``O(m log m)`` sorted sum. Compiled with a dynamic batch, the filters' options, one thread:
 #: 51 ms for MSZM's 110,000 stacked sets (m = 24), against 65-80 ms for the eager sorted sum
-#: (issue 11); at m = 64 0.38 s against 0.47 s (random generators), with no table in memory.
+#: at m = 64 0.38 s against 0.47 s (random generators), with no table in memory.
 PAIR_TABLE_MAX_M = 64
 
 #: Entries of the pair table per chunk in `_planar_pair_area` (2 MB: stays in cache).
@@ -559,7 +559,7 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
     contains Z for *any* regular basis B, so this is an outer bound, not the smallest one. The
     other elements get zero columns (no change) and their best basis. One search over G's own
     bases, also while traced (where both branches are computed): a second search over the
-    augmented columns cost 15 instead of 6 bases per set at n = 2 (issue 11).
+    augmented columns cost 15 instead of 6 bases per set at n = 2.
     """
     n, m = G.shape[-2], G.shape[-1]
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
@@ -735,7 +735,7 @@ def _alamo_lambda(c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, metho
         )  # [..., K, n]: vol(lam) = 2^n (|1-p.lam| V0 + sig |q lam|_1)
         if m < n:
             V0 = Gd.new_zeros(Gd.shape[:-2])
-        elif n == 2:  # the same determinants from the pair table, no gather (issue 11)
+        elif n == 2:  # the same determinants from the pair table, no gather
             V0 = _planar_pair_area(Gd)
         else:
             V0 = _sum_abs_det(Gd, _combinations(m, n, G.device))

@@ -1,7 +1,7 @@
 """An n-dimensional benchmark system: a chain of coupled nonlinear (Duffing) oscillators.
 
-Not from the seed papers: a scalable test bed for the filters at n = 2 ... 32 and beyond
-(issue 11: the seed systems have n <= 3). Registered as ``"oscillator_chain"``.
+Not from the papers: a scalable test bed for the filters at n = 2 ... 32 and beyond
+(the papers' systems have n <= 3). Registered as ``"oscillator_chain"``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Built-in systems of the seed papers (registered with `diffsmf.systems.register`).
+"""Built-in systems of the implemented papers (registered with `diffsmf.systems.register`).
 
 Every factory returns a fresh `System` and accepts keyword overrides
 (step, noise bounds, ...). Each system also carries two plain attributes used by examples and
