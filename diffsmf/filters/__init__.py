@@ -38,7 +38,7 @@ def by_name(name: str) -> type[SetFilter]:
     if key in _NAMES:
         return _NAMES[key]
     if key == "combined":
-        from diffsmf.filters.combined import CombinedFilter  # lazy: another engineer's module
+        from diffsmf.filters.combined import CombinedFilter  # lazy import
 
         return CombinedFilter
     raise ValueError(f"name: unknown filter {name!r}; choose from {names()}")

@@ -704,7 +704,7 @@ class _MeasFamily:
         W = linalg.cholesky_solve(PHt, L)  # D^-1 H P
         KHP = rr * self.PH @ W
         core = self.P - KHP
-        # guarantee floor (added by the filters engineer): as rho -> 1 with H P H' >> R the
+        # guarantee floor: as rho -> 1 with H P H' >> R the
         # difference cancels (e.g. 6e4 - 6e4 -> 3e-8); its absolute rounding error is below
         # 16 (n + m) eps (||P||_F + ||K H P||_F), so that much is added on the diagonal.
         eps = torch.finfo(core.dtype).eps
