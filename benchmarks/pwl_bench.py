@@ -10,7 +10,7 @@ Sections (each prints a markdown table):
    LinearNDInterpolator on 10,000 uniform samples reaches a held-out max of 0.008-0.009 on it,
    0.0084 as the target), 10,000 uniform samples (seed 0), held-out error on the 200 x 200
    ``linspace`` grid clamped into the samples' bounding box (every method inside its domain).
-   Ours at several eps, the old default rule (``rule="interior"``) for comparison, and a
+   Ours at several eps, the ``rule="interior"`` split for comparison, and a
    sharper peak exp(-10 |x|^2). Times: median of ``--repeats`` runs. Target: held-out max <=
    LinearNDInterpolator's with <= 1/5 of its vertices in < 2 s.
 2. **Peers at equal size** on the same grids: hinging hyperplanes (Breiman 1993) with as
@@ -115,7 +115,7 @@ def peak_section(repeats: int, quick: bool) -> tuple[list[str], list[str]]:
             err = float(np.abs(_predict(model, G) - yg).max())
             est = ("-" if rep.heldout_max_error is None
                    else f"{float(rep.heldout_max_error[0]):.4f}")
-            name = "SCPLNN" + (" (rule='interior', old default)" if rule == "interior" else "")
+            name = "SCPLNN" + (" (rule='interior')" if rule == "interior" else "")
             lines.append(f"| {fname} | {name} | {eps} | {rep.vertices} | {rep.regions} | "
                          f"{t:.3f} | {float(rep.max_error[0]):.4f} | {est} | {err:.4f} | "
                          f"{err / l_err:.2f} | {rep.vertices / len(X):.3f} | "
