@@ -26,7 +26,7 @@ CASES = [
 ]
 
 
-pytestmark = pytest.mark.usefixtures("fresh_dynamo")
+pytestmark = [pytest.mark.usefixtures("fresh_dynamo"), pytest.mark.slow]  # compiles: slow
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ import torch
 
 import diffsmf as ds
 
-pytestmark = pytest.mark.usefixtures("fresh_dynamo")
+pytestmark = [pytest.mark.usefixtures("fresh_dynamo"), pytest.mark.slow]  # compiles: slow
 
 
 @pytest.mark.parametrize(

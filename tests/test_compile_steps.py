@@ -12,7 +12,7 @@ import torch
 
 import diffsmf as ds
 
-pytestmark = pytest.mark.usefixtures("fresh_dynamo")
+pytestmark = [pytest.mark.usefixtures("fresh_dynamo"), pytest.mark.slow]  # compiles: slow
 
 
 def test_czsmf_compiled_step_is_one_graph():

@@ -43,7 +43,12 @@ def test_guide_pages_exist():
     assert {"own_system.md", "filter_data.md", "tune.md", "pwl.md", "observer.md"} <= set(PAGES)
 
 
-@pytest.mark.parametrize("page", PAGES)
+SLOW_PAGES = {"filter_data.md", "observer.md"}  # 7-11 s each: deselected by -m "not slow"
+
+
+@pytest.mark.parametrize(
+    "page", [pytest.param(p, marks=pytest.mark.slow) if p in SLOW_PAGES else p for p in PAGES]
+)
 def test_guide_page_runs(page, tmp_path, monkeypatch):
     from diffsmf.cli import main
 

@@ -17,6 +17,8 @@ from diffsmf.sets.base import where
 from training import LossWeights, tune
 from training.losses import consistency_excess, filter_with_predictions, total_loss
 
+pytestmark = pytest.mark.slow  # compiles the tuning step
+
 
 @pytest.fixture(scope="module")
 def sd():
