@@ -1,4 +1,4 @@
-"""CZSMF tightness and cost (issue 13): markdown tables on stdout.
+"""CZSMF tightness and cost: markdown tables on stdout.
 
 1. Linear system (``tests/test_czsmf.py::linear_system``, 2 states, 1 output, box noise):
    summed interval-hull widths of CZSMF over the horizon divided by those of the exact

@@ -3,7 +3,7 @@
 For each (system, filter, noise in {vertex, uniform}) one batch of ``--trials`` trajectories
 runs over the system's horizon (``system.horizon``: the papers' horizons), and the table lists
 the (trajectory, step) pairs outside the set (tolerance 1e-9 on the normalised distance, see
-:mod:`diffsmf.audit`), the worst normalised distance outside, the mean volume and the wall
+`diffsmf.audit`), the worst normalised distance outside, the mean volume and the wall
 time. ``--trials-for fermenter=100`` lowers the count for a slow system (stated in the table).
 Output: a markdown table on stdout (pasted into docs/filters.md).
 
@@ -109,7 +109,7 @@ def _log_rows(path: str) -> list[dict]:
 
 
 def logged_chunks(path: str, meta: dict) -> list[tuple[int, int]]:
-    """``(start, stop)`` of the chunks of ``meta``'s row (:data:`ROW_KEYS`) logged in ``path``
+    """``(start, stop)`` of the chunks of ``meta``'s row (`ROW_KEYS`) logged in ``path``
     by the same package source (none if the file does not exist), sorted. A chunk of other
     code counts as not done even when its sets are the same: the containment check itself
     lives in the package (e.g. the reference LPs' tolerance), so a re-run must redo it."""

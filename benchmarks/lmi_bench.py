@@ -1,4 +1,4 @@
-"""Full observer design vs ONE direct cvxpy + Clarabel solve of the same LMI (issue 15.1).
+"""Full observer design vs ONE direct cvxpy + Clarabel solve of the same LMI.
 
 For each n in (2, 5, 10, 20, 30): a random (A, C) (A ~ N(0, 1/n), l = max(1, n // 3) outputs),
 gamma = 0.05, eps = 0.1, |L|_2 <= 1000 (general structure, continuous time).

@@ -1,5 +1,5 @@
-"""MSZM reduction order: tightness vs cost (issue 13 part 1, "choose MSZM's default order from
-a measured table").
+"""MSZM reduction order: tightness vs cost (MSZM's default order is chosen from
+this measured table).
 
 For each system and order q (at most ``q * n`` generators after each step, Girard reduction,
 F-radius strips) the filter runs on the same ``--batch`` trajectories (worst-case vertex

@@ -5,18 +5,18 @@ pwlf, on the same held-out points, in the same run.
 
 Sections (each prints a markdown table):
 
-1. **Peak target (issue 15.2).** ``peak(x) = exp(-3 |x|^2)`` on [-2, 2]^2 (a smooth function
-   with one peak; the issue does not give its formula: this one was chosen because
+1. **Peak target.** ``peak(x) = exp(-3 |x|^2)`` on [-2, 2]^2 (a smooth function
+   with one peak; this one was chosen because
    LinearNDInterpolator on 10,000 uniform samples reaches a held-out max of 0.008-0.009 on it,
-   the issue's 0.0084), 10,000 uniform samples (seed 0), held-out error on the 200 x 200
+   0.0084 as the target), 10,000 uniform samples (seed 0), held-out error on the 200 x 200
    ``linspace`` grid clamped into the samples' bounding box (every method inside its domain).
-   Ours at several eps, the old default rule (``rule="interior"``) for comparison, and a
+   Ours at several eps, the ``rule="interior"`` split for comparison, and a
    sharper peak exp(-10 |x|^2). Times: median of ``--repeats`` runs. Target: held-out max <=
    LinearNDInterpolator's with <= 1/5 of its vertices in < 2 s.
 2. **Peers at equal size** on the same grids: hinging hyperplanes (Breiman 1993) with as
    many parameters as the SCPLNN (K <= 40), and pwlf in 1-D (sin(3x) + x/2 on [0, 3], 2,000
    samples, pwlf ``fitfast`` with the SCPLNN's number of segments; one run, pwlf is slow).
-3. **Dimension table (issue 15.3)**: sum_i sin x_i on [-1, 1]^d, 20,000 uniform samples,
+3. **Dimension table**: sum_i sin x_i on [-1, 1]^d, 20,000 uniform samples,
    eps 0.05, d = 1..6, held-out error on 20,000 other uniform points. d = 6 uses
    ``domain="box"`` (the default for n > 5 is an enclosing simplex, mostly empty space) and a
    200,000-region cap (20,000 samples are too few to pin down the vertices beyond that).
@@ -115,7 +115,7 @@ def peak_section(repeats: int, quick: bool) -> tuple[list[str], list[str]]:
             err = float(np.abs(_predict(model, G) - yg).max())
             est = ("-" if rep.heldout_max_error is None
                    else f"{float(rep.heldout_max_error[0]):.4f}")
-            name = "SCPLNN" + (" (rule='interior', old default)" if rule == "interior" else "")
+            name = "SCPLNN" + (" (rule='interior')" if rule == "interior" else "")
             lines.append(f"| {fname} | {name} | {eps} | {rep.vertices} | {rep.regions} | "
                          f"{t:.3f} | {float(rep.max_error[0]):.4f} | {est} | {err:.4f} | "
                          f"{err / l_err:.2f} | {rep.vertices / len(X):.3f} | "

@@ -12,8 +12,8 @@ reached after a few eager steps (median of ``--repeats`` calls after two warm-up
 * ``step``: predict + update, what ``filt.compile()`` runs per step.
 
 Parts traced separately do not share buffers, so their sum need not equal ``step``. The
-figures in docs/filter_core_log.md ("Stop 35") came from this breakdown. Each part compiles once
-(tens of seconds each on a 2-core CPU; an Inductor cache makes later runs fast).
+figures in docs/results/speed.md (where the time goes) come from this breakdown. Each part
+compiles once (tens of seconds each on a 2-core CPU; an Inductor cache makes later runs fast).
 
     python benchmarks/step_parts.py --filter mszm --batch 10000 [--system spring_damper]
 """

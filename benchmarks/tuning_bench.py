@@ -2,7 +2,7 @@
 
 An epoch is one forward over ``--batch`` trajectories x ``--steps`` steps and (for the
 "forward + backward" column) the back-propagation of the mean log-volume through the whole
-horizon to the learnable noise half-widths (issue 11 item 5: 200 epochs of 64 x 100 in under
+horizon to the learnable noise half-widths (targets: 200 epochs of 64 x 100 in under
 2 minutes, forward + backward at most 2x forward). Median of ``--repeats`` epochs after a
 warm-up epoch (which includes the one-off compile, printed separately). One torch thread.
 

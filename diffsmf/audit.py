@@ -39,7 +39,7 @@ __all__ = [
 ]
 
 TOL = 1e-9
-#: Trajectories filtered per batch with ``progress`` or ``on_chunk`` (:func:`containment`).
+#: Trajectories filtered per batch with ``progress`` or ``on_chunk`` (`containment`).
 CHUNK = 100
 
 def paper_steps(system) -> int:
@@ -49,7 +49,7 @@ def paper_steps(system) -> int:
 
 @dataclass
 class AuditReport:
-    """Result of :func:`containment`."""
+    """Result of `containment`."""
 
     filter: str
     system: str
@@ -158,22 +158,22 @@ def containment(
     count: int | None = None,
     on_chunk: Callable[[dict], None] | None = None,
 ) -> AuditReport:
-    """Containment audit of ``filt`` (a :class:`~diffsmf.filters.SetFilter`) on ``system``.
+    """Containment audit of ``filt`` (a `SetFilter`) on ``system``.
 
     Args:
         filt: the filter (its own ``system`` is used when ``system`` is None).
         trials: number of simulated trajectories (one batch).
-        steps: horizon (default :func:`paper_steps`).
+        steps: horizon (default `paper_steps`).
         noise: ``"vertex"`` (worst case) or ``"uniform"``.
         seed: seed of the simulation.
         tol: relative tolerance on the gauge.
         progress: show a progress bar over trajectories with the running counts of outside
             pairs and inconsistent steps (the batch is then filtered in chunks of at most
-            :data:`CHUNK` trajectories; the counts are the same).
+            `CHUNK` trajectories; the counts are the same).
         first, count: audit only the trajectories ``first .. first + count - 1`` of the
             ``trials`` simulated ones (default: all), e.g. to split a long audit into runs;
             the trajectories are the same as in the whole audit.
-        on_chunk: called after each chunk of at most :data:`CHUNK` trajectories (chunking
+        on_chunk: called after each chunk of at most `CHUNK` trajectories (chunking
             as with ``progress``) with a dict of its counts: ``start``, ``stop`` (trajectory
             indices), ``violations``, ``pairs``, ``worst_distance``, ``volume_sum`` (over
             its trajectories and steps 1..T), ``inconsistent``, ``seconds``, ``unbounded``
@@ -181,7 +181,7 @@ def containment(
             lets an audit that is stopped resume (``benchmarks/filters_audit.py --log``).
 
     Returns:
-        :class:`AuditReport` over the audited trajectories. ``mean_volume`` averages over
+        `AuditReport` over the audited trajectories. ``mean_volume`` averages over
         trajectories and steps 1..T.
     """
     check_filter("filt", filt, None if system is None else check_system("system", system))

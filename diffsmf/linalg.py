@@ -4,7 +4,7 @@ The set filters call ``det``, ``solve`` and ``eigvalsh`` on many tiny matrices p
 Chisci basis search alone solves one ``n x n`` system per candidate basis and batch element).
 LAPACK handles each matrix with a separate call (about 1 us per matrix, 10-30 us of fixed cost
 per batched call on a CPU, and no fusion under ``torch.compile``), so at n = 1-3 these calls
-dominated the step (issue 11: about 40 % of a compiled HS-NSMF step at B = 10,000). Here the
+dominated the step (about 40 % of a compiled HS-NSMF step at B = 10,000). Here the
 small sizes use closed forms built from elementwise ops, which ``torch.compile`` fuses with
 their neighbours and which cost one pass over the batch in eager mode; larger sizes fall back
 to ``torch.linalg``. The closed forms are differentiable by autograd.
@@ -59,7 +59,7 @@ SMALL_MATMUL_ELEMS = 64
 
 def matmul(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B`` for ``A [..., p, q]``, ``B [..., q, r]`` (broadcast batch) -> ``[..., p, r]``:
-    an elementwise multiply-and-sum when p, q, r <= :data:`SMALL_MATMUL_MAX` or
+    an elementwise multiply-and-sum when p, q, r <= `SMALL_MATMUL_MAX` or
     ``p q r <= SMALL_MATMUL_ELEMS``, else ``@``."""
     p, q, r = A.shape[-2], A.shape[-1], B.shape[-1]
     small = max(p, q, r) <= SMALL_MATMUL_MAX or p * q * r <= SMALL_MATMUL_ELEMS
@@ -165,7 +165,7 @@ def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
 
     Closed form up to n = 2 (no LAPACK call, no host sync: ``torch.linalg.eigh`` checks its
     result on the host, and at n = 2 each call cost about 50 us in a compiled step): the
-    eigenvalues of :func:`eigvalsh` and the rotation ``[[c, -s], [s, c]]`` by ``theta =
+    eigenvalues of `eigvalsh` and the rotation ``[[c, -s], [s, c]]`` by ``theta =
     atan2(b, (a - d) / 2) / 2``, columns reordered to ``[[-s, c], [c, s]]`` for ascending
     eigenvalues (``b = (S_01 + S_10) / 2``; ``S`` diagonal with ``a = d`` gives the identity).
     Eigenvector signs may differ from LAPACK's. Not differentiable at repeated eigenvalues (the

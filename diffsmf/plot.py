@@ -194,7 +194,8 @@ def bounds_figure(
     """Bounds of every state over time for one trajectory -> a Figure (saved to ``path``).
 
     Args:
-        lower, upper: ``[T+1, n]`` (row 0 = the initial set).
+        lower: ``[T+1, n]`` lower bounds (row 0 = the initial set).
+        upper: ``[T+1, n]`` upper bounds.
         consistent: ``[T+1]`` bool; inconsistent steps are marked in red.
         truth: ``[T+1, n]`` true states, drawn when known (simulations).
         guaranteed: False for a filter whose bounds carry no guarantee (EKF); the legend
@@ -268,10 +269,11 @@ def comparison_figure(
     """Filters side by side on one batch of trajectories -> a Figure (saved to ``path``).
 
     Panel 1: mean set area / volume over time (log scale, over the batch). Panels 2..n+1: for
-    trajectory ``index`` and each state, ``upper - x`` (above 0) and ``lower - x`` (below 0):
-    the true state is the zero line, so a guaranteed filter's curves never cross it, and the
-    bounds stay visible when they are tight compared with the state itself. The y-range
-    follows the gaps from step 3 on (the wide initial set is clipped).
+    trajectory ``index`` and each state, ``upper - x`` (above 0) and ``lower - x`` (below 0)
+    as a shaded band per filter, the widest drawn first: the true state is the zero line, so
+    a guaranteed filter's band never leaves it. The y-axis is symmetric-logarithmic (linear
+    within the typical gap, logarithmic beyond), so the wide initial set and the tight later
+    bounds are both visible; nothing is clipped.
 
     Args:
         truth: true states ``[B, T+1, n]``.
@@ -288,22 +290,29 @@ def comparison_figure(
     g.update(guaranteed or {})
     fig = _figure((4.6 * (1 + n), 4.4))
     axes = fig.subplots(1, 1 + n)
+    widths = {name: _mean_gap(res, x, index) for name, res in results.items()}
+    rank = {name: r for r, name in enumerate(sorted(widths, key=widths.__getitem__, reverse=True))}
     for j, (name, res) in enumerate(results.items()):
         style = {"color": f"C{j}", "linestyle": "-" if g[name] else "--"}
         label = name if g[name] else f"{name} (not guaranteed)"
-        axes[0].semilogy(k[1:], _np(res.volume[:, 1:].mean(0)), label=label, **style)
+        axes[0].semilogy(k[1:], _np(res.volume[:, 1:].mean(0)), label=label, lw=1.6, **style)
         for i in range(n):
             ax = axes[1 + i]
-            ax.plot(k, _np(res.upper[index, :, i]) - x[index, :, i], lw=1.0, **style)
-            ax.plot(k, _np(res.lower[index, :, i]) - x[index, :, i], lw=1.0, **style)
+            up = _np(res.upper[index, :, i]) - x[index, :, i]
+            lo = _np(res.lower[index, :, i]) - x[index, :, i]
+            z = 2 + rank[name]  # the widest band at the back
+            ax.plot(k, up, lw=1.3, zorder=z, **style)
+            ax.plot(k, lo, lw=1.3, zorder=z, **style)
+            if g[name]:
+                ax.fill_between(k, lo, up, color=f"C{j}", alpha=0.18, lw=0, zorder=z)
     axes[0].set_ylabel("mean set area / volume")
     axes[0].set_title("set size over time (mean over trajectories)")
     for i in range(n):
         ax = axes[1 + i]
-        ax.axhline(0.0, color="k", lw=1.2, label="true state" if i == 0 else None)
+        ax.axhline(0.0, color="k", lw=1.2, zorder=20, label="true state" if i == 0 else None)
         lim = _gap_limit(results, x, index, i)
         if lim is not None:
-            ax.set_ylim(-lim, lim)
+            ax.set_yscale("symlog", linthresh=lim)
         ax.set_ylabel(f"bound - true x{i + 1}  (upper above 0, lower below)")
         ax.set_title(f"bounds of x{i + 1} relative to the truth (trajectory {index})")
     for ax in axes:
@@ -317,14 +326,22 @@ def comparison_figure(
     return _save(fig, path, dpi=90)
 
 
+def _mean_gap(res: FilterResult, x: np.ndarray, index: int) -> float:
+    """Mean finite width ``upper - lower`` of trajectory ``index`` (orders the bands)."""
+    d = _np(res.upper[index]) - _np(res.lower[index])
+    d = d[np.isfinite(d)]
+    return float(d.mean()) if d.size else float("inf")
+
+
 def _gap_limit(results: dict[str, FilterResult], x: np.ndarray, index: int, i: int) -> float | None:
-    """y-range of a bounds-minus-truth panel: 1.15 x the largest gap after the first 3 steps
-    (the initial set, much wider, is clipped rather than flattening every later step)."""
+    """Linear range of a bounds-minus-truth panel's symmetric-log axis: a tenth of the widest
+    filter's median gap after the first 3 steps (wider bands and the initial set go on the
+    logarithmic part), or None when no gap is finite and positive."""
     gaps = []
     for res in results.values():
         d = np.abs(np.concatenate([_np(res.upper[index, 3:, i]) - x[index, 3:, i],
                                    _np(res.lower[index, 3:, i]) - x[index, 3:, i]]))
-        d = d[np.isfinite(d)]
+        d = d[np.isfinite(d) & (d > 0)]
         if d.size:
-            gaps.append(float(d.max()))
-    return 1.15 * max(gaps) if gaps and max(gaps) > 0 else None
+            gaps.append(float(np.median(d)))
+    return 0.1 * max(gaps) if gaps else None

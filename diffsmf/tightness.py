@@ -181,7 +181,7 @@ def _solve(
 
 
 def _check_args(filt: Any, system: Any, traj: Any) -> None:
-    """The filter, the system and the trajectory of :func:`inner_bounds` / :func:`tightness`,
+    """The filter, the system and the trajectory of `inner_bounds` / `tightness`,
     each checked with a ``ValueError`` naming the argument (swapped arguments included)."""
     check_filter("filt", filt, check_system("system", system))
     if not isinstance(traj, Trajectory):
@@ -272,7 +272,7 @@ def tightness(
 ) -> TightnessReport:
     """Tightness of ``filt`` on trajectory ``index`` of ``traj`` at ``steps`` (1-based k).
 
-    Runs the filter on that trajectory, computes (or takes) :func:`inner_bounds`, and reports
+    Runs the filter on that trajectory, computes (or takes) `inner_bounds`, and reports
     per step and direction: ``outer_width = h(d) + h(-d)`` of the filter's set, the inner
     width, ``ratio = outer / inner`` and every feasible state outside the set
     (``contains(atol)`` false: a containment failure). ``inner`` may be shared between filters

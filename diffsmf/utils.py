@@ -46,7 +46,7 @@ def is_int(value: object) -> bool:
 
 
 def tracing() -> bool:
-    """True while ``torch.compile`` (or :func:`traced`) traces the code: then host-syncing
+    """True while ``torch.compile`` (or `traced`) traces the code: then host-syncing
     checks are skipped and data-dependent branches take their general, branch-free form."""
     return _TRACED or bool(torch.compiler.is_compiling())
 
@@ -54,7 +54,7 @@ def tracing() -> bool:
 _TRACED = False  # set by traced()
 
 
-#: glibc ``mallopt`` parameters set by :func:`retain_freed_memory`.
+#: glibc ``mallopt`` parameters set by `retain_freed_memory`.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _RETAINED = False
 
@@ -145,8 +145,8 @@ def materialize(x: Tensor) -> Tensor:
 
 @contextlib.contextmanager
 def traced() -> Iterator[None]:
-    """Make :func:`tracing` true inside the block: for graph capture without Dynamo
-    (``make_fx`` in :mod:`diffsmf.filters._direct`), which must see the same branch-free
+    """Make `tracing` true inside the block: for graph capture without Dynamo
+    (``make_fx`` in `diffsmf.filters._direct`), which must see the same branch-free
     code as ``torch.compile``."""
     global _TRACED
     old, _TRACED = _TRACED, True
@@ -170,7 +170,7 @@ def register_positive(module: nn.Module, name: str, value: Any, learnable: bool 
     ``<name>_scale`` equal to the initial value, with ``value = scale * softplus(raw)`` and
     ``raw`` initialised to ``inv_softplus(1)``: gradient steps are relative to the initial
     magnitude, so bounds of 1e-3 and 1e3 train alike. Components equal to 0 stay exactly 0.
-    Pair it with a :class:`Positive` descriptor on the class to read and write ``module.name``.
+    Pair it with a `Positive` descriptor on the class to read and write ``module.name``.
     """
     v = torch.as_tensor(value, dtype=torch.float64)
     if torch.isnan(v).any() or (v < 0).any():
@@ -197,7 +197,7 @@ def _scalar_scale_hook(state_dict: dict, prefix: str, *args: Any, key: str) -> N
 
 
 class Positive:
-    """Descriptor for a hyperparameter created by :func:`register_positive`.
+    """Descriptor for a hyperparameter created by `register_positive`.
 
     ``obj.name`` returns ``scale * softplus(raw_name)`` (differentiable in ``raw_name``);
     ``obj.name = value`` resets ``scale`` to ``value`` and ``raw`` to ``inv_softplus(1)``.
@@ -223,7 +223,7 @@ class Positive:
 
 
 class StrictlyPositive(Positive):
-    """:class:`~diffsmf.utils.Positive` whose setter also rejects 0 and infinity (a
+    """`Positive` whose setter also rejects 0 and infinity (a
     multiplicative factor such as ``minkowski_scale`` must be finite and > 0)."""
 
     def __set__(self, obj: Any, value: Any) -> None:

@@ -6,7 +6,7 @@
    max training error, held-out error on the 200x200 grid of cell centres, time.
 2. The split rules on random samples: "rivara" (default: conforming longest-edge bisection
    of every region above eps, with held-out samples), "interior" (Wang et al. 2009's rule,
-   longest-edge cut near faces; the default before issue 15), "edge", and "paper" (Wang et al. 2009
+   longest-edge cut near faces; the earlier default), "edge", and "paper" (Wang et al. 2009
    literally: always connect the sample to the region's vertices).
 3. Wang et al. 2009's comparison with hinging hyperplanes ("model 3") at the same number of regions
 and

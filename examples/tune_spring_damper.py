@@ -1,4 +1,4 @@
-"""Learning noise bounds and Stirling steps by gradient descent on set volume (issue 7).
+"""Learning noise bounds and Stirling steps by gradient descent on set volume.
 
 Parts (``--part``; each prints a table and writes JSON under ``--out``):
 

@@ -120,7 +120,7 @@ def test_gauge_of_constrained_zonotope_vs_highs():
 
 def test_partial_audits_add_up_to_the_whole():
     """``first`` / ``count`` audit a part of the same simulated trajectories, and ``on_chunk``
-    reports chunks of :data:`audit.CHUNK`: the parts' counts and volume sums add up to the
+    reports chunks of `audit.CHUNK`: the parts' counts and volume sums add up to the
     whole audit's. Out-of-range parts raise naming the argument."""
     system = systems.get("spring_damper")
     filt = filters.HSNSMF(system)

@@ -132,7 +132,7 @@ def test_statistical_linearization_gradients(axes):
 @pytest.mark.parametrize("axes", ["principal", "symmetric"])
 def test_statistical_linearization_degenerate_shape(axes):
     """A collapsed direction (rank-deficient or zero shape) gives a finite fit, exact on the
-    ellipsoid's range; before the axis floor it was 0 / 0 = NaN."""
+    ellipsoid's range; without the axis floor it would be 0 / 0 = NaN."""
     g = torch.Generator().manual_seed(5)
     A0, b0, c = torch.randn(2, 3, generator=g), torch.randn(2, generator=g), torch.randn(3)
     L = torch.randn(3, 2, generator=g)

@@ -1,4 +1,4 @@
-"""The compile-ready filter step (issue 11): one graph, no breaks, the same sets.
+"""The compile-ready filter step: one graph, no breaks, the same sets.
 
 ``torch.compile(..., fullgraph=True)`` raises on any graph break, so compiling the step with
 the ``"eager"`` backend (Dynamo's capture without Inductor's code generation, seconds instead
@@ -26,7 +26,7 @@ CASES = [
 ]
 
 
-pytestmark = pytest.mark.usefixtures("fresh_dynamo")
+pytestmark = [pytest.mark.usefixtures("fresh_dynamo"), pytest.mark.slow]  # compiles: slow
 
 
 @pytest.fixture(scope="module")

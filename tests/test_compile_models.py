@@ -1,4 +1,4 @@
-"""The compile-ready filter step (issue 11), continued: the whole module under
+"""The compile-ready filter step, continued: the whole module under
 ``fullgraph=True``, user models written with ``@`` and ``/``, traced geometry against eager,
 and the forward loop's garbage-collector and compiled hull / volume paths.
 
@@ -13,7 +13,7 @@ import torch
 
 import diffsmf as ds
 
-pytestmark = pytest.mark.usefixtures("fresh_dynamo")
+pytestmark = [pytest.mark.usefixtures("fresh_dynamo"), pytest.mark.slow]  # compiles: slow
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,4 @@
-"""The compile-ready filter step (issue 11), continued: CZSMF's graph, several steps per
+"""The compile-ready filter step, continued: CZSMF's graph, several steps per
 compiled call, many compiled filters in one process, and the Inductor options.
 
 Split from ``tests/test_compile.py`` so that ``--dist loadfile`` spreads the compile tests
@@ -12,7 +12,7 @@ import torch
 
 import diffsmf as ds
 
-pytestmark = pytest.mark.usefixtures("fresh_dynamo")
+pytestmark = [pytest.mark.usefixtures("fresh_dynamo"), pytest.mark.slow]  # compiles: slow
 
 
 def test_czsmf_compiled_step_is_one_graph():
@@ -113,7 +113,7 @@ def test_many_compiled_filters_in_one_process():
 
 
 def test_inductor_default_options_match_eager():
-    """The real default path, Inductor with :data:`COMPILE_OPTIONS` (scalar C++ kernels and
+    """The real default path, Inductor with `COMPILE_OPTIONS` (scalar C++ kernels and
     the C++ wrapper), 2 steps per call on a 5-step horizon: the eager EKF's results (the EKF:
     a compile of seconds)."""
     s = ds.systems.get("spring_damper")
@@ -126,7 +126,7 @@ def test_inductor_default_options_match_eager():
 
 
 def test_compile_options(monkeypatch):
-    """``compile()`` passes :data:`COMPILE_OPTIONS` (no SIMD kernels, C++ wrapper, planned
+    """``compile()`` passes `COMPILE_OPTIONS` (no SIMD kernels, C++ wrapper, planned
     buffers) to Inductor, lets the caller override them, leaves them out for another backend or
     a ``mode``, and drops an option that this torch's Inductor does not know."""
     from diffsmf.filters import base

@@ -102,7 +102,7 @@ def test_empty_sets_certified():
 
 def test_small_empty_sets_certified():
     """Few generators and constraints, infeasible by a margin (HiGHS: infeasible): every one is
-    certified empty. The 1-D ``xi = 5`` was not before stop 29: a corrector step with every
+    certified empty. The 1-D ``xi = 5`` was not in an earlier version: a corrector step with every
     ``dz_j, dw_j > 0`` got a negative length and left the interior."""
     g = torch.Generator().manual_seed(11)
     cases = [(torch.tensor([[1.0]]), torch.tensor([5.0]))]

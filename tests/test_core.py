@@ -1,4 +1,4 @@
-"""Tests of the lead-owned shared pieces: System.simulate, Positive hyperparameters, the
+"""Tests of the shared pieces: System.simulate, Positive hyperparameters, the
 filter base loop (NaN handling, result assembly) and the CLI dispatcher."""
 
 import pytest

@@ -147,7 +147,7 @@ W_CEN = torch.tensor([0.01, -0.02], dtype=torch.float64)
 
 
 def zonotope_w_system(W=None) -> ds.System:
-    """The linear system of :func:`linear_system` with a zonotope (or given) process noise."""
+    """The linear system of `linear_system` with a zonotope (or given) process noise."""
     base = linear_system()
     W = ds.Zonotope(W_CEN, W_GEN) if W is None else W
     return ds.System(

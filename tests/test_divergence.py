@@ -1,4 +1,4 @@
-"""Divergence is flagged, never a crash or a NaN: ``FilterResult.bounded`` (issue 12).
+"""Divergence is flagged, never a crash or a NaN: ``FilterResult.bounded``.
 
 A system designed for the purpose: ``x1`` is unmeasured and integrates ``x2``, and the model
 has a pole at ``x1 = 2``. Trajectory A drifts towards the pole (its true state stays below

@@ -1,4 +1,4 @@
-"""Every figure the package writes is written, non-empty and not blank (issue 14.7)."""
+"""Every figure the package writes is written, non-empty and not blank."""
 
 from __future__ import annotations
 

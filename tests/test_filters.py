@@ -297,7 +297,7 @@ def test_inconsistent_measurement_keeps_prediction(cls):
 
 
 def test_missing_or_non_numeric_y_names_y():
-    """``y=None`` or text gives a ValueError naming ``y`` (it used to be torch's TypeError)."""
+    """``y=None`` or text gives a ValueError naming ``y`` (not torch's TypeError)."""
     sys = quadratic_system()
     filt = HSNSMF(sys)
     for bad in (None, "abc"):

@@ -5,7 +5,7 @@ In each page, in order:
 * a ```python block with ``title="NAME"`` is written to the file NAME (the page asks the reader
   to save it), any other ```python block is executed, in one namespace per page;
 * a ```bash block is run line by line: each command must be ``diffsmf ...`` (run in-process
-  through :func:`diffsmf.cli.main`) and must exit with status 0;
+  through `diffsmf.cli.main`) and must exit with status 0;
 * ```text / ```shell blocks are shown, not run (program output, installation).
 
 Each page runs in its own temporary folder, so files written by one block are read by the next.
@@ -43,7 +43,12 @@ def test_guide_pages_exist():
     assert {"own_system.md", "filter_data.md", "tune.md", "pwl.md", "observer.md"} <= set(PAGES)
 
 
-@pytest.mark.parametrize("page", PAGES)
+SLOW_PAGES = {"filter_data.md", "observer.md"}  # 7-11 s each: deselected by -m "not slow"
+
+
+@pytest.mark.parametrize(
+    "page", [pytest.param(p, marks=pytest.mark.slow) if p in SLOW_PAGES else p for p in PAGES]
+)
 def test_guide_page_runs(page, tmp_path, monkeypatch):
     from diffsmf.cli import main
 

@@ -1,4 +1,4 @@
-"""Filters beyond the seed systems' size: the vertex-free remainders and the oscillator chain.
+"""Filters beyond the papers' system sizes: the vertex-free remainders and the oscillator chain.
 
 References: exact evaluation of the remainder r(x) = f(x) - f(c) - J (x - c) at sampled and
 extreme points of the set (every bound must contain it), and containment of true states of

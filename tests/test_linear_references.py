@@ -1,5 +1,5 @@
-"""Linear system, linear output: each filter equals its classical linear counterpart (issue 13
-part 1), checked against independent numpy references at every step.
+"""Linear system, linear output: each filter equals its classical linear counterpart,
+checked against independent numpy references at every step.
 
 System: ``x+ = A x + w``, ``|w_i| <= W_i`` (box), ``y = C x + v``, ``|v_j| <= SIGMA_j``, two
 states, two outputs (the strips are intersected one by one, output 0 first).
@@ -163,7 +163,7 @@ def _hull(c, T):
 def _hsnsmf_numpy(y: np.ndarray, follow: np.ndarray | None = None, rule: bool = False):
     """Reference hulls ``[T+1, 4]`` and the number of steps with a tied choice.
 
-    Where eq. 38-39 tie (see :func:`_par_strip`), the reference continues with the tied
+    Where eq. 38-39 tie (see `_par_strip`), the reference continues with the tied
     branch whose hull is nearest to ``follow[k]`` (the filter's hull; without ``follow``,
     the first branch). The filter is thus checked to make *one of* the tied Chisci choices
     at every step, and to be exact (1e-9) otherwise. ``rule=True``: every tie is resolved by

@@ -1,4 +1,4 @@
-"""Noise sets used as given (issue 13 part 1): a zonotope or ellipsoidal W is not replaced by
+"""Noise sets used as given: a zonotope or ellipsoidal W is not replaced by
 its interval hull.
 
 References: a numpy implementation of Alamo et al. 2005 (zonotope prediction with the noise
@@ -17,7 +17,7 @@ import diffsmf as ds
 F64 = torch.float64
 A = np.array([[0.9, 0.2], [-0.1, 0.95]])
 C = np.array([[1.0, 0.5]])
-GW = np.array([[-0.12], [0.02]])  # one-generator zonotope noise (the issue's example)
+GW = np.array([[-0.12], [0.02]])  # one-generator zonotope noise
 SIGMA = 0.05
 
 

@@ -1,4 +1,4 @@
-"""``diffsmf design-observer --model FILE.py:FUNC`` (issue 14.3): any ContinuousModel, one-line
+"""``diffsmf design-observer --model FILE.py:FUNC``: any ContinuousModel, one-line
 user errors with exit status 2, defaults in --help; ContinuousModel checks and the interval
 Hessian bound."""
 

@@ -1,4 +1,4 @@
-"""design_lipschitz_observer (issue 15.1 and 12): the reduced LMI and the few-solve alpha search
+"""design_lipschitz_observer: the reduced LMI and the few-solve alpha search
 against an independent 3-block cvxpy problem and a scipy search over alpha; honest statuses;
 bad input named in the error."""
 
@@ -127,7 +127,7 @@ def test_numpy_check_rebuilds_three_block_lmi():
 
 
 def test_unverified_design_claims_no_bound():
-    """A point failing the numpy check is 'unverified' with bound = gain = inf (issue 12)."""
+    """A point failing the numpy check is 'unverified' with bound = gain = inf."""
     d = design_lipschitz_observer(A_VDP, C_VDP, 1.0, 3.0, structure=ST_VDP, max_gain=1000)
     base = dict(time="continuous", lipschitz=1.0, approx_error=3.0, structured=True)
     bad = lmi_mod._verify(A_VDP, C_VDP, -d.L, d.P, d.lam, d.mu, d.decay, 1.0, 3.0, ST_VDP, base,

@@ -342,7 +342,7 @@ def test_few_samples_are_regularised():
     with torch.no_grad():
         grid = torch.rand(200, 2, generator=_gen(17), dtype=F64)
         assert torch.isfinite(model(grid)).all()
-    with pytest.raises(ValueError, match="X"):  # one sample: no domain to infer (issue 12)
+    with pytest.raises(ValueError, match="X"):  # one sample: no domain to infer
         fit_scplnn(X[:1], Y[:1], 0.1)
     m1, r1 = fit_scplnn(X[:1], Y[:1], 0.1, domain=([-1, -1], [1, 1]))  # given domain: constant
     assert r1.converged and float(r1.max_error[0]) < 1e-12

@@ -1,4 +1,4 @@
-"""Issue 12, PWL parts: degenerate and conflicting samples, model JSON validation, CLI user
+"""PWL bad input: degenerate and conflicting samples, model JSON validation, CLI user
 errors. Each case asserts the error type and that the message names the argument."""
 
 import json

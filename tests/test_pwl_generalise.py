@@ -1,4 +1,4 @@
-"""Issue 15.2 / 15.3 / 12: the default fit (conforming longest-edge bisection + held-out
+"""The default fit (conforming longest-edge bisection + held-out
 samples) controls the error between samples, reaches eps in 4-D, and does not depend on the
 thread count. References: exact function values on grids, scipy's LinearNDInterpolator."""
 
@@ -95,7 +95,7 @@ def test_old_rule_slivers_vs_bisection():
 
 @pytest.mark.parametrize("d", [3, 4])
 def test_sum_of_sines_reaches_eps_in_higher_dimensions(d):
-    """sum_i sin x_i on [-1, 1]^d, eps 0.05 (issue 15.3; d = 5 is in the benchmark: 15 s)."""
+    """sum_i sin x_i on [-1, 1]^d, eps 0.05 (d = 5 is in the benchmark: 15 s)."""
     g = torch.Generator().manual_seed(d)
     N = 20_000 if d == 4 else 8000
     X = torch.rand(N, d, generator=g, dtype=F64) * 2 - 1
@@ -114,7 +114,7 @@ def test_sum_of_sines_reaches_eps_in_higher_dimensions(d):
 
 
 def test_seed_function_eps_001_converges_on_grid_samples():
-    """Issue 12: 61x61 grid samples of -x1^2 x2 at eps 0.01 (samples on vertices and edges of
+    """61x61 grid samples of -x1^2 x2 at eps 0.01 (samples on vertices and edges of
     the mesh) converge; grid samples lying on a face mark every region sharing that face."""
     t = torch.linspace(-2, 2, 61, dtype=F64)
     X = torch.stack(torch.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)

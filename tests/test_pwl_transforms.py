@@ -1,4 +1,4 @@
-"""Issue 15.4: SCPLNN.forward under torch.func.vmap / jacrev and torch.compile(fullgraph=True),
+"""SCPLNN.forward under torch.func.vmap / jacrev and torch.compile(fullgraph=True),
 compared with plain batched evaluation and with the affine pieces' slopes (an independent
 reference: the Jacobian of f on simplex k is A_k)."""
 
@@ -64,7 +64,7 @@ def test_compile_needs_prepared_locator():
 
 
 def test_one_dimensional_inputs_round_trip():
-    """Issue 12: a 1-D X accepted by fit_scplnn gives a model that accepts the same 1-D x."""
+    """A 1-D X accepted by fit_scplnn gives a model that accepts the same 1-D x."""
     t = torch.linspace(0, 3, 400, dtype=F64)
     model, rep = fit_scplnn(t, torch.sin(2 * t), 0.01)
     assert rep.converged

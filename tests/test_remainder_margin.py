@@ -180,7 +180,7 @@ def test_log_volume_gradient_in_margin_is_finite_and_positive(filter_name):
 def test_gradcheck_hsnsmf_margin_short_horizon():
     # the bilinear model without its input (the autonomous map x+ = [0.5 x1 x2, 0.2 x2^2]),
     # at a point where no discrete choice (Chisci's basis, an empty strip) switches within
-    # gradcheck's finite-difference step: with seeds 4-6 one does (same before issue 11)
+    # gradcheck's finite-difference step: with seeds 4-6 one does (as in earlier versions)
     b = systems.get("bilinear")
     sys_ = ds.System(lambda x, u, th: b.f(x, None, th), b.h, b.x0_set, b.process_noise,
                      b.measurement_noise, name="bilinear_autonomous")

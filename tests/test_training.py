@@ -111,6 +111,7 @@ def test_loss_gradcheck_in_noise_bounds(data):
     assert torch.autograd.gradcheck(fcall, (rw, rv))
 
 
+@pytest.mark.slow
 def test_tune_consistency_shrinks_inflated_bounds_and_stays_consistent(data):
     s, _ = data
     train = s.simulate(30, batch=16, seed=1, noise="vertex")
@@ -151,6 +152,7 @@ def test_tune_grows_too_small_bounds(data):
     assert rep.final["measurement_noise"][0] > rep.initial["measurement_noise"][0]
 
 
+@pytest.mark.slow
 def test_tune_is_deterministic_and_resumable(data, tmp_path):
     s, traj = data
     kw = dict(epochs=6, batch_size=8, progress=False, seed=3, validation=0.25, val_every=1)
@@ -169,6 +171,7 @@ def test_tune_is_deterministic_and_resumable(data, tmp_path):
     assert (tmp_path / "best.pt").exists()
 
 
+@pytest.mark.slow
 def test_tune_containment_loss_with_ground_truth_and_early_stop(data):
     s, traj = data
     f = ToyIntervalFilter(s, process_noise=3 * W_BOUND, measurement_noise=3 * V_BOUND)

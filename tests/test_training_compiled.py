@@ -17,6 +17,8 @@ from diffsmf.sets.base import where
 from diffsmf.tuning import LossWeights, tune
 from diffsmf.tuning.losses import consistency_excess, filter_with_predictions, total_loss
 
+pytestmark = pytest.mark.slow  # compiles the tuning step
+
 
 @pytest.fixture(scope="module")
 def sd():

@@ -13,6 +13,8 @@ from test_training_toy import V_BOUND, W_BOUND, ToyIntervalFilter, toy_system
 from diffsmf.tuning import tune
 from diffsmf.tuning.loop import Data
 
+pytestmark = pytest.mark.slow  # starts two gloo processes
+
 KW = dict(epochs=4, batch_size=6, lr=0.1, validation=None, progress=False, seed=5, tie=None)
 
 

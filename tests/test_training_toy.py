@@ -37,7 +37,7 @@ def toy_system() -> System:
 
 
 class ToyIntervalFilter(SetFilter):
-    """Exact box filter of :func:`toy_system` (A >= 0 elementwise)."""
+    """Exact box filter of `toy_system` (A >= 0 elementwise)."""
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         s = state.set

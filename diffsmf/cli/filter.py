@@ -50,9 +50,9 @@ __all__ = [
 
 # ------------------------------------------------------------------ model
 def load_model(spec: str, what: str = "--model"):
-    """``"path/to/file.py:FUNCTION"`` -> the :class:`~diffsmf.System` that ``FUNCTION()`` returns.
+    """``"path/to/file.py:FUNCTION"`` -> the `System` that ``FUNCTION()`` returns.
 
-    As :func:`load_object`, and a ``ValueError`` naming ``what`` when the result is not a System.
+    As `load_object`, and a ``ValueError`` naming ``what`` when the result is not a System.
     """
     system = load_object(spec, what)
     if not isinstance(system, System):
@@ -86,7 +86,7 @@ def _csv_table(path: Path) -> tuple[list[str], list[list[str]]]:
 def read_table(path: str | Path) -> dict[str, np.ndarray | list[str]]:
     """Columns of a data file: ``{name: values}``.
 
-    CSV (header row): every column as a list of strings (converted by :func:`select_columns`,
+    CSV (header row): every column as a list of strings (converted by `select_columns`,
     so unused columns may hold text such as time stamps). ``.npz``: each array ``[N]`` or
     ``[N, k]`` under its name. ``.npy``: one array ``[N, C]`` (or ``[N]``), columns ``"0"``,
     ``"1"``, ...
@@ -164,7 +164,7 @@ def _numeric(name: str, values, source: str, allow_blank: bool) -> np.ndarray:
 def select_columns(
     table: dict, names: list[str], what: str, source: str, allow_blank: bool = False
 ) -> np.ndarray:
-    """Named columns of :func:`read_table`'s result as float64 ``[N, sum of widths]``."""
+    """Named columns of `read_table`'s result as float64 ``[N, sum of widths]``."""
     missing = [c for c in names if c not in table]
     if missing:
         raise ValueError(f"{what}: no column {missing[0]!r} in {source}; columns there: "
@@ -200,7 +200,7 @@ def _floats(text: str | None, what: str, dim: int) -> torch.Tensor | None:
 # ------------------------------------------------------------------ filtering
 @dataclass
 class FilterRun:
-    """Result of :func:`run_filter` for one logged trajectory.
+    """Result of `run_filter` for one logged trajectory.
 
     lower, upper: ``[T+1, n]`` interval hull of the set at each step (row 0 = initial set);
     consistent: ``[T+1]`` bool (False where the measurement did not meet the predicted set);

@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_observer_model(spec: str, what: str = "--model"):
-    """``"path/to/file.py:FUNC"`` -> the :class:`~diffsmf.observers.ContinuousModel` that
+    """``"path/to/file.py:FUNC"`` -> the `ContinuousModel` that
     ``FUNC()`` returns.
 
     Raises ``FileNotFoundError`` (missing file) or ``ValueError`` (malformed spec, not a .py

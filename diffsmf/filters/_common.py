@@ -1,7 +1,7 @@
 """Pieces shared by the linearising set-membership filters (HSNSMF, MSZM, CDSMF, ESMF).
 
-Nothing here is geometry or linearisation (those live in :mod:`diffsmf.sets` and
-:mod:`diffsmf.linearize`); these helpers only wire a :class:`~diffsmf.systems.System` to them:
+Nothing here is geometry or linearisation (those live in `diffsmf.sets` and
+`diffsmf.linearize`); these helpers only wire a `System` to them:
 the step function at the nominal parameter, the guaranteed remainder box of a step (model
 remainder + parameter mismatch + float64 rounding margin), the measurement strips of Wang et al.
 2022 Theorem 3, conversions of the initial set, and the sequential strip update with its
@@ -28,7 +28,7 @@ ROUND_REL = 1e-12
 def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor]:
     """``x [..., n] -> f(x, u, theta_nom) [..., n]`` (the nominal model of one step).
 
-    ``u [B, p]`` is closed over; :mod:`diffsmf.linearize` puts extra point dims (stencils,
+    ``u [B, p]`` is closed over; `diffsmf.linearize` puts extra point dims (stencils,
     vertices) in *leading* positions, so ``u`` broadcasts against them.
     """
     from diffsmf.interval.engine import StepModel
@@ -39,7 +39,7 @@ def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor
 def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:
     """``(R', ok)``: ``ok [...]`` is False where the remainder box ``R [..., n]`` is not finite
     (NaN / inf: the set reached a singularity of the model, e.g. the pole of the fermenter's
-    ``mu``) or has a bound beyond :data:`~diffsmf.filters.base.MAX_SET_RADIUS` (the set grew
+    ``mu``) or has a bound beyond `MAX_SET_RADIUS` (the set grew
     without bound: squaring such a radius, as the ellipsoidal covers do, would overflow before
     the guard sees the set); there ``R'`` is 0 so that no NaN reaches the rest of the batch.
     The caller must mark those elements unbounded (``FilterState.and_bounded(ok)``): no
@@ -66,7 +66,7 @@ def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
     box half-widths [n], generators [n, q] or None)``.
 
     A box W (the built-ins) is ``(c, r, None)`` as before (bit for bit); a zonotope or
-    parallelotope W keeps its own generators (``(c, 0, G)``: exact Minkowski sum, issue 13); an
+    parallelotope W keeps its own generators (``(c, 0, G)``: exact Minkowski sum); an
     ellipsoid, which a zonotope cannot hold exactly, enters by its interval hull.
     """
     from diffsmf.sets.zonotope import Zonotope
@@ -81,7 +81,7 @@ def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
 def noise_ellipsoid(filt: SetFilter) -> ConvexSet | None:
     """Process noise for the ellipsoidal predictions (CDSMF, ESMF): ``None`` for a box W (the
     filters keep their box sum with the remainder, as before), else the ellipsoid W itself or
-    the covering ellipsoid of a zonotope W (:meth:`Ellipsoid.from_zonotope`, not its hull)."""
+    the covering ellipsoid of a zonotope W (`Ellipsoid.from_zonotope`, not its hull)."""
     from diffsmf.sets.ellipsoid import Ellipsoid
 
     W = filt.process_noise_set()
@@ -96,7 +96,7 @@ def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) ->
 
     ``fc [B, n]`` the model at the centre, ``FG [B, n, q]`` the mapped generators, ``E`` the
     remainder box. A box W joins the remainder box (one diagonal block), a zonotope W adds
-    its own generators (:func:`noise_generators`); the diagonal is padded by the float64
+    its own generators (`noise_generators`); the diagonal is padded by the float64
     rounding margin of the affine part.
     """
     from diffsmf.sets.zonotope import Zonotope
@@ -126,15 +126,15 @@ def prediction_remainder(
     margin: Tensor | None = None,
 ) -> tuple[Interval, Tensor]:
     """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``,
-    and ``ok [B]``: False where no finite box exists (:func:`sanitize_remainder`).
+    and ``ok [B]``: False where no finite box exists (`sanitize_remainder`).
 
-    ``remainder`` is a :mod:`diffsmf.linearize` remainder bound (``dc_remainder`` for Wang et al.
+    ``remainder`` is a `diffsmf.linearize` remainder bound (``dc_remainder`` for Wang et al.
     2022, ``lagrange_remainder`` for Song et al. 2017); when the system has mismatched parameters
     the deviation ``f(x, u, theta) - f(x, u, theta_nom)`` over ``S`` x ``parameters``
     (``linearize.parameter_deviation``, Song et al. 2017, eq. 18-21, evaluated over the whole set,
     not only at the centre as in the paper) is added. ``margin [n]`` (>= 0, the filters'
     ``remainder_margin``) then enlarges the computed box to ``[lo - m, hi + m]``
-    (:func:`add_remainder_margin`); it can only add to the guaranteed box, never replace it.
+    (`add_remainder_margin`); it can only add to the guaranteed box, never replace it.
     Where the box is not finite (a singularity of the model over ``S``) it is returned as 0
     with ``ok`` False, and the caller flags those elements (``FilterState.and_bounded(ok)``).
     """
@@ -291,7 +291,7 @@ def remainder_box(state_set: ConvexSet, extras: dict) -> Interval:
     ``extras[X0_UPPER]`` ``[B, n]``: at k = 0 the hull of the *given* initial set (the true x0
     lies in that set, and the covering ellipsoid of a box is ``sqrt(n)`` times wider per axis:
     it may reach a singularity of f that the box does not, e.g. the fermenter's ``mu`` pole),
-    from k = 1 on all of R^n (:func:`spent_initial_box`; ``max(l, -inf) = l`` exactly), so
+    from k = 1 on all of R^n (`spent_initial_box`; ``max(l, -inf) = l`` exactly), so
     that every step has the same inputs and one compiled graph serves them all.
     """
     box = state_set.interval_hull()
@@ -335,12 +335,12 @@ def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: in
 
 
 def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
-    """Validate ``remainder`` (a name of :data:`diffsmf.linearize.REMAINDERS` or ``"auto"``)
+    """Validate ``remainder`` (a name of `diffsmf.linearize.REMAINDERS` or ``"auto"``)
     and set ``module.remainder`` (the resolved name) and ``module.remainder_fn``.
 
     ``"auto"``: the Wang et al. 2022 vertex method (``"dc-vertices"``) up to
-    :data:`~diffsmf.linearize.AUTO_VERTEX_MAX_N` states, then the vertex-free bounds
-    (``"lagrange"`` up to :data:`~diffsmf.linearize.AUTO_LAGRANGE_MAX_N`, ``"mean-value"``
+    `AUTO_VERTEX_MAX_N` states, then the vertex-free bounds
+    (``"lagrange"`` up to `AUTO_LAGRANGE_MAX_N`, ``"mean-value"``
     above; 2^n vertices are out of reach at n = 16, 32). Every choice is guaranteed.
     """
     from diffsmf.linearize import resolve_remainder
@@ -353,14 +353,14 @@ def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
 def register_remainder_margin(module: torch.nn.Module, value: float | Tensor, n: int) -> None:
     """Validate and register the learnable remainder margin ``m [n]`` (>= 0).
 
-    The prediction remainder box becomes ``[lo - m, hi + m]`` (:func:`add_remainder_margin`):
+    The prediction remainder box becomes ``[lo - m, hi + m]`` (`add_remainder_margin`):
     an inflation for unmodelled dynamics and model error. The guarantee needs the computed
     remainder, so the margin can only add to it, never shrink it; 0 gives exactly the filter
     without it. It enters the predicted set the same way the process-noise box does; it is
     kept separate because the noise bound is a property of the data and the margin one of the
     model.
 
-    ``margin = scale * softplus(raw)`` (:func:`~diffsmf.utils.register_positive`), so it stays
+    ``margin = scale * softplus(raw)`` (`register_positive`), so it stays
     >= 0 and a component that starts at 0 stays exactly 0 (tune it from a positive start). A
     scalar broadcasts to ``[n]``. Raises ``ValueError`` for negative or NaN values or a shape
     other than ``[]``, ``[1]`` or ``[n]``.
@@ -386,7 +386,7 @@ class EllipsoidalSetFilter(SetFilter):
     """Shared start of the ellipsoidal filters (CDSMF, ESMF): the covering ellipsoid of the
     initial set, and its interval hull kept in ``extras[X0_LOWER]`` / ``extras[X0_UPPER]`` so
     that the first remainder is bounded over (ellipsoid hull) ∩ (initial box), see
-    :func:`remainder_box`."""
+    `remainder_box`."""
 
     def __init__(self, system: System, initial_set: ConvexSet | None = None, **kw) -> None:
         super().__init__(system, **kw)

@@ -3,18 +3,18 @@
 A call of a ``torch.compile``-d step passes through Dynamo's frame (guard evaluation, or
 entering and leaving its skip-guards stance) and AOTAutograd's and Inductor's wrappers before
 the kernels run. For a 2-state EKF at batch 1 that was about 200 us of a 250 us online step
-(docs/filter_core_log.md). Inside :meth:`SetFilter.streaming` the filter does not change (its
+(docs/filter_core.md). Inside `SetFilter.streaming` the filter does not change (its
 documented contract), so the guards have nothing to check. There the step is
 
 1. captured once per input structure with ``make_fx`` on fake tensors, running the same
-   branch-free code that ``torch.compile`` traces (:func:`diffsmf.utils.traced`; a host sync
+   branch-free code that ``torch.compile`` traces (`diffsmf.utils.traced`; a host sync
    or a branch on a tensor value raises instead of being baked in), with the filter's
    parameters and buffers as explicit inputs (``torch.func.functional_call``), so that their
    current values are read at every call;
 2. compiled by Inductor (``torch._inductor.compile``, the filter's compile options);
 3. called directly on the flat state tensors.
 
-Which compiled step a call may use is decided by :func:`config_key` (the filter's
+Which compiled step a call may use is decided by `config_key` (the filter's
 configuration, computed once per ``streaming()`` block) and the call's input structure (set
 type, tensor shapes, strides, dtypes, devices; computed at every call). Only the no-grad mode
 takes this path; while autograd records, ``step`` uses the Dynamo-compiled graph.
@@ -79,7 +79,7 @@ def _value_key(v: Any, pins: list, depth: int = 0) -> Any:
 
 
 def _function_key(f: types.FunctionType, pins: list, depth: int) -> tuple:
-    """A function's code, defaults, closure cells and named globals (:func:`_value_key`)."""
+    """A function's code, defaults, closure cells and named globals (`_value_key`)."""
     cells = []
     for c in f.__closure__ or ():
         try:
@@ -110,7 +110,7 @@ def _module_key(module: nn.Module, pins: list, depth: int) -> tuple:
 
 def config_key(module: nn.Module, pins: list | None = None) -> tuple:
     """What a captured step depends on besides its inputs, computed once per ``streaming()``
-    block: for every submodule its identity, type, attributes (:func:`_value_key`, which
+    block: for every submodule its identity, type, attributes (`_value_key`, which
     follows the system's functions into their closures and globals), and its parameters' and
     buffers' identities and metadata.
 
@@ -149,7 +149,7 @@ class DirectSteps:
     """The compiled one-step graphs of a filter for one configuration, called without Dynamo.
 
     ``steps(fields, consistent, bounded, extras, u, y, set_type)`` takes the flat state of
-    :func:`diffsmf.filters.base._flat_args` (fields ``[B, ...]``, ``consistent [B]``,
+    `diffsmf.filters.base._flat_args` (fields ``[B, ...]``, ``consistent [B]``,
     ``bounded [B]``, extras ``{name: [B, ...]}``), ``u [B, p]`` or None and ``y [B, m]``, and
     returns the next flat state, like ``SetFilter._flat_step``. Call it in no-grad mode.
     """

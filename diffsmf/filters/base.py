@@ -60,7 +60,7 @@ class FilterState:
     measurement did not meet the predicted set); extras: filter-specific tensors
     (e.g. ``"covariance" [B, n, n]``); bounded: ``[B]`` bool or ``None`` (= all True): False
     from the step where the set stopped being finite (a remainder became unbounded, e.g. at a
-    singularity of the model, or the set outgrew :data:`MAX_SET_RADIUS`). Such an element's
+    singularity of the model, or the set outgrew `MAX_SET_RADIUS`). Such an element's
     guaranteed set is all of R^n; ``set`` then holds a finite placeholder (the initial set)
     so that the batch carries on, and must not be read as an estimate.
     """
@@ -94,7 +94,7 @@ class FilterResult:
     center, lower, upper: ``[B, T+1, n]``; volume: ``[B, T+1]``; consistent: ``[B, T+1]``
     bool; extras: stacked filter-specific tensors, e.g. ``"covariance" [B, T+1, n, n]``;
     bounded: ``[B, T+1]`` bool, False where the set stopped being finite (see
-    :class:`FilterState`): there ``lower = -inf``, ``upper = +inf``, ``volume = inf`` and
+    `FilterState`): there ``lower = -inf``, ``upper = +inf``, ``volume = inf`` and
     ``center`` is NaN (never a plausible-looking number); ``sets`` holds a placeholder.
     """
 
@@ -137,7 +137,7 @@ def _check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> T
 
 def check_filter(name: str, filt: Any, system: System | None = None) -> Any:
     """``filt`` itself, or a ``ValueError`` naming ``name`` when it is not a filter instance
-    built on a :class:`~diffsmf.systems.System` (any ``nn.Module`` with a ``system``: the set
+    built on a `System` (any ``nn.Module`` with a ``system``: the set
     filters, the EKF, the CombinedFilter, a user's own), e.g. a filter class not instantiated.
     With ``system`` (to run the filter on data of that system): its ``n`` and ``m`` must be
     the filter's, else the ``ValueError`` names ``system``."""
@@ -167,7 +167,7 @@ def bounded_result(
     volume: Tensor,
     extras: dict[str, Tensor],
 ) -> FilterResult:
-    """A ``cls`` (:class:`FilterResult` or a subclass) from stacked per-step quantities, with
+    """A ``cls`` (`FilterResult` or a subclass) from stacked per-step quantities, with
     the ``bounded [B, T+1]`` flags of ``states`` applied: where a set stopped being finite,
     ``lower = -inf``, ``upper = +inf``, ``volume = inf`` and ``center`` is NaN (one home for
     that rule, used by every filter's ``collect``)."""
@@ -213,10 +213,10 @@ _DIRECT_CONFIGS = 4
 _SMALL_Y = 64
 
 
-#: Inductor options of :meth:`SetFilter.compile`. A filter step is hundreds of operations on
+#: Inductor options of `SetFilter.compile`. A filter step is hundreds of operations on
 #: ``[B, n, n]`` tensors with n = 1-32: Inductor vectorises along the innermost dimension, so
 #: for small n its SIMD code is mostly tails and remainders, and g++ takes twice as long to build
-#: it. Measured on spring_damper (HSNSMF, 1 thread, cold cache, same session): no-grad compile
+#: it. Measured on spring_damper (HSNSMF, 1 thread, cold cache, one run each): no-grad compile
 #: 46 -> 33 s at B = 1 and 59 -> 30 s at B = 10,000 (run time 2,275 -> 3,194 and 205k -> 214k
 #: trajectory-steps/s); the B = 64 gradient graphs 145 -> 78 s, run time 18k -> 33k
 #: trajectory-steps/s. The sets are the same (the same operations in scalar code).
@@ -224,7 +224,7 @@ _SMALL_Y = 64
 #: and stride checks, library calls) in C++ instead of Python; at B = 1 that code was most of
 #: a compiled step. Same sets and gradients; A/B in one process, 8 interleaved runs each
 #: (spring_damper, B = 1, 1 thread): HSNSMF 0.749 -> 0.421 ms per step, ESMF 1.707 -> 0.973,
-#: EKF 0.104 -> 0.095; cold compile times within 25 % (docs/filter_core_log.md).
+#: EKF 0.104 -> 0.095; cold compile times within 25 %.
 #: ``memory_planning``: the intermediate buffers of a call come from one planned pool instead
 #: of one allocation each (a 4-step CombinedFilter graph allocated 236 tensors per call). Same
 #: sets and gradients (bit for bit in the checks); A/B in one process, interleaved runs
@@ -236,7 +236,7 @@ COMPILE_OPTIONS: dict[str, Any] = {
 
 
 def _compile_options() -> dict[str, Any]:
-    """:data:`COMPILE_OPTIONS` that this torch's Inductor knows (older releases may lack one;
+    """`COMPILE_OPTIONS` that this torch's Inductor knows (older releases may lack one;
     ``torch.compile`` rejects an option missing from ``get_config_copy()``, as checked here)."""
     import torch._inductor.config as cfg
 
@@ -245,7 +245,7 @@ def _compile_options() -> dict[str, Any]:
 
 
 def _check_options(options: Any) -> dict[str, Any]:
-    """``options`` of :meth:`SetFilter.compile` as a dict, with a one-line ``ValueError``
+    """``options`` of `SetFilter.compile` as a dict, with a one-line ``ValueError``
     naming an option this torch's Inductor does not know (``torch.compile`` would list all
     of its hundreds of options in the message)."""
     if options is None:
@@ -308,7 +308,7 @@ def _gc_off() -> Iterator[None]:
 
 
 def _skip_guards() -> contextlib.AbstractContextManager:
-    """Context that skips Dynamo's guard evaluation (see :data:`_GUARDED_STEPS`); a no-op on
+    """Context that skips Dynamo's guard evaluation (see `_GUARDED_STEPS`); a no-op on
     torch versions without ``set_stance(skip_guard_eval_unsafe=...)`` (before 2.6)."""
     set_stance = getattr(torch.compiler, "set_stance", None)
     if set_stance is None:
@@ -320,7 +320,7 @@ def _skip_guards() -> contextlib.AbstractContextManager:
 
 
 def _signature(state: FilterState, u: Tensor | None, y: Tensor) -> tuple:
-    """What tells compiled step graphs apart, for :meth:`SetFilter.streaming`: the set type,
+    """What tells compiled step graphs apart, for `SetFilter.streaming`: the set type,
     shape / dtype / device / strides / requires_grad of every input tensor, the extras' keys
     and types, and the grad mode."""
 
@@ -341,7 +341,7 @@ def _flat_args(state: FilterState, grad_leaves: bool = False) -> tuple:
     """``state`` as the flat, contiguous tensors that the compiled step takes: fields,
     consistent, bounded (all True for None), extras (contiguous: the expanded initial set
     would otherwise be a second graph). ``grad_leaves``: every floating field and extra that
-    does not require grad becomes a leaf that does (:func:`_grad_leaf`)."""
+    does not require grad becomes a leaf that does (`_grad_leaf`)."""
     S, b = state.set, state.bounded
     if b is None:
         b = torch.ones_like(state.consistent)
@@ -356,13 +356,13 @@ def state_from_flat(
     fields: tuple[Tensor, ...], consistent: Tensor, bounded: Tensor, extras: dict[str, Tensor],
     set_type: type,
 ) -> FilterState:
-    """The :class:`FilterState` of a compiled step's flat inputs (see :func:`flat_state`)."""
+    """The `FilterState` of a compiled step's flat inputs (see `flat_state`)."""
     return FilterState(set_type._from_tensors(fields), consistent, extras, bounded)
 
 
 def flat_state(state: FilterState) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
     """``state`` as a compiled step returns it: ``(fields, consistent, bounded, extras)``
-    (``bounded`` all True for None); :meth:`SetFilter._unflatten` rebuilds it."""
+    (``bounded`` all True for None); `SetFilter._unflatten` rebuilds it."""
     nb = torch.ones_like(state.consistent) if state.bounded is None else state.bounded
     return state.set._tensors(), state.consistent, nb, dict(state.extras)
 
@@ -394,14 +394,14 @@ def _pad_horizon(x: Tensor, K: int) -> Tensor:
 
 def _flat_hull(self: SetFilter, *fields: Tensor, set_type: type) -> tuple[Tensor, Tensor]:
     """Interval hull bounds ``[N, n]`` of the set of type ``set_type`` with ``fields``
-    (batch ``[N]``); compiled by :meth:`SetFilter._hull_and_volume`."""
+    (batch ``[N]``); compiled by `SetFilter._hull_and_volume`."""
     hull = set_type._from_tensors(fields).interval_hull()
     return hull.lower, hull.upper
 
 
 def _flat_volume(self: SetFilter, *fields: Tensor, set_type: type) -> Tensor:
     """Volume ``[N]`` of the set of type ``set_type`` with ``fields`` (batch ``[N]``);
-    compiled by :meth:`SetFilter._hull_and_volume`."""
+    compiled by `SetFilter._hull_and_volume`."""
     return set_type._from_tensors(fields).volume()
 
 
@@ -418,8 +418,9 @@ class SetFilter(nn.Module):
     noise centres (default: the half-widths of the interval hulls of the system's noise sets).
 
     Args:
-        system: the :class:`~diffsmf.systems.System` to filter.
-        process_noise, measurement_noise: half-width overrides ``[n]`` / ``[m]``.
+        system: the `System` to filter.
+        process_noise: process noise half-width override ``[n]``.
+        measurement_noise: measurement noise half-width override ``[m]``.
         skip_nan: skip the update of a batch element whose measurement has NaN (else raise).
     """
 
@@ -427,13 +428,13 @@ class SetFilter(nn.Module):
     measurement_noise = Positive()
     #: Whether ``predict`` and ``update`` give sets of the same field shapes (False for CZSMF,
     #: whose predicted set is larger than its capped update); tuning compiles its guarded step
-    #: (:func:`training.losses.filter_with_predictions`) only for such filters.
+    #: (`training.losses.filter_with_predictions`) only for such filters.
     _constant_set_size: bool = True
 
     def __init_subclass__(cls, **kw: Any) -> None:
         """Every subclass's ``predict`` validates ``u`` against the system first
-        (:meth:`~diffsmf.systems.System.check_input`: missing, wrong width, NaN raise), and a
-        subclass's own ``update`` validates ``y`` (:meth:`_check_update_y`), as the base
+        (`check_input`: missing, wrong width, NaN raise), and a
+        subclass's own ``update`` validates ``y`` (`_check_update_y`), as the base
         ``update`` does."""
         super().__init_subclass__(**kw)
         raw = cls.__dict__.get("predict")
@@ -505,10 +506,10 @@ class SetFilter(nn.Module):
         """The process-noise set W as given by the system, scaled per component, ``[n]``.
 
         ``W_s = c + diag(s) (W - c)`` with ``s = process_noise / (half-width of W's interval
-        hull)``: for a box this is exactly :meth:`process_noise_box`; a ``Zonotope`` /
+        hull)``: for a box this is exactly `process_noise_box`; a ``Zonotope`` /
         ``Parallelotope`` keeps its generators (``diag(s) G``) and an ``Ellipsoid`` its shape
-        (``diag(s) S diag(s)``), so no filter pays for the interval hull of a non-box W
-        (issue 13). ``s = 1`` (the default) is the system's set. Differentiable in
+        (``diag(s) S diag(s)``), so no filter pays for the interval hull of a non-box W.
+        ``s = 1`` (the default) is the system's set. Differentiable in
         ``process_noise``. A component with a zero hull half-width stays zero.
         """
         return self._scaled_noise_set(
@@ -518,7 +519,7 @@ class SetFilter(nn.Module):
 
     def measurement_noise_set(self) -> ConvexSet:
         """The measurement-noise set V as given by the system, scaled per component, ``[m]``
-        (as :meth:`process_noise_set`; a box V is exactly :meth:`measurement_noise_box`)."""
+        (as `process_noise_set`; a box V is exactly `measurement_noise_box`)."""
         return self._scaled_noise_set(
             self.system.measurement_noise, self.measurement_noise_box(), self.measurement_noise,
             self.measurement_noise_hull_radius, self.measurement_noise_center,
@@ -570,8 +571,8 @@ class SetFilter(nn.Module):
     def update(self, state: FilterState, y: Tensor) -> FilterState:
         """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) are skipped.
 
-        ``y`` is validated first (:meth:`_check_update_y`: exactly ``[B, m]``, no inf). Ends
-        with the boundedness guard (:meth:`guard`)."""
+        ``y`` is validated first (`_check_update_y`: exactly ``[B, m]``, no inf). Ends
+        with the boundedness guard (`guard`)."""
         y = self._check_update_y(y, state)
         bad = torch.isnan(y).any(-1)
         if not tracing():
@@ -600,7 +601,7 @@ class SetFilter(nn.Module):
 
         An element is unbounded when a step flagged it (a remainder bound was not finite) or
         its set has a non-finite field or an interval-hull half-width above
-        :data:`MAX_SET_RADIUS`. Its set is replaced by the initial set (a finite placeholder,
+        `MAX_SET_RADIUS`. Its set is replaced by the initial set (a finite placeholder,
         so that no NaN reaches the rest of the batch) and it stays flagged. Branch-free.
         """
         S = state.set
@@ -629,10 +630,10 @@ class SetFilter(nn.Module):
         return new.replace(set=safe, extras=extras)
 
     def _check_update_y(self, y: Any, state: FilterState) -> Tensor:
-        """``y`` of an eager :meth:`update` as a tensor of the system's dtype on the state's
+        """``y`` of an eager `update` as a tensor of the system's dtype on the state's
         device, of shape exactly ``[*B, m]`` (``B`` the state's batch shape: a ``[1, m]`` or
         ``[B]`` measurement is refused, not broadcast); inf raises, NaN raises unless
-        ``skip_nan``. Skipped while tracing (``forward`` and :meth:`step` check ``y`` before
+        ``skip_nan``. Skipped while tracing (``forward`` and `step` check ``y`` before
         a compiled call)."""
         if tracing():
             return y
@@ -645,7 +646,7 @@ class SetFilter(nn.Module):
         return self.system.check_input(u, state.set.batch_shape)
 
     def forward(self, y: Tensor, u: Tensor | None = None) -> FilterResult:
-        """Filter measurements ``y [B, T, m]`` (inputs ``u [B, T, p]``) -> :class:`FilterResult`."""
+        """Filter measurements ``y [B, T, m]`` (inputs ``u [B, T, p]``) -> `FilterResult`."""
         y = self._check_y(y)
         B, T, _ = y.shape
         if not tracing():
@@ -698,12 +699,12 @@ class SetFilter(nn.Module):
     def step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
         """One step: ``update(predict(state, u), y)`` (``u [B, p]`` or None, ``y [B, m]``).
 
-        The online fast path: after :meth:`compile` this runs the compiled step (the same
+        The online fast path: after `compile` this runs the compiled step (the same
         graph as ``forward``'s loop) on validated inputs, so a measurement that arrives on its
         own costs one compiled call instead of hundreds of eager operations. ``y`` must be
         ``[B, m]`` with the state's batch ``B`` (inf raises; NaN raises unless ``skip_nan``),
-        ``u`` as in :meth:`predict`. Without ``compile()`` (or while tracing) it is the eager
-        ``update(predict(state, u), y)``. See also :meth:`streaming`.
+        ``u`` as in `predict`. Without ``compile()`` (or while tracing) it is the eager
+        ``update(predict(state, u), y)``. See also `streaming`.
         """
         compiled = getattr(self, "_compiled_step", None)
         if compiled is None or tracing():
@@ -731,13 +732,13 @@ class SetFilter(nn.Module):
         """Online use of the compiled step without Dynamo.
 
         ``with filt.streaming(): state = filt.step(state, u, y)`` -- inside the block, after
-        :meth:`compile` with Inductor and in no-grad mode (``torch.no_grad()``), ``step``
+        `compile` with Inductor and in no-grad mode (``torch.no_grad()``), ``step``
         calls Inductor's compiled code directly, without Dynamo's frame and guards
-        (:mod:`diffsmf.filters._direct`): the step is captured once per input structure (set
+        (`diffsmf.filters._direct`): the step is captured once per input structure (set
         type, tensor shapes, strides, dtypes, devices, ``u`` given or not) with ``make_fx``,
         from the same branch-free code that ``torch.compile`` traces, and compiled by Inductor
         (seconds, once; reused by later blocks of the same configuration). The EKF's online
-        step at B = 1 went from 0.25 to 0.06 ms (docs/filter_core_log.md). The inputs are still
+        step at B = 1 went from 0.25 to 0.06 ms (docs/filter_core.md). The inputs are still
         validated (``y`` shape, inf / NaN; ``u`` by the system). ``forward`` called inside
         the block runs the same captured step in its loop. While autograd records (or
         with another backend) a call runs the Dynamo-compiled step and skips its guard checks
@@ -746,11 +747,11 @@ class SetFilter(nn.Module):
         The contract: inside the block, do not change the filter or its system (attributes,
         submodules, which tensors are its parameters and buffers, what its functions read).
         Between blocks such changes are allowed: on entry, the filter's configuration
-        (:func:`~diffsmf.filters._direct.config_key`: attributes of every submodule, identity
+        (`config_key`: attributes of every submodule, identity
         and in-place version of every tensor, the system functions' code, closures and the
         globals they name) selects the compiled steps, so a changed one is compiled anew.
         Parameters and buffers are inputs of the compiled step (their current values are
-        used at every call, e.g. after an optimiser step). Without :meth:`compile` it changes
+        used at every call, e.g. after an optimiser step). Without `compile` it changes
         nothing.
         """
         old = getattr(self, "_stream", None)
@@ -767,9 +768,9 @@ class SetFilter(nn.Module):
     def _direct_step(
         self, stream: dict, state: FilterState, u: Tensor | None, y: Tensor
     ) -> FilterState:
-        """:meth:`step` inside :meth:`streaming` in no-grad mode: the inputs validated as in
-        :meth:`step` (the system's dimensions read once per block), then the Dynamo-free
-        compiled step (:class:`~diffsmf.filters._direct.DirectSteps`)."""
+        """`step` inside `streaming` in no-grad mode: the inputs validated as in
+        `step` (the system's dimensions read once per block), then the Dynamo-free
+        compiled step (`DirectSteps`)."""
         if u is not None or stream["n_inputs"]:
             u = self._check_u(u, state)
         y = self._check_step_y(y, state, stream["m"], stream["dtype"])
@@ -794,7 +795,7 @@ class SetFilter(nn.Module):
         self, direct: DirectSteps, state: FilterState, u: Tensor | None, y: Tensor
     ) -> FilterState:
         """One step of the Dynamo-free compiled graph on validated ``u``, ``y`` (eager for a
-        state that the graph does not serve, see :meth:`_compile_ready`)."""
+        state that the graph does not serve, see `_compile_ready`)."""
         if not self._compile_ready(state):
             return self._eager_step(state, u, y)
         y = y.contiguous()  # one compiled step for every slice y[:, k] of a log
@@ -803,7 +804,7 @@ class SetFilter(nn.Module):
         return self._unflatten(direct(fields, consistent, bounded, extras, u, y, type(state.set)))
 
     def _direct_steps(self) -> DirectSteps | None:
-        """The Dynamo-free compiled steps (:mod:`diffsmf.filters._direct`) for the filter's
+        """The Dynamo-free compiled steps (`diffsmf.filters._direct`) for the filter's
         current configuration, or None when it is not compiled with Inductor."""
         options = getattr(self, "_direct_options", None)
         if options is None or getattr(self, "_compiled_step", None) is None:
@@ -819,13 +820,13 @@ class SetFilter(nn.Module):
         return cache[key][0]
 
     def _eager_step(self, state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
-        """``update(predict(state, u), y)``, eagerly (what :meth:`compile` traces)."""
+        """``update(predict(state, u), y)``, eagerly (what `compile` traces)."""
         return self.update(self.predict(state, u), y)
 
     def _check_step_y(self, y: Any, state: FilterState, m: int, dtype: torch.dtype) -> Tensor:
         """``y [B, m]`` for one compiled step, as a ``dtype`` tensor on the state's device:
         shape (``B`` from ``state.consistent [B]``; the system's ``m``), inf / NaN. ``m`` and
-        ``dtype`` are passed in so that :meth:`streaming` reads them once per block."""
+        ``dtype`` are passed in so that `streaming` reads them once per block."""
         c = state.consistent
         if not isinstance(y, Tensor) or y.dtype != dtype or y.device != c.device:
             y = _y_tensor(y, dtype, c.device)
@@ -858,7 +859,7 @@ class SetFilter(nn.Module):
         synchronise are skipped (``forward`` still validates ``y`` and ``u`` once for the
         whole horizon, eagerly) and data-dependent branches take their branch-free general
         form (same sets up to rounding; every bound stays guaranteed). ``forward`` then runs
-        the compiled step in its time loop, and :meth:`step` is the online fast path;
+        the compiled step in its time loop, and `step` is the online fast path;
         ``predict`` / ``update`` stay eager. Returns ``self``.
 
         Args:
@@ -870,13 +871,13 @@ class SetFilter(nn.Module):
                 price of a graph (and a compile time) about ``K`` times larger. A last part
                 shorter than ``K`` runs the same graph on the last ``y`` / ``u`` repeated and
                 its extra states are dropped (steps are causal: the kept states are
-                unchanged). The online :meth:`step` always uses the one-step graph.
-            retain_memory: call :func:`diffsmf.utils.retain_freed_memory` (glibc): the
+                unchanged). The online `step` always uses the one-step graph.
+            retain_memory: call `diffsmf.utils.retain_freed_memory` (glibc): the
                 process keeps freed memory for reuse instead of page-faulting the step's
                 buffers in again on every call (HSNSMF at B = 10,000: 10.5 % of the step was
                 the kernel zeroing pages; a process-wide setting, as
                 ``MALLOC_TRIM_THRESHOLD_`` would be).
-            compile_kwargs: passed to :func:`torch.compile` (default ``fullgraph=True,
+            compile_kwargs: passed to `torch.compile` (default ``fullgraph=True,
                 dynamic=False`` and, for Inductor, ``options=COMPILE_OPTIONS``: no SIMD
                 vectorisation of the generated C++ kernels, which halves the compile time
                 and is faster at run time for these small-matrix steps, and the C++ wrapper,
@@ -928,9 +929,9 @@ class SetFilter(nn.Module):
     @contextlib.contextmanager
     def eager(self) -> Iterator[SetFilter]:
         """``with filt.eager():`` -- inside the block a compiled filter runs eagerly
-        (``forward``, ``step`` and :meth:`compiled_function`), e.g. for a one-off pass on a
+        (``forward``, ``step`` and `compiled_function`), e.g. for a one-off pass on a
         batch size that would otherwise compile a new graph; the compiled graphs are kept for
-        after the block. Without :meth:`compile` it changes nothing."""
+        after the block. Without `compile` it changes nothing."""
         keys = ("_compiled_step", "_compile_kwargs")
         saved = {k: self.__dict__.pop(k) for k in keys if k in self.__dict__}
         try:
@@ -941,14 +942,14 @@ class SetFilter(nn.Module):
     def compiled_function(
         self, name: str, fn: Callable[..., Any], **overrides: Any
     ) -> Callable[..., Any] | None:
-        """``fn(self, *args)`` compiled with this filter's :meth:`compile` arguments (updated
+        """``fn(self, *args)`` compiled with this filter's `compile` arguments (updated
         by ``overrides``, e.g. ``dynamic=None``), or None when the filter is not compiled.
 
         For steps that wrap the filter's own step (e.g. the tuning step of
-        :func:`training.losses.filter_with_predictions`, which adds the consistency excess):
+        `training.losses.filter_with_predictions`, which adds the consistency excess):
         ``fn`` gets a code object of its own (its own recompile budget) and is bound to the
         filter; the compiled function is cached under ``name`` until the next ``compile()``.
-        Call it on :meth:`_step_args` and rebuild the state with :meth:`_unflatten`, as the
+        Call it on `_step_args` and rebuild the state with `_unflatten`, as the
         compiled step does.
         """
         kw = getattr(self, "_compile_kwargs", None)
@@ -960,7 +961,7 @@ class SetFilter(nn.Module):
         return cache[name]
 
     def _step_args(self, state: FilterState) -> tuple:
-        """:func:`_flat_args` for a compiled call; while a gradient is recorded for a
+        """`_flat_args` for a compiled call; while a gradient is recorded for a
         trainable parameter (of the filter or its system), the state's floating tensors enter
         as grad leaves, so that every step of a training forward has one signature."""
         trains = torch.is_grad_enabled() and any(p.requires_grad for p in self.parameters())
@@ -986,7 +987,7 @@ class SetFilter(nn.Module):
         y: Tensor,
         set_type: type,
     ) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
-        """:meth:`step` on flat tensors (the function that ``compile`` traces)."""
+        """`step` on flat tensors (the function that ``compile`` traces)."""
         state = state_from_flat(fields, consistent, bounded, extras, set_type)
         return flat_state(self._eager_step(state, u, y))
 
@@ -1000,7 +1001,7 @@ class SetFilter(nn.Module):
         ys: Tensor,
         set_type: type,
     ) -> tuple[tuple, ...]:
-        """``K = ys.shape[1]`` steps of :meth:`_flat_step` (``us [B, K, p]``, ``ys [B, K, m]``)
+        """``K = ys.shape[1]`` steps of `_flat_step` (``us [B, K, p]``, ``ys [B, K, m]``)
         -> the K flat states (the function that ``compile(steps_per_call=K)`` traces)."""
         out = []
         flat = (fields, consistent, bounded, extras)
@@ -1011,7 +1012,7 @@ class SetFilter(nn.Module):
         return tuple(out)
 
     def collect(self, states: list[FilterState]) -> FilterResult:
-        """Assemble a :class:`FilterResult` from the per-step states."""
+        """Assemble a `FilterResult` from the per-step states."""
         sets = _pad_and_stack([s.set for s in states])
         lower, upper, volume = self._hull_and_volume(sets)
         extras = {
@@ -1025,11 +1026,11 @@ class SetFilter(nn.Module):
         """``(lower, upper, volume)`` of the stacked ``sets`` (batch ``[B, T+1]``):
         ``[B, T+1, n]`` twice and ``[B, T+1]``.
 
-        After :meth:`compile`, in no-grad mode, a zonotope's hull and volume run as two
+        After `compile`, in no-grad mode, a zonotope's hull and volume run as two
         compiled graphs with a dynamic batch dimension (one each whatever B and T): in 2-D the
         traced volume sums the generator-pair table in one fused loop
-        (:data:`~diffsmf.sets.zonotope.PAIR_TABLE_MAX_M`) instead of the eager angle sort, which
-        was about a quarter of a compiled MSZM ``forward`` at B = 10,000 (issue 11). The two
+        (`PAIR_TABLE_MAX_M`) instead of the eager angle sort, which
+        was about a quarter of a compiled MSZM ``forward`` at B = 10,000. The two
         volumes agree to a few ``m eps`` relative; the sets are untouched. Other set types
         (one batched determinant for their volume) and recorded gradients stay eager.
         """
@@ -1070,10 +1071,10 @@ class SetFilter(nn.Module):
 def register_minkowski_scale(module: nn.Module, value: Any) -> None:
     """Validate and register the learnable scalar ``minkowski_scale`` (> 0, finite).
 
-    ``minkowski_scale = scale * softplus(raw)`` (:func:`~diffsmf.utils.register_positive`):
+    ``minkowski_scale = scale * softplus(raw)`` (`register_positive`):
     positive whatever the raw value, and exactly the given value at construction (softplus of
     the initial raw is exactly 1 in float32 and float64). Used by the ellipsoidal filters
-    (CDSMF, ESMF) through :func:`scaled_minkowski_sum`. Raises ``ValueError`` naming
+    (CDSMF, ESMF) through `scaled_minkowski_sum`. Raises ``ValueError`` naming
     ``minkowski_scale`` for 0, negative, NaN, infinite or non-scalar values.
     """
     v = check_strictly_positive("minkowski_scale", value)

@@ -1,7 +1,7 @@
 """CDSMF: central-difference (Stirling) ellipsoidal set-membership filter.
 
 The ellipsoidal baseline of Wang et al. 2022 (its ref. [18], Shen et al. 2019), built from the same
-pieces as :class:`~diffsmf.filters.HSNSMF` so that the comparison isolates the set shape:
+pieces as `HSNSMF` so that the comparison isolates the set shape:
 
 * predict: Stirling linearisation about the centre (Wang et al. 2022, eq. 12), DC remainder box over
 the
@@ -46,13 +46,13 @@ class CDSMF(C.EllipsoidalSetFilter):
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
-            :func:`~diffsmf.filters._common.register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
-        14-18,
-            2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
+            `register_remainder_margin`).
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"``
+            (Wang et al. 2022, eqs. 14-18, 2^n vertices), ``"lagrange"`` (interval Hessian,
+            vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
             n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
-            :func:`~diffsmf.linearize.resolve_remainder`).
+            `resolve_remainder`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of the prediction's
             Minkowski sum (Song et al. 2017, eq. 14-17; Jiang et al. 2016, eq. 34-36): ``p = s *
             p_rule`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_rule`` the ``sum_method`` rule of
@@ -116,7 +116,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         box = Interval(-rad, rad)
         # p = minkowski_scale * rule p (any p > 0 is an outer bound; 1 = the rule exactly)
         new = scaled_minkowski_sum(lin, box.to_ellipsoid(), self.sum_method, self.minkowski_scale)
-        if Well is not None:  # an ellipsoidal / zonotope W as given (issue 13), not its hull
+        if Well is not None:  # an ellipsoidal / zonotope W as given, not its hull
             new = scaled_minkowski_sum(new, Well, self.sum_method, self.minkowski_scale)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
         return state.replace(set=new, extras=C.spent_initial_box(state.extras)).and_bounded(bounded)

@@ -5,12 +5,12 @@ Model (Jiang et al. 2016, eq. 1-4, in diffsmf's convention, noise added in state
     x_k = f(x_{k-1}, u_{k-1}) + w_k + d_k,   w ~ N(0, Q),  d in F(d_c, D)
     y_k = h(x_k) + v_k + e_k,                v ~ N(0, R),  e in F(e_c, E)
 
-The filter carries the *set of conditional means* ``F(a, S)`` (an :class:`Ellipsoid`) and one
+The filter carries the *set of conditional means* ``F(a, S)`` (an `Ellipsoid`) and one
 covariance ``P``: the centre and ``P`` follow the Kalman equations, the shape ``S`` follows the
 outer-bounding Minkowski sums of an ellipsoidal set-membership filter (Jiang et al. 2016, eq.
 39-47). Nonlinear ``f`` and ``h`` are replaced by affine maps fitted by statistical linearisation
 over the current ellipsoid (Jiang et al. 2016, eq. 48-55,
-:func:`diffsmf.linearize.statistical_linearization`), the centre being propagated through the
+`diffsmf.linearize.statistical_linearization`), the centre being propagated through the
 nonlinear maps (eq. 56-57).
 
 Guarantee: for affine ``f`` and ``h`` and zero Gaussian noise, the true state stays in ``F(a, S)``
@@ -91,7 +91,7 @@ def _cover_shape(s: ConvexSet | None, dim: int) -> Tensor:
 
 @dataclass(frozen=True)
 class CombinedResult(FilterResult):
-    """:class:`FilterResult` of :class:`CombinedFilter`.
+    """`FilterResult` of `CombinedFilter`.
 
     ``sets``: the mean sets ``F(a_k, S_k)``, batch ``[B, T+1]``; ``covariance [B, T+1, n, n]``.
     """
@@ -129,12 +129,15 @@ class CombinedFilter(SetFilter):
             ``"set"`` (``K = S H' (H S H' + E)^-1``, a pure ellipsoidal set-membership filter
             that ignores P), or ``"auto"`` (``"kalman"`` when R is positive definite, else
             ``"set"``).
-        levels, point_weights, axes: statistical linearisation options (point count
-            ``2 len(levels) n + 1``, weights l_i of eq. 52-53, semi-axes), see
-            :func:`diffsmf.linearize.statistical_linearization`.
-        process_shape, measurement_shape: override D ``[n, n]`` / E ``[m, m]`` (PSD; a
-            degenerate ellipsoid such as ``Gamma D Gamma'`` is allowed; it must cover the noise).
-        process_cov, measurement_cov: override Q / R.
+        levels: statistical linearisation levels (point count ``2 len(levels) n + 1``), see
+            `diffsmf.linearize.statistical_linearization`.
+        point_weights: statistical linearisation point weights l_i (eq. 52-53).
+        axes: statistical linearisation semi-axes (see `diffsmf.linearize.axis_points`).
+        process_shape: override D ``[n, n]`` (PSD; a degenerate ellipsoid such as
+            ``Gamma D Gamma'`` is allowed; it must cover the noise).
+        measurement_shape: override E ``[m, m]`` (PSD, as ``process_shape``).
+        process_cov: override Q.
+        measurement_cov: override R.
 
     Learnable (softplus-positive): ``process_noise [n]``, ``measurement_noise [m]`` (interval
     hull half-widths of D, E: ``D = diag(r/r0) D0 diag(r/r0)``), ``process_std [n]``,
@@ -328,7 +331,7 @@ class CombinedFilter(SetFilter):
         return d2 <= 1.0 + 1e-9
 
     def collect(self, states: list[FilterState]) -> CombinedResult:
-        """Stack the states into a :class:`CombinedResult` (adds ``confidence_region``).
+        """Stack the states into a `CombinedResult` (adds ``confidence_region``).
 
         The volume is computed from the eigenvalues (clamped at 0) so that a degenerate mean
         set (no bounded noise: the set collapses towards the Kalman estimate) has volume 0

@@ -104,7 +104,7 @@ def rows(
 
 
 def format_table(rows: list[dict]) -> str:
-    """Plain-text table of :func:`compare` rows."""
+    """Plain-text table of `compare` rows."""
     head = (
         f"{'filter':<8} {'mean area/volume (k>3)':>23} {'outside/pairs':>15} "
         f"{'worst dist.':>11} {'inconsistent':>12} {'time [s]':>9}"

@@ -1,26 +1,26 @@
 """CZSMF: constrained-zonotope set-membership filter for nonlinear systems (guaranteed).
 
 The set family of Scott, Raimondo, Marseglia, Braatz (Automatica 69, 2016, "Scott 2016"),
-:class:`~diffsmf.sets.ConstrainedZonotope`, with the linearisation and guaranteed remainders of
+`ConstrainedZonotope`, with the linearisation and guaranteed remainders of
 the other filters (Wang et al. 2022):
 
 * predict: with ``p`` the midpoint of the interval hull of ``Z`` (the expansion point),
   ``F`` the Stirling slopes of ``f`` at ``p`` (Wang et al. 2022, eq. 12) and ``E`` the guaranteed
   remainder box of ``f(x) - f(p) - F (x - p)`` over the hull (``dc_remainder`` or
-  ``lagrange_remainder`` through :func:`~diffsmf.filters._common.prediction_remainder`),
+  ``lagrange_remainder`` through `prediction_remainder`),
   ``Z+ = F Z + (f(p) - F p + mid E + c_W) (+) box(rad E + r_W) (+) W0`` with W as given
-  (:meth:`CZSMF._noise`: a box W is ``c_W + box(r_W)``, a zonotope W adds its own generators
+  (`CZSMF._noise`: a box W is ``c_W + box(r_W)``, a zonotope W adds its own generators
   ``W0``, an ellipsoid W its constrained-zonotope cover) -- the linear map and the Minkowski
   sums are exact (Scott 2016 eq. 11-12); the box is merged into the axis generators of the
   generator reduction (Scott 2016 sec. 5) once the generator cap is reached;
-* update: the Wang et al. 2022, Theorem 3 strips (eq. 23-29, :func:`~diffsmf.filters._common.
+* update: the Wang et al. 2022, Theorem 3 strips (eq. 23-29, `
   measurement_strips`, Stirling slopes of ``h`` at the predicted hull midpoint, remainder over
   the predicted hull) are intersected exactly (Scott 2016 eq. 13: one generator and one
   constraint per output), then constraints are eliminated down to the cap (Scott 2016 sec.
   4.2, Prop. 5, Appendix A heuristic);
 * consistency: an update is inconsistent when a strip misses the interval hull of the
   predicted set or the updated set is certified empty (crossed LP bounds, a Farkas
-  certificate of the dual, :mod:`diffsmf.sets.czono_lp`). Only provable emptiness is flagged;
+  certificate of the dual, `diffsmf.sets.czono_lp`). Only provable emptiness is flagged;
   the filter then carries on with the predicted set (the strips of that element are replaced by
   strips that contain the predicted set, so every element keeps the same shape).
 
@@ -75,21 +75,21 @@ class CZSMF(SetFilter):
             ``"propagation"`` (Appendix A as published, interval propagation; cheapest).
         reduce_method: lifted generator reduction, ``"girard"`` | ``"combastel"``.
         remainder: guaranteed remainder bound by name, over the interval hull of the set
-            (:func:`~diffsmf.linearize.resolve_remainder`): ``"dc-vertices"`` (alias ``"dc"``,
+            (`resolve_remainder`): ``"dc-vertices"`` (alias ``"dc"``,
             Wang et al. 2022, eq. 14-18 at the hull corners), ``"lagrange"`` (Song et al. 2017, eq.
             26-28), ``"mean-value"``, or ``"auto"`` (default, as the other filters).
         stirling_step: Stirling step h (scalar or ``[n]``), learnable.
         remainder_margin: learnable inflation ``m >= 0`` of the prediction remainder box
-            (:func:`~diffsmf.filters._common.register_remainder_margin`).
+            (`register_remainder_margin`).
         rescale: apply the exact propagation rescaling (Scott 2016 Appendix A) before each
             reduction.
         lp_iters: interior-point iterations of the hull LPs (every bound is certified
             whatever the count).
         initial_set: override of ``system.x0_set`` (converted by
-            :meth:`ConstrainedZonotope.from_set`: exact for boxes/zonotopes, outer for
+            `ConstrainedZonotope.from_set`: exact for boxes/zonotopes, outer for
             ellipsoids).
         **kw: ``process_noise``, ``measurement_noise``, ``skip_nan``, ``learn_noise``
-            (:class:`~diffsmf.filters.base.SetFilter`).
+            (`SetFilter`).
 
     State set: ``ConstrainedZonotope`` with batch shape ``[B]``; ``state.extras["lower"]`` /
     ``["upper"]`` hold its certified interval hull ``[B, n]`` (computed once per set).
@@ -163,20 +163,20 @@ class CZSMF(SetFilter):
         return self.remainder_fn
 
     def _noise(self) -> tuple[Tensor, Tensor, ConstrainedZonotope | None]:
-        """The process noise W as given (issue 13 item 1) -> ``(center [n], box half-widths
+        """The process noise W as given -> ``(center [n], box half-widths
         [n], W0)``, ``W = center + box(half-widths) (+) W0``.
 
         * box W (every built-in): ``(c, r, None)``, added as the diagonal box generators, bit
-          for bit as before (:func:`~diffsmf.filters._common.noise_generators`);
+          for bit as before (`noise_generators`);
         * Zonotope / Parallelotope W: ``(c, 0, {G xi})``, its generators added as they are
           (Scott 2016 eq. 12, exact);
         * Ellipsoid W: ``(c, 0, W0)`` with ``W0`` the guaranteed constrained-zonotope cover of
-          :meth:`ConstrainedZonotope.from_set` (the parallelotope ``Q^(1/2) [-1, 1]^n``
+          `ConstrainedZonotope.from_set` (the parallelotope ``Q^(1/2) [-1, 1]^n``
           intersected with the interval hull of W, ``2 n`` generators and ``n`` constraints,
           inflated by 1e-9 relative): contained in both the interval hull and the
           parallelotope cover, so never looser than either.
 
-        ``W`` is :meth:`SetFilter.process_noise_set` (the system's set scaled per component by
+        ``W`` is `SetFilter.process_noise_set` (the system's set scaled per component by
         the learnable ``process_noise``; differentiable).
         """
         from diffsmf.sets.ellipsoid import Ellipsoid
@@ -219,7 +219,7 @@ class CZSMF(SetFilter):
     def _cap_hull(
         self, Z: ConstrainedZonotope, box: Tensor | None = None
     ) -> tuple[ConstrainedZonotope, tuple[Tensor, Tensor] | None]:
-        """:meth:`_cap` -> ``(Z, duals)``: ``duals`` are the hull LP solutions of the result
+        """`_cap` -> ``(Z, duals)``: ``duals`` are the hull LP solutions of the result
         when its last operation was a ``"hull"`` elimination (the ranking solved them), else
         ``None``."""
         duals = None
@@ -337,7 +337,7 @@ class CZSMF(SetFilter):
         yet at the caps (the first steps, while generators and constraints grow; every step
         with ``max_generators=None``) runs eagerly, so that one graph (static shapes) serves
         every later step. While tracing, the LPs run their fixed iteration count
-        (:func:`~diffsmf.sets.czono_lp.box_lp`) and the fault path is taken branch-free.
+        (`box_lp`) and the fault path is taken branch-free.
         Eager steps do not count towards ``forward``'s guard skip: the first compiled calls at
         the caps run Dynamo's full guard check (``base._GUARDED_STEPS``)."""
         S = state.set

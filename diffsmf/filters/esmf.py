@@ -12,7 +12,7 @@ Minkowski sum (eq. 30-35 = eq. 15-17) with the trace-minimal weight times the le
 Update (sec. 4.3, eq. 36-40): intersection of the prior with the linearised observation set
 ``{x : (y - h(c) - H (x - c))' Rhat^-1 (...) <= 1}``, ``Rhat`` the covering ellipsoid of the
 measurement-noise box plus the Lagrange remainder of ``h`` (an ellipsoidal or zonotope V is
-used as given, summed with the remainder's ellipsoid: issue 13).
+used as given, summed with the remainder's ellipsoid).
 
 Deviations (guarantee fixes, also in docs/filters.md): the parameter deviation is bounded over
 the whole current box, not only at the centre (eq. 20 evaluates it at ``x_hat`` only, which does
@@ -72,7 +72,7 @@ class ESMF(C.EllipsoidalSetFilter):
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
-            :func:`~diffsmf.filters._common.register_remainder_margin`).
+            `register_remainder_margin`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of every Minkowski
             sum of the prediction (eq. 14-17 used in eq. 29-31, eq. 32 and eq. 34-35):
             ``p = s * p_trace`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_trace =
@@ -86,7 +86,7 @@ class ESMF(C.EllipsoidalSetFilter):
             infinite values.
         remainder: guaranteed remainder bound by name (default ``"lagrange"``, Song et al. 2017, eq.
             26-28; also ``"dc-vertices"``, ``"mean-value"``, ``"auto"``; see
-            :func:`~diffsmf.linearize.resolve_remainder`).
+            `resolve_remainder`).
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
@@ -130,7 +130,7 @@ class ESMF(C.EllipsoidalSetFilter):
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
         R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
         s = self.minkowski_scale  # p = s * trace rule in every sum (s = 1: the paper)
-        Well = C.noise_ellipsoid(self)  # an ellipsoidal / zonotope W as given (issue 13)
+        Well = C.noise_ellipsoid(self)  # an ellipsoidal / zonotope W as given
         Wq = self.process_noise_box().to_ellipsoid() if Well is None else Well
         Qhat = scaled_minkowski_sum(R.to_ellipsoid(), Wq, "trace", s)  # eq. 29-31
         if self.system.parameters is not None:  # eq. 18-23, 30, 32
@@ -150,7 +150,7 @@ class ESMF(C.EllipsoidalSetFilter):
 
         A box V (the paper's case): the covering ellipsoid ``diag(m r^2)`` of the box
         ``V + Rh`` (eq. 23 with the n-D erratum). An ellipsoidal V is used as given and a
-        zonotope V through its covering ellipsoid (issue 13: not via its interval hull), each
+        zonotope V through its covering ellipsoid (not via its interval hull), each
         summed with the covering ellipsoid of the remainder box by the trace-minimal outer
         Minkowski sum (Song et al. 2017, eq. 14-17). Widened for rounding.
         """

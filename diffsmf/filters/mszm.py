@@ -1,7 +1,7 @@
 """MSZM: zonotope set-membership filter of Alamo, Bravo & Camacho (Automatica 2005).
 
 The baseline "minimum segments zonotopic method" of Wang et al. 2022 (ref. [19]). Same Stirling
-linearisation and DC remainder as :class:`~diffsmf.filters.HSNSMF`, evaluated over the interval
+linearisation and DC remainder as `HSNSMF`, evaluated over the interval
 hull of the zonotope (Alamo 2005 bounds the remainder over the box hull; Wang et al. 2022, sec. 4.1
 names exactly this outer box as a source of the baselines' conservatism; the 2^m vertices of a
 zonotope with m generators would also be far too many); the set is a zonotope:
@@ -12,7 +12,7 @@ zonotope with m generators would also be far too many); the set is a zonotope:
   Property 2, weight by ``strip_method``), then the result is reduced to the same
   ``order * n`` generators (zero-padded), so every step has the same generator count.
 
-Default ``order=12`` (issue 13, chosen from ``benchmarks/mszm_order_bench.py``: Girard
+Default ``order=12`` (chosen from ``benchmarks/mszm_order_bench.py``: Girard
 reduction, F-radius strips, 25 vertex-noise steps, tightness relative to order 60, which never
 reduces there; ms per filter step, B = 10, 1 thread, shared 2-core machine, +-20 %):
 
@@ -67,13 +67,13 @@ class MSZM(SetFilter):
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
-            :func:`~diffsmf.filters._common.register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
-        14-18,
-            2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
+            `register_remainder_margin`).
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"``
+            (Wang et al. 2022, eqs. 14-18, 2^n vertices), ``"lagrange"`` (interval Hessian,
+            vertex-free), ``"mean-value"``
             (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
             n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
-            :func:`~diffsmf.linearize.resolve_remainder`).
+            `resolve_remainder`).
 
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
     """
@@ -171,7 +171,7 @@ def _stable_partition(keep: Tensor, count: Tensor) -> Tensor:
     """Destination of each column ``[..., M]`` (int64) in the stable partition that puts the
     ``keep`` columns first, each group in its original order; ``count [...]`` the number of
     kept columns. The permutation of a stable sort of ``~keep``, from one running sum instead
-    of a sort (an extern call under ``torch.compile``; issue 11): with ``s_j`` the kept columns
+    of a sort (an extern call under ``torch.compile``): with ``s_j`` the kept columns
     up to ``j``, a kept column goes to ``s_j - 1`` and a dropped one to ``count + j - s_j``
     (``j + 1 - s_j`` dropped columns up to ``j``)."""
     s = torch.cumsum(keep.to(torch.int64), -1)

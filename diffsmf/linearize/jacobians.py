@@ -2,7 +2,7 @@
 
 ``fn`` is a plain torch function ``fn(x [..., n]) -> [..., k]`` that treats the leading dims
 as batch dims (output element ``b`` depends only on input element ``b``), as every
-:class:`~diffsmf.systems.System` function does. It may close over batched tensors (inputs
+`System` function does. It may close over batched tensors (inputs
 ``u [B, p]``, parameters), so batching is never done by ``vmap`` over the batch: row i of
 every Jacobian is the gradient of the summed output component i (the batch elements do not
 interact).
@@ -40,7 +40,7 @@ def jacobian(fn: Fn, x: Tensor) -> Tensor:
     interact, so the gradient of the summed component i is row i of every Jacobian). Plain
     ``torch.autograd.grad``: for the small ``k`` of state-space models this is faster than a
     ``vmap`` over cotangents, whose Python overhead dominated the filters' step time.
-    Differentiable when grad mode is on (usable inside a loss, and twice: :func:`hessian`
+    Differentiable when grad mode is on (usable inside a loss, and twice: `hessian`
     nests it); under ``torch.no_grad`` the result is detached. If ``fn`` broadcasts ``x``
     against a larger batch (closure over batched tensors), ``x`` is first expanded to the
     output batch shape.
@@ -97,7 +97,7 @@ def hessian(fn: Fn, x: Tensor) -> Tensor:
     """Autograd Hessian of each output of ``fn`` at ``x [..., n]`` -> ``[..., k, n, n]``.
 
     Song et al. 2017, eq. 26-28 (``N_es``, here at a point; the guaranteed version over a box is
-    :func:`diffsmf.linearize.interval_hessian`).
+    `diffsmf.linearize.interval_hessian`).
     """
     x = _check_x(x)
     n = x.shape[-1]

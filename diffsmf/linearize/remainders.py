@@ -2,14 +2,14 @@
 
 For ``fn : R^n -> R^k``, a set ``S`` (batch ``[...]``), an expansion point ``c [..., n]`` and
 any slope matrix ``J [..., k, n]`` (autograd or Stirling), every function here returns an
-:class:`~diffsmf.sets.Interval` ``[..., k]`` that contains
+`Interval` ``[..., k]`` that contains
 
     r(x) = fn(x) - fn(c) - J (x - c)      for every x in S
 
 (in exact arithmetic of the computed float data; evaluation of ``fn`` in float64 at a few
 points is padded by a small multiple of the rounding unit). All are batched over the set's
 batch dims and differentiable w.r.t. the set's fields, ``c``, ``J`` and parameters closed over
-by ``fn``. ``fn`` must be batch-elementwise (see :mod:`diffsmf.linearize.jacobians`).
+by ``fn``. ``fn`` must be batch-elementwise (see `diffsmf.linearize.jacobians`).
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ __all__ = [
 
 Fn = Callable[[Tensor], Tensor]
 
-#: Above this many sign combinations, :func:`dc_remainder` uses the corners of the interval hull.
+#: Above this many sign combinations, `dc_remainder` uses the corners of the interval hull.
 MAX_VERTICES = 256
 #: Tangent planes at every vertex (not only at ``c``) while the vertex count is at most this.
 _MAX_TANGENTS = 64
@@ -348,8 +348,8 @@ def dc_remainder(
     with ``g1 = r_i + q`` convex and ``g2 = q`` a convex quadratic centred at ``c``. The
     paper's ``q = alpha_i |x - c|^2`` uses ``alpha_i = max(0, -lambda_min / 2)`` from a
     guaranteed lower bound of the smallest eigenvalue of the interval Hessian of ``fn_i`` over
-    the hull of ``S`` and ``c`` (:func:`hessian_eig_lower_bound`); a second, diagonal
-    ``q = sum_j w_ij (x_j - c_j)^2`` (:func:`diagonal_shift`, tighter when the curvature lies
+    the hull of ``S`` and ``c`` (`hessian_eig_lower_bound`); a second, diagonal
+    ``q = sum_j w_ij (x_j - c_j)^2`` (`diagonal_shift`, tighter when the curvature lies
     along few axes) is also used and the tighter bound kept. Then
 
     * upper (eq. 15, tangent of g2 at c is 0): ``r <= g1 <= max_v g1(v)`` over the vertices;
@@ -477,7 +477,7 @@ def mean_value_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = Non
     evaluated in outward-rounded interval arithmetic. Cost and memory are ``O(k n)`` per jet
     operation (no Hessians, no vertices), so it scales to n = 32 and beyond; the bound is of
     second order in the set's width when ``J`` is close to the Jacobian at ``c`` (Stirling or
-    autograd slopes), about twice :func:`lagrange_remainder`'s in the quadratic regime.
+    autograd slopes), about twice `lagrange_remainder`'s in the quadratic regime.
     ``J=None`` means the autograd Jacobian at ``c``.
     """
     c, J = _check(S, c, J)
@@ -502,8 +502,8 @@ REMAINDERS: dict[str, Callable[..., Interval]] = {
 
 #: ``remainder="auto"`` uses the Wang et al. 2022 vertex method up to this state dimension (2^8 =
 # 256
-#: box corners, :data:`MAX_VERTICES`), the vertex-free Lagrange bound up to
-#: :data:`AUTO_LAGRANGE_MAX_N` and the mean-value bound above (its cost is O(k n) per jet
+#: box corners, `MAX_VERTICES`), the vertex-free Lagrange bound up to
+#: `AUTO_LAGRANGE_MAX_N` and the mean-value bound above (its cost is O(k n) per jet
 #: operation instead of the Lagrange bound's O(k n^2)).
 AUTO_VERTEX_MAX_N = 8
 AUTO_LAGRANGE_MAX_N = 16

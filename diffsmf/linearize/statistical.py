@@ -78,7 +78,7 @@ class _EighSafe(torch.autograd.Function):
         return 0.5 * (g + g.mT)
 
 
-#: Shortest semi-axis used by the fit, relative to the longest (see :func:`_axis_lengths`).
+#: Shortest semi-axis used by the fit, relative to the longest (see `_axis_lengths`).
 AXIS_FLOOR = 1e-12
 
 
@@ -100,7 +100,7 @@ def _axis_lengths(evals: Tensor) -> Tensor:
 
 def _axes_matrix(shape: Tensor, axes: str) -> Tensor:
     """Matrix M ``[..., n, n]`` whose columns are the semi-axes used (``S = M M'``, up to the
-    floor of :func:`_axis_lengths` on degenerate axes)."""
+    floor of `_axis_lengths` on degenerate axes)."""
     if axes == "principal":  # principal semi-axes sqrt(l_i) v_i (Morrell & Stirling)
         evals, V = _EighSafe.apply(shape)
         return V * _axis_lengths(evals).unsqueeze(-2)
@@ -135,7 +135,7 @@ def axis_points(
             ``(0.5, 1.0)`` gives the paper's 4N+1 points. ``K = 2 * len(levels) * n + 1``.
         axes: ``"principal"`` (eigenvectors scaled by sqrt(eigenvalues), the paper's choice;
             not differentiable where ``shape`` has repeated eigenvalues, where the backward
-            holds the eigenbasis fixed instead of returning NaN, see :class:`_EighSafe`) or
+            holds the eigenbasis fixed instead of returning NaN, see `_EighSafe`) or
             ``"symmetric"`` (columns of ``shape^(1/2)``; equal to the principal axes for
             axis-aligned ellipsoids, smooth everywhere).
 
@@ -194,16 +194,17 @@ def statistical_linearization(
     """Weighted least-squares affine fit ``fn(x) ~ A x + b`` over ``F(center, shape)``.
 
     Jiang et al. 2016, eq. 50-55 (eq. 54 for the state map, eq. 55 for the measurement map):
-    minimise ``sum_i l_i |fn(x_i) - A x_i - b|^2`` over the axis points of :func:`axis_points`. The
+    minimise ``sum_i l_i |fn(x_i) - A x_i - b|^2`` over the axis points of `axis_points`. The
     fit is done in the axis coordinates ``z`` (``x = c + M z``), whose normal matrix does not depend
     on the ellipsoid's scale, then mapped back with ``torch.linalg.solve`` (no inverse).
 
     Args:
         fn: ``fn(x [K, ..., n]) -> [K, ..., k]`` (batched torch function).
         center: ``[..., n]``; shape: ``[..., n, n]`` positive definite.
-        levels, axes: see :func:`axis_points`.
+        levels: see `axis_points`.
+        axes: see `axis_points`.
         weights: point weights ``l_i``: ``None`` (all 1), ``[K]`` (one per point, in the order
-            of :func:`axis_points`) or ``[1 + len(levels)]`` (centre, then one per level).
+            of `axis_points`) or ``[1 + len(levels)]`` (centre, then one per level).
 
     Returns:
         ``A [..., k, n]``, ``b [..., k]``.

@@ -1,8 +1,8 @@
 r"""Differentiable observer design: the seed-004 LMI as a ``cvxpylayers`` layer (optional extra).
 
-:class:`DifferentiableObserverDesign` solves, at a FIXED decay rate alpha, the same SDP as
-:func:`~diffsmf.observers.lmi.design_lipschitz_observer` with ``objective="bound"`` (the cvxpy
-problem is built by the same :func:`diffsmf.observers.lmi.lmi_problem`, so there is one home for
+`DifferentiableObserverDesign` solves, at a FIXED decay rate alpha, the same SDP as
+`design_lipschitz_observer` with ``objective="bound"`` (the cvxpy
+problem is built by the same `diffsmf.observers.lmi.lmi_problem`, so there is one home for
 the LMI: the reduced 2-block LMI, equivalent to the 3-block one, see lmi.py)::
 
     min mu  s.t.  R(P, Y, lambda, nu; A, C, gamma^2, alpha) < -margin I,  P >= I,
@@ -25,7 +25,7 @@ e.g. the Wang et al. 2009 structured example), the SDP solution is not attained 
 is meaningless; cap the gain with ``max_gain`` (as in the design function) to get a
 well-posed, differentiable problem. The layer uses diffcp's default SCS backend (tight ``eps``);
 diffcp's Clarabel backend gave wrong derivatives in our checks. The layer output is for
-gradient-based design; certify a final gain with :func:`analyze_observer_gain`.
+gradient-based design; certify a final gain with `analyze_observer_gain`.
 """
 
 from __future__ import annotations

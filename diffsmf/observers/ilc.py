@@ -24,7 +24,7 @@ vertical state Δf along the trial index k)::
 
 Design (two LMIs, documented in docs/observers.md):
 
-1. L: the discrete robust observer LMI of :mod:`diffsmf.observers.lmi` (gamma = 0).
+1. L: the discrete robust observer LMI of `diffsmf.observers.lmi` (gamma = 0).
 2. K with L fixed: the 2-D bounded-real lemma for Roesser models (Du & Xie) with
    P = diag(P1, P2) > 0, W = P2 K, minimising g = gamma_w^2::
 
@@ -191,7 +191,7 @@ def design_ilc(
     Lyapunov function (default halfway between the fastest feasible and 1); among gains with
     that contraction the smallest (|P2 K|_F) is chosen; gamma_w is the certified l2 gain from
     the disturbances [w; v(t); v(t+1)] to the fault error.
-    Returns an :class:`ILCDesign`; infeasible -> status "infeasible".
+    Returns an `ILCDesign`; infeasible -> status "infeasible".
     """
     A, C, F = (np.atleast_2d(np.asarray(M, float)) for M in (A, C, F))
     n, q = A.shape[0], F.shape[1]
@@ -332,7 +332,7 @@ class ILCFaultEstimator(nn.Module):
         return xhat, r, fhat + r[..., 1:, :] @ self.K.T
 
     def run(self, system: RepeatedSystem, trials: int, batch: int = 1):
-        """Run ``trials`` trials on a :class:`RepeatedSystem`. Returns fhat [trials, batch, N, q]
+        """Run ``trials`` trials on a `RepeatedSystem`. Returns fhat [trials, batch, N, q]
         (the estimate used in each trial) and max_err [trials, batch] (max_t |f - f̂_k(t)|)."""
         N = system.u.shape[0]
         u = torch.as_tensor(system.u).expand(batch, N, -1)

@@ -68,7 +68,7 @@ is the special case eps = 0.
 returned P and L (not from the solver's Y), with mu the smallest value for which this (P, L,
 lambda, alpha) satisfies it (a Schur complement, times 1 + 1e-6), and its eigenvalues must be
 below -k * machine eps * |M|; the eigenvalues of P and of A - L C are checked too;
-:func:`simulate_error_check` checks the envelope above on simulated error trajectories. A design
+`simulate_error_check` checks the envelope above on simulated error trajectories. A design
 that fails the check is reported as "unverified" with an infinite bound.
 """
 
@@ -100,7 +100,7 @@ _MU_SLACK = 1e-6  # verified mu = (smallest mu certified by P, L, lambda, alpha)
 
 @dataclass
 class ObserverDesign:
-    """Result of :func:`design_lipschitz_observer` / :func:`analyze_observer_gain`.
+    """Result of `design_lipschitz_observer` / `analyze_observer_gain`.
 
     status: "verified" (solved and checked in numpy), "infeasible" (the solver proved the LMI
     infeasible at the smallest decay rate), "unverified" (the solver returned a point that
@@ -252,7 +252,7 @@ def lmi_matrix(A, C, L, P, lam, mu, alpha, lipschitz, structure=None, time="cont
 
 
 def _mu_block(n: int, nf: int, time: str) -> slice:
-    """Rows of the -mu I block in :func:`lmi_matrix`."""
+    """Rows of the -mu I block in `lmi_matrix`."""
     return slice(n + nf, n + 2 * nf)  # rows: e [n], dphi [nf], d [nf] (discrete: then e+ [n])
 
 
@@ -305,7 +305,7 @@ def lmi_problem(n: int, l: int, time: str, fixed_gain: bool, capped: bool, bf_ke
 
     A, C, gamma^2 (``g2``), alpha, margin and kappa are cvxpy Parameters (DPP: a re-solve
     skips canonicalisation); B_f and H'H are constants of the cached problem (keys from
-    :func:`structure_keys`), so their sparsity reaches the solver.
+    `structure_keys`), so their sparsity reaches the solver.
     fixed_gain: analysis of a given L; the Parameter A then holds A - L C and there is no Y.
     Returns (problem, parameters, variables, the LMI constraint R << -margin I).
     """
@@ -562,7 +562,7 @@ def design_lipschitz_observer(
     spectral norm of L (high-gain designs otherwise drive |L| to the alpha cap); margin is the
     strictness of the LMI; iters caps the number of SDP solves of the alpha search (typically
     4-6 are used).
-    Returns an :class:`ObserverDesign`; bad input raises ValueError naming the argument; an
+    Returns an `ObserverDesign`; bad input raises ValueError naming the argument; an
     infeasible LMI or a failed solve is reported in ``status`` (never raised).
     """
     A, C, gamma, eps, Bf, H = _check_inputs(A, C, lipschitz, approx_error, time, structure,
@@ -605,7 +605,7 @@ def analyze_observer_gain(
     iters: int = 12,
 ) -> ObserverDesign:
     """Same LMI with a GIVEN gain L [n, l] (variables P, lambda, nu, mu): is L certified, and
-    how well (the bound minimised over alpha as in :func:`design_lipschitz_observer`).
+    how well (the bound minimised over alpha as in `design_lipschitz_observer`).
 
     Used to check gains from other tools (python-control ``place``/``lqe``) against our LMI.
     """

@@ -59,7 +59,7 @@ class PWLObserver(nn.Module):
         """Run the observer over sampled data: y [..., T+1, l] (y_k at t = k dt), u [..., T+1, m],
         x0 [..., n] -> xhat [..., T+1, n]. Continuous time: RK4 with y and u linearly
         interpolated between samples (exact when the caller integrates jointly, see
-        :func:`diffsmf.observers.pipeline.simulate`); discrete: x̂_{k+1} = rhs(x̂_k, y_k, u_k).
+        `diffsmf.observers.pipeline.simulate`); discrete: x̂_{k+1} = rhs(x̂_k, y_k, u_k).
         """
         if y.shape[-2] != u.shape[-2]:
             raise ValueError("y and u must have the same number of samples")

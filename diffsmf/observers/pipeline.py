@@ -5,7 +5,7 @@ Wang et al. 2009, sec. 3 end to end, on its example eq. 23 (continuous-time van 
     x1' = x2,  x2' = x2 - x1 - x1^2 x2 + u,  y = x1,   u = sin t
     A = [[0, 1], [-1, 1]], B = [0; 1], C = [1, 0], f(x) = B_f phi(x), B_f = [0; 1], phi = -x1^2 x2
 
-Guarantee chain (see docs/observers.md): the bound of :func:`design_lipschitz_observer` holds
+Guarantee chain (see docs/observers.md): the bound of `design_lipschitz_observer` holds
 if |phi(x) - f̂(x)| <= eps on the domain D, the true state stays in D, and gamma bounds the
 Lipschitz constant of f̂ (``SCPLNN.lipschitz_bound``, valid with ``outside="clamp"``, so x̂ may
 leave D). eps is CERTIFIED per simplex of the partition: with W_j the model's vertex values,
@@ -50,15 +50,15 @@ __all__ = [
 class ContinuousModel:
     """x' = A x + B_f phi(H x) + B u(t), y = C x, on the box domain (lower, upper) of H x.
 
-    The model a user gives to :func:`design_observer_pipeline` and to
+    The model a user gives to `design_observer_pipeline` and to
     ``diffsmf design-observer --model FILE.py:FUNC`` (``FUNC()`` returns one). Shapes: A [n, n],
     B [n, p], C [l, n], B_f [n, r], H [q, n], lower/upper [q] (lower < upper), x0/xhat0 [n]
     (true and observer initial states, for the simulation).
     phi: torch function [..., q] -> [..., r]; u: t (0-d tensor) -> [p] input.
     hess_bound(simplex vertices [M, q+1, q]) -> [M, r] upper bounds of the Hessian 2-norm of
     each phi_i on each simplex; None: computed by interval arithmetic
-    (:func:`interval_hess_bound`, certified for phi built from the operations that
-    :mod:`diffsmf.linearize.jets` supports). The observer's bound holds while H x stays in the
+    (`interval_hess_bound`, certified for phi built from the operations that
+    `diffsmf.linearize.jets` supports). The observer's bound holds while H x stays in the
     domain (checked in the simulation).
     Checked on construction: ValueError naming the field for wrong shapes, NaN or inf, an empty
     domain, or a phi / u / hess_bound that is not callable.
@@ -121,7 +121,7 @@ def interval_hess_bound(phi: Callable[[Tensor], Tensor]) -> Callable[[Tensor], T
     """A certified ``hess_bound`` for phi by interval arithmetic (Song et al. 2017, eq. 26-28).
 
     For simplex vertices V [M, q+1, q]: the interval Hessian [H_lo, H_hi] of each phi_i over the
-    simplex's bounding box (:func:`diffsmf.linearize.jets.interval_hessian`); with
+    simplex's bounding box (`diffsmf.linearize.jets.interval_hessian`); with
     Hmax = max(|H_lo|, |H_hi|) entrywise, every Hessian in the box has 2-norm <= rho(|H|) <=
     rho(Hmax) = |Hmax|_2 (Perron-Frobenius). Returns [M, r] (times 1 + 1e-9 for rounding).
     """
@@ -154,7 +154,7 @@ def _vdp_hess_bound(V: Tensor) -> Tensor:
 
 
 def vdp_model() -> ContinuousModel:
-    """Wang et al. 2009, eq. 23 with the seed's x(0) = [1.2, 0.5], x̂(0) = [1.5, 0.7], u = sin t.
+    """Wang et al. 2009, eq. 23 with the paper's x(0) = [1.2, 0.5], x̂(0) = [1.5, 0.7], u = sin t.
     The domain covers the forced limit cycle (|x1| <= 2.38, |x2| <= 3.77 on t in [0, 30])."""
     return ContinuousModel(
         name="vdp",
@@ -215,7 +215,7 @@ def fit_nonlinearity(
 
     method "scplnn": ``diffsmf.pwl.fit_scplnn`` (Wang et al. 2009, sec. 3.1.2) on ``samples``
     uniform random samples, with the vertex values taken from phi (``vertex_fn``) and every region
-    also split until its certified bound (:func:`simplex_error_bound`, with ``sysm.hess_bound``) is
+    also split until its certified bound (`simplex_error_bound`, with ``sysm.hess_bound``) is
     below eps (``region_bound``).
     "grid": interpolation on a Kuhn-triangulated grid refined until the certified error <= eps.
     "auto": "scplnn", falling back to "grid" when its certified error exceeds eps or its
@@ -368,9 +368,9 @@ def design_observer_pipeline(
     progress: bool = False,
 ) -> PipelineResult:
     """Sample phi, fit SCPLNN with certified error, design L (structured and general LMIs),
-    build the :class:`PWLObserver`, simulate system and observer, check the guarantee.
+    build the `PWLObserver`, simulate system and observer, check the guarantee.
 
-    system: "vdp" (Wang et al. 2009, eq. 23) or a :class:`ContinuousModel`; eps: target certified
+    system: "vdp" (Wang et al. 2009, eq. 23) or a `ContinuousModel`; eps: target certified
     model error; T, dt: simulated time and RK4 step; max_gain: cap on |L|_2; samples, seed: the
     uniform random samples of phi for ``fit_scplnn``; progress: tqdm bars (fit, simulation).
     Bad arguments raise ValueError naming them.

@@ -1,15 +1,15 @@
 """Adaptive least-squares fitting of SCPLNN models (Wang et al. 2009, sec. 3.1.2).
 
 Step 1: least-squares affine fit; stop if its max sample error is below eps.
-Step 2: an initial partition. Default (``rule="rivara"``, issue 15): the Kuhn triangulation of
+Step 2: an initial partition. Default (``rule="rivara"``): the Kuhn triangulation of
 the box. Older rules: connect the max-error sample p1 to the domain's vertices
-(:func:`cone_partition`); p1 closer than ``snap`` (relative) to a side of the box is first
+(`cone_partition`); p1 closer than ``snap`` (relative) to a side of the box is first
 moved onto it, else the cones over the near facets are slivers that no later split repairs.
 Step 3: least-squares fit of the vertex weights (refit of the whole model); every region whose
 max sample error exceeds eps is split; repeat until no region exceeds eps. Default: conforming
-longest-edge bisection (:class:`BisectionRefiner`) of those regions, with a held-out part of
+longest-edge bisection (`BisectionRefiner`) of those regions, with a held-out part of
 the samples also marking regions (the error between samples); older rules: split at the
-max-error sample by connecting it to the region's vertices (:class:`Refiner`)."""
+max-error sample by connecting it to the region's vertices (`Refiner`)."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ BOX_MAX_DIM = 5  # beyond this a box domain needs > 2n (n-1)! = 1440 initial sim
 
 @dataclass
 class FitReport:
-    """Summary of :func:`fit_scplnn`.
+    """Summary of `fit_scplnn`.
 
     regions: number of simplices; vertices: partition vertices; parameters: fitted weights
     (vertices * outputs); max_error / rms_error ``[p]``: training errors per output; eps ``[p]``;
@@ -271,21 +271,21 @@ def fit_scplnn(
     Args:
         eps: target max absolute training error, a number or one per output ``[p]``.
         max_regions: stop splitting once the partition has this many simplices (the last split
-            may overshoot by the children of one split); default :func:`default_max_regions`
+            may overshoot by the children of one split); default `default_max_regions`
             (10,000 in 1-D/2-D, growing like n! / 2).
         domain: ``None`` (bounding box of X; for n > 5 a simplex containing it), a box
             ``(lower, upper)`` / Interval containing X, ``"box"`` or ``"simplex"``.
         max_rounds: cap on refit rounds.
         ridge: relative weight pulling each vertex towards the previous round's model (see
-            :func:`fit_weights`); matters only for vertices with few samples. Default 0.01 for
+            `fit_weights`); matters only for vertices with few samples. Default 0.01 for
             ``rule="rivara"``, 0.1 for the other rules.
-        snap: barycentric threshold of the split rule (see :class:`Refiner`); default
+        snap: barycentric threshold of the split rule (see `Refiner`); default
             0.5 / (n + 1).
         rule: ``"rivara"`` (default: conforming longest-edge bisection of every region above
-            eps, :class:`~diffsmf.pwl.partition.BisectionRefiner`, starting from the Kuhn
+            eps, `BisectionRefiner`, starting from the Kuhn
             triangulation of the box; no slivers), ``"interior"`` (Wang et al. 2009: connect the
             sample to the region's vertices when it is well inside, else cut the longest edge; the
-            default before issue 15), ``"edge"`` (always the longest edge of the sample's
+            earlier default), ``"edge"`` (always the longest edge of the sample's
             region) or ``"paper"`` (always connect the sample to the vertices; stalls on
             slivers).
         edge_clip: where the longest edge is cut: the sample's projection clipped to
@@ -580,7 +580,7 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
     regions sharing the face the sample lies on, when it lies on one), every region whose
     held-out sample misses eps while it holds >= n + 1 training samples, and every region whose
     ``region_bound`` is >= eps. Phase 1 uses a held-out part of the samples; phase 2 refits on
-    all of them (see :func:`fit_scplnn`)."""
+    all of them (see `fit_scplnn`)."""
     from tqdm.auto import tqdm
 
     N, n = X.shape
@@ -735,7 +735,7 @@ def _extend_prior(prior: Tensor, parents: list[tuple[int, int]]) -> Tensor:
 
 def _longest_edge_midpoint(ref: Refiner, s: int) -> Tensor:
     """Midpoint ``[n]`` of the longest edge of live simplex s (in the Refiner's scaled metric),
-    so that :meth:`Refiner.split` bisects that edge (conforming newest-edge refinement)."""
+    so that `Refiner.split` bisects that edge (conforming newest-edge refinement)."""
     Vs = ref.V[ref.S[s]]
     d = torch.cdist(Vs / ref.scale, Vs / ref.scale)
     k = int(d.argmax())

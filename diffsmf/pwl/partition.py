@@ -4,18 +4,18 @@ A partition is a pair ``vertices [nv, n]`` (float64) and ``simplices [M, n+1]`` 
 indices, long). It is *conforming*: two simplices meet in a common face or not at all, which is
 what makes the nodal ("hat") basis continuous. Constructions here:
 
-* :func:`kuhn_simplices` / :func:`grid_partition` -- Kuhn (Freudenthal) triangulation of a
+* `kuhn_simplices` / `grid_partition` -- Kuhn (Freudenthal) triangulation of a
   regular grid of boxes (every cell cut into n! simplices along the same coordinate orders),
-* :func:`cone_partition` -- Wang et al. 2009, sec. 3.1.2 Step 2: the point p connected to the
+* `cone_partition` -- Wang et al. 2009, sec. 3.1.2 Step 2: the point p connected to the
 domain's
   vertices, in n-D the cone from p over the Kuhn triangulation of the box's 2n facets,
-* :class:`Refiner` -- Wang et al. 2009, sec. 3.1.2 Step 3: split the region containing p by
+* `Refiner` -- Wang et al. 2009, sec. 3.1.2 Step 3: split the region containing p by
 connecting p
   to its vertices (stellar subdivision; a point on a face splits every simplex sharing that face,
   so conformity is kept),
-* :class:`BisectionRefiner` -- conforming longest-edge (Rivara) bisection, the default
-  refinement of :func:`~diffsmf.pwl.fit.fit_scplnn` (no slivers),
-* :class:`PointLocator` -- batched point location with a uniform grid of bins.
+* `BisectionRefiner` -- conforming longest-edge (Rivara) bisection, the default
+  refinement of `fit_scplnn` (no slivers),
+* `PointLocator` -- batched point location with a uniform grid of bins.
 """
 
 from __future__ import annotations

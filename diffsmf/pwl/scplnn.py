@@ -7,8 +7,8 @@ lam_j(x) W[v_j]`` with ``lam`` the barycentric coordinates of x in the simplex c
 bases span exactly the continuous functions that are affine on every simplex of the partition (the
 nodal basis has one function per vertex, the dimension of that space); the hat function of a
 vertex whose star is convex is itself a max-min function ``max(0, min_s lam_v^s(x))`` (eq. 12
-with a = 0), see :meth:`SCPLNN.maxmin_basis`, and every fitted model can be exported in the
-max-min (lattice) form of eq. 12 with :meth:`SCPLNN.lattice_eval`. The nodal basis is used for
+with a = 0), see `SCPLNN.maxmin_basis`, and every fitted model can be exported in the
+max-min (lattice) form of eq. 12 with `SCPLNN.lattice_eval`. The nodal basis is used for
 fitting because its least-squares matrix is sparse (n+1 nonzeros per sample).
 """
 
@@ -210,7 +210,7 @@ class SCPLNN(nn.Module):
         f(x) = sum_j lam_j(x) W[v_j] on the simplex containing x (nodal form of eq. 11).
 
         Works under ``torch.func.vmap`` / ``jacrev`` / ``grad`` and ``torch.compile(fullgraph=
-        True)`` (call the model once, or :meth:`prepare`, before compiling): point location is
+        True)`` (call the model once, or `prepare`, before compiling): point location is
         a fixed-shape gather, and inside those transforms the data-dependent checks are
         skipped (NaN in x is not reported and ``outside="error"`` returns the extrapolated
         value instead of raising).
@@ -276,7 +276,7 @@ class SCPLNN(nn.Module):
         (the exact range of an affine function on a simplex); the tighter of the two is taken,
         then the union over the candidate simplices. This is a valid bound (exact when the box
         contains whole simplices), widened outward by ``margin * (1 + max |W|)`` to cover the
-        rounding of :meth:`forward`. Outside the domain: ``outside='clamp'`` clamps the box,
+        rounding of `forward`. Outside the domain: ``outside='clamp'`` clamps the box,
         otherwise ValueError.
         """
         from diffsmf.sets.interval import Interval
@@ -312,7 +312,7 @@ class SCPLNN(nn.Module):
         return Interval(ylo, yhi)
 
     def _interval_chunk(self, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
-        """lo, hi [B, n] -> range bounds [B, p] (see :meth:`interval_eval`)."""
+        """lo, hi [B, n] -> range bounds [B, p] (see `interval_eval`)."""
         V = self.vertices[self.simplices]  # [M, n+1, n]
         smin, smax = V.amin(1), V.amax(1)
         bl = torch.maximum(lo[:, None], smin[None])  # box ∩ bbox(simplex) [B, M, n]
@@ -528,7 +528,7 @@ class SCPLNN(nn.Module):
 
     @classmethod
     def from_json(cls, data: dict[str, Any] | str | Path) -> SCPLNN:
-        """Inverse of :meth:`to_json` (a dict, a JSON string or a path to a .json file).
+        """Inverse of `to_json` (a dict, a JSON string or a path to a .json file).
 
         Validated on load; a ValueError names the field: truncated / invalid JSON, a wrong
         ``format``, ``vertices`` / ``weights`` that are not finite numbers (NaN, null, strings),

@@ -1,4 +1,4 @@
-"""scikit-learn estimator around :func:`diffsmf.pwl.fit_scplnn`."""
+"""scikit-learn estimator around `diffsmf.pwl.fit_scplnn`."""
 
 from __future__ import annotations
 
@@ -23,13 +23,13 @@ class PWLRegressor(RegressorMixin, BaseEstimator):
             times the range of each training output.
         rel_eps: relative target used when ``eps`` is None.
         max_regions: cap on the number of simplices.
-        domain: as in :func:`fit_scplnn` (None: bounding box of the training inputs, or an
+        domain: as in `fit_scplnn` (None: bounding box of the training inputs, or an
             enclosing simplex beyond 5 inputs).
         outside: prediction outside the training domain, ``"clamp"`` (default: sklearn
             estimators must predict anywhere) or ``"extrapolate"``.
         ridge: relative Laplacian regularisation of the least squares.
 
-    Learned attributes: ``model_`` (:class:`SCPLNN`), ``report_`` (:class:`FitReport`),
+    Learned attributes: ``model_`` (`SCPLNN`), ``report_`` (`FitReport`),
     ``n_features_in_``.
     """
 

@@ -1,4 +1,4 @@
-"""Common base of every set in :mod:`diffsmf.sets`.
+"""Common base of every set in `diffsmf.sets`.
 
 A set is a small immutable object holding a few tensors whose leading dimensions are batch
 dimensions (``batch_shape``) and whose trailing dimensions are fixed by the set type
@@ -89,8 +89,8 @@ def check_nonempty(name: str, S: Any) -> None:
     """Raise ``ValueError`` naming ``name`` when the set ``S`` (or an element of its batch) is
     certified empty (``S.is_empty()``; eager only, one LP for a constrained zonotope).
 
-    Only an :class:`~diffsmf.sets.Interval` with ``lower > upper`` or a
-    :class:`~diffsmf.sets.ConstrainedZonotope` whose constraints ``A xi = b`` have no solution
+    Only an `Interval` with ``lower > upper`` or a
+    `ConstrainedZonotope` whose constraints ``A xi = b`` have no solution
     in the box can be empty; a filter started from, or driven by, an empty set has no state to
     bound and would report plausible-looking sets. Sets without ``is_empty`` pass."""
     is_empty = getattr(S, "is_empty", None)
@@ -278,7 +278,7 @@ def align(sets: Sequence[ConvexSet], count: int | None = None) -> list[ConvexSet
     """The same sets with equal field shapes where a set type allows it: zonotopes are padded
     with zero generators to the largest generator count (or to ``count``), constrained
     zonotopes also with trivial constraints ``0 xi = 0`` to the largest constraint count;
-    other types are returned unchanged. Use before :func:`stack` / :func:`cat` / :func:`where`
+    other types are returned unchanged. Use before `stack` / `cat` / `where`
     of sets of one type."""
     sets = list(sets)
     if sets and hasattr(sets[0], "pad_generators"):
@@ -292,7 +292,7 @@ def align(sets: Sequence[ConvexSet], count: int | None = None) -> list[ConvexSet
 
 def cat(sets: Sequence[ConvexSet]) -> ConvexSet:
     """Concatenate sets of one type along their leading batch dim (``[B_i, ...]`` ->
-    ``[sum B_i, ...]``); zonotopes are first :func:`align`-ed."""
+    ``[sum B_i, ...]``); zonotopes are first `align`-ed."""
     if len(sets) == 0:
         raise ValueError("sets: need at least one set to concatenate")
     cls = type(sets[0])
@@ -305,7 +305,7 @@ def cat(sets: Sequence[ConvexSet]) -> ConvexSet:
 
 def where(cond: Tensor, a: ConvexSet, b: ConvexSet) -> ConvexSet:
     """Batched select: ``a`` where ``cond [...]`` is True, else ``b`` (same type; zonotopes
-    and constrained zonotopes of different sizes are first :func:`align`-ed, so the result
+    and constrained zonotopes of different sizes are first `align`-ed, so the result
     has the larger generator and constraint counts)."""
     if type(a) is not type(b):
         raise ValueError(f"where: sets differ in type ({type(a).__name__}, {type(b).__name__})")

@@ -9,7 +9,7 @@ intersection (eq. 13) -- in particular with a strip or a half-space, which adds 
 and one constraint. Outer operations: constraint elimination (sec. 4.2, Prop. 5, with the
 Hausdorff heuristic of Appendix A), generator reduction through the lifted zonotope (sec. 5),
 the outer bound of an ellipsoid. The support function, interval hull, emptiness and
-membership need LPs, solved batched in torch by :mod:`diffsmf.sets.czono_lp`; every reported
+membership need LPs, solved batched in torch by `diffsmf.sets.czono_lp`; every reported
 bound is a weak-duality certificate (valid even if the solver stopped early), see there.
 
 Discrete choices (which constraint / generator to eliminate, which generators to box, the
@@ -59,8 +59,8 @@ class ConstrainedZonotope(ConvexSet):
         ValueError: naming the argument on NaN/inf or a shape mismatch.
 
     ``volume()`` is the volume of the interval hull (a documented proxy: an upper bound of the
-    true volume, 0 for an empty or flat set). The set may be empty: :meth:`is_empty`
-    certifies emptiness, :meth:`interval_hull` then has crossed bounds (``lower > upper``).
+    true volume, 0 for an empty or flat set). The set may be empty: `is_empty`
+    certifies emptiness, `interval_hull` then has crossed bounds (``lower > upper``).
     """
 
     _fields: ClassVar[tuple[str, ...]] = ("_c", "generators", "A", "b")
@@ -162,7 +162,7 @@ class ConstrainedZonotope(ConvexSet):
         return ConstrainedZonotope._make(self._c, self.generators, A, b)
 
     def pad(self, m: int, k: int) -> ConstrainedZonotope:
-        """:meth:`pad_generators` then :meth:`pad_constraints` (same set)."""
+        """`pad_generators` then `pad_constraints` (same set)."""
         return self.pad_generators(m).pad_constraints(k)
 
     # ------------------------------------------------------------------ conversions
@@ -213,7 +213,7 @@ class ConstrainedZonotope(ConvexSet):
 
     def to_zonotope(self) -> Zonotope:
         """Outer zonotope: every constraint eliminated (Scott 2016 Prop. 5, see
-        :meth:`reduce_constraints`)."""
+        `reduce_constraints`)."""
         from diffsmf.sets.zonotope import Zonotope
 
         Z = self.reduce_constraints(0)
@@ -228,7 +228,7 @@ class ConstrainedZonotope(ConvexSet):
 
         The LP ``d'c + max {d'G xi : A xi = b, |xi| <= 1}`` is solved by a fixed number of
         interior-point iterations and bounded by its dual (weak duality, any multiplier gives
-        an upper bound; :mod:`diffsmf.sets.czono_lp`), plus float64 rounding margins: the
+        an upper bound; `diffsmf.sets.czono_lp`), plus float64 rounding margins: the
         value is an outer bound even when the solver stopped early. Exact (to ~1e-12 relative)
         at convergence. ``-inf``-like (very negative) for an empty set. Differentiable: the
         gradient is the LP's envelope gradient (Lagrangian at the primal-dual solution).
@@ -243,12 +243,12 @@ class ConstrainedZonotope(ConvexSet):
         """Vertices ``[..., k, 2]`` (counter-clockwise) of the outer polygon of a 2-D set.
 
         The polygon is ``{x : d_i.x <= h(d_i), i < k}`` with ``d_i = (cos, sin)(2 pi i / k)``
-        and ``h`` the certified support (:meth:`support`), so it contains the set and touches
+        and ``h`` the certified support (`support`), so it contains the set and touches
         it in the ``k`` directions; vertex ``i`` is where the support lines ``i`` and ``i + 1``
-        meet. For plots and area measurements (:func:`diffsmf.plot.polygon_2d`; the CZSMF
+        meet. For plots and area measurements (`diffsmf.plot.polygon_2d`; the CZSMF
         areas in docs/constrained_zonotopes.md): the vertices are computed in float64 without
         outward rounding. An empty set (crossed support values) gives a polygon with no
-        meaning; check :meth:`is_empty` first.
+        meaning; check `is_empty` first.
         """
         if self.dim != 2:
             raise ValueError(f"outer_polygon_2d: needs a 2-D set, got dim {self.dim}")
@@ -266,7 +266,7 @@ class ConstrainedZonotope(ConvexSet):
         return torch.stack([vx, vy], -1)
 
     def outer_polygon_area(self, k: int = 64, iters: int = LP_ITERS) -> Tensor:
-        """Area ``[...]`` of :meth:`outer_polygon_2d` (shoelace formula): an upper bound of a
+        """Area ``[...]`` of `outer_polygon_2d` (shoelace formula): an upper bound of a
         2-D set's area, within a few per cent of it at ``k = 64`` (the CZSMF areas in
         docs/constrained_zonotopes.md). ``volume()`` stays the interval-hull proxy."""
         V = self.outer_polygon_2d(k, iters)
@@ -307,10 +307,10 @@ class ConstrainedZonotope(ConvexSet):
         solve of the feasibility LP of ``[G; A] xi = [x - c; b]`` in the box, batched in
         torch). The points the interior-point iterate leaves uncertified (boundary points: the
         iterates stall about 1e-8 from a feasible set that is one point on the box's boundary)
-        are polished by :func:`~diffsmf.sets.czono_lp.feasible_residual` (alternating
+        are polished by `feasible_residual` (alternating
         projections, then active-set least squares). False means "not certified"; on
         spring_damper's CZSMF sets with vertex noise, 97 % of the true states were certified
-        by the iterate alone and all of them after the polish (stop 30). :meth:`excludes`
+        by the iterate alone and all of them after the polish. `excludes`
         certifies non-membership.
         """
         x = as_tensor("x", x, like=self._c, min_dim=1)
@@ -367,7 +367,7 @@ class ConstrainedZonotope(ConvexSet):
     def minkowski_sum(self, other: ConvexSet | Tensor) -> ConstrainedZonotope:
         """Exact Minkowski sum (Scott 2016 eq. 12): ``[G1, G2]``, ``blkdiag(A1, A2)``,
         ``[b1; b2]``. ``other``: a ConstrainedZonotope, Zonotope, Parallelotope, Interval or a
-        point tensor (an Ellipsoid is first covered, :meth:`from_set`)."""
+        point tensor (an Ellipsoid is first covered, `from_set`)."""
         if isinstance(other, Tensor):
             return self.translate(other)
         o = ConstrainedZonotope.from_set(other)
@@ -392,7 +392,7 @@ class ConstrainedZonotope(ConvexSet):
     def intersect(self, other: ConvexSet, R: Tensor | None = None) -> ConstrainedZonotope:
         """Generalised intersection ``Z cap_R Y = {z in Z : R z in Y}`` (Scott 2016 eq. 13):
         ``{c_Z, [G_Z, 0], [[A_Z, 0], [0, A_Y], [R G_Z, -G_Y]], [b_Z; b_Y; c_Y - R c_Z]}``.
-        ``R [..., p, n]`` (default identity); ``other`` is converted by :meth:`from_set`."""
+        ``R [..., p, n]`` (default identity); ``other`` is converted by `from_set`."""
         Y = ConstrainedZonotope.from_set(other)
         c, G = self._c, self.generators
         if R is None:
@@ -496,7 +496,7 @@ class ConstrainedZonotope(ConvexSet):
         """A point ``xi [..., m]`` of ``{A xi = b} cap [-1, 1]^m`` near its analytic centre
         (interior-point iterate with zero objective, then projected onto ``A xi = b``) and
         ``found [...]``: False where the set is certified empty (the LP's Farkas bound, as
-        :meth:`is_empty`) or the projected point left the box by more than 1e-9."""
+        `is_empty`) or the projected point left the box by more than 1e-9."""
         A, b = self.A.detach(), self.b.detach()
         g = A.new_zeros(*self.batch_shape, self.num_generators)
         bound, _, _, xi = box_lp(g, A, b, iters, None)
@@ -561,7 +561,7 @@ class ConstrainedZonotope(ConvexSet):
         """``k`` points of the set by ``steps`` hit-and-run moves in the ``xi`` polytope from an
         interior point -> ``[..., k, n]`` (approximately uniform in ``xi``; inside up to the
         ~1e-12 residual of ``A xi = b``). An element whose set is empty (certified as by
-        :meth:`is_empty`, or no point of ``A xi = b`` found in the box) gets NaN points, never
+        `is_empty`, or no point of ``A xi = b`` found in the box) gets NaN points, never
         points outside it. The points carry gradients w.r.t. center and generators."""
         k, steps = check_count("k", k), check_count("steps", steps)
         return self._hit_and_run(k, steps, generator, last_to_boundary=False)
@@ -585,7 +585,7 @@ class ConstrainedZonotope(ConvexSet):
             return _propagate(self.A.detach(), self.b.detach(), sweeps)
 
     def rescale(self, sweeps: int = PROPAGATION_SWEEPS) -> ConstrainedZonotope:
-        """The same set with ``xi = mid(E) + diag(rad(E)) eta``, ``E`` from :meth:`propagate`
+        """The same set with ``xi = mid(E) + diag(rad(E)) eta``, ``E`` from `propagate`
         (exact: ``E`` contains every feasible ``xi``): shorter generators for the reductions.
         ``E`` is chosen without gradient."""
         if self.num_constraints == 0:
@@ -607,13 +607,13 @@ class ConstrainedZonotope(ConvexSet):
         ``b - A_j b_i / a_ij``, then row i and column j are deleted; only ``|xi_j| <= 1`` is
         lost, so the result contains the set. The generator j minimises the Hausdorff estimate
         of Scott 2016 Appendix A: ``r_j / sqrt(s_j)`` with ``r_j = max(0, max|R_j| - 1)``
-        (:meth:`propagate`) and ``s_j = P_jj - P_j' A' (A P A')^-1 A P_j``,
+        (`propagate`) and ``s_j = P_jj - P_j' A' (A P A')^-1 A P_j``,
         ``P = (G'G + I)^-1``, i.e. the 2-norm of ``[G d; d]`` for the least-norm ``d`` with
         ``A d = 0``, ``d_j = r_j`` (eq. A.7, 2-norm of the stacked vector instead of the sum of
         the two norms); the row i is the one of largest ``|a_ij|``. Columns without a pivot
         (``|a_ij| <= 1e-10 max|A_i|`` in every row) are never chosen. ``heuristic``: where
         ``R_j`` comes from (``"propagation"``: interval propagation, as published; ``"lp"``:
-        exact LP ranges), or ``"hull"``: the :data:`HULL_CANDIDATES` best estimates (with
+        exact LP ranges), or ``"hull"``: the `HULL_CANDIDATES` best estimates (with
         propagated ``R_j``) are each eliminated and the one whose result has the smallest
         interval hull (sum over axes of width / zonotope width, ``2 n`` LPs per candidate,
         one batched solve) wins. Choices are detached.
@@ -626,10 +626,10 @@ class ConstrainedZonotope(ConvexSet):
     def _reduce_constraints(
         self, k: int, heuristic: str = "lp"
     ) -> tuple[ConstrainedZonotope, tuple[Tensor, Tensor] | None]:
-        """:meth:`reduce_constraints` -> ``(Z, duals)``; with ``heuristic="hull"`` and at least
+        """`reduce_constraints` -> ``(Z, duals)``; with ``heuristic="hull"`` and at least
         one elimination, ``duals = (lam [2n, ..., k], xi [2n, ..., m])`` are the LP solutions
         of the ``2n`` hull directions of the result, already computed by the ranking (pass
-        them to :meth:`_hull_from_duals`: no second solve); else ``None``."""
+        them to `_hull_from_duals`: no second solve); else ``None``."""
         Z, duals = self, None
         while Z.num_constraints > k:
             Z, duals = Z._eliminate_one(heuristic)
@@ -647,7 +647,7 @@ class ConstrainedZonotope(ConvexSet):
         """Certified interval hull ``[..., n]`` from given LP solutions of its ``2n`` support
         LPs (``lam [2n, ..., k]``, ``xi [2n, ..., m]``, directions ``e_1..e_n, -e_1..-e_n``):
         weak duality makes ``phi(lam)`` an upper bound whatever ``lam`` is, so no solve is
-        needed; same envelope gradients as :meth:`interval_hull`."""
+        needed; same envelope gradients as `interval_hull`."""
         from diffsmf.sets.interval import Interval
 
         n = self.dim
@@ -666,7 +666,7 @@ class ConstrainedZonotope(ConvexSet):
 
         The ``q - n - k`` lifted generators ``[g_j; a_j]`` with the largest score are kept
         (``method="girard"``: ``||.||_1 - ||.||_inf``, Girard 2005; ``"combastel"``: the 2-norm,
-        Combastel 2003; the constraint rows weighted by :data:`CONSTRAINT_WEIGHT`) and the
+        Combastel 2003; the constraint rows weighted by `CONSTRAINT_WEIGHT`) and the
         others replaced by the box of their sum, i.e. ``n`` axis generators in x and ``k``
         slack generators, one per constraint row.
         ``box_radius [..., n]`` (>= 0, optional) adds the box ``[-r, r]`` exactly, merged into
@@ -722,7 +722,7 @@ class ConstrainedZonotope(ConvexSet):
     ) -> ConstrainedZonotope:
         """Outer approximation with at most ``max_constraints`` constraints (Scott 2016 sec.
         4.2) and then at most ``max_generators`` generators (sec. 5); ``rescale`` first
-        applies the exact :meth:`rescale`."""
+        applies the exact `rescale`."""
         Z = self.rescale() if rescale else self
         Z = Z.reduce_constraints(max_constraints)
         if Z.num_generators > max_generators:
@@ -732,7 +732,7 @@ class ConstrainedZonotope(ConvexSet):
 
 # ---------------------------------------------------------------------- helpers
 def as_constrained_zonotope(S: ConvexSet) -> ConstrainedZonotope:
-    """Same as :meth:`ConstrainedZonotope.from_set`."""
+    """Same as `ConstrainedZonotope.from_set`."""
     return ConstrainedZonotope.from_set(S)
 
 
@@ -823,7 +823,7 @@ def _propagate(A: Tensor, b: Tensor, sweeps: int) -> tuple[Tensor, Tensor, Tenso
 
 def _lp_ranges(A: Tensor, b: Tensor, big: float = 1e3, iters: int = 12) -> tuple[Tensor, Tensor]:
     """Range ``[..., m]`` of each ``xi_j`` over ``{A xi = b, |xi_k| <= 1 (k != j)}`` (its own
-    bound relaxed to ``|xi_j| <= big``), by ``2 m`` batched LPs (:func:`box_lp`): the exact
+    bound relaxed to ``|xi_j| <= big``), by ``2 m`` batched LPs (`box_lp`): the exact
     version of Scott 2016's propagated ``R_j`` (Appendix A)."""
     m = A.shape[-1]
     eye = torch.eye(m, dtype=A.dtype, device=A.device)
@@ -850,11 +850,11 @@ def _hull_choice(
     G: Tensor, A: Tensor, b: Tensor, cand: Tensor, valid: Tensor
 ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
     """Exact ``"hull"`` ranking of the candidates ``cand [..., K]`` (``valid [..., K]``: has a
-    pivot): each candidate is eliminated (:func:`_eliminate`, Prop. 5), the ``2 n`` hull LPs
-    of all ``K`` results are solved in one batched :func:`box_lp` (``[2n, ..., K]``), and the
+    pivot): each candidate is eliminated (`_eliminate`, Prop. 5), the ``2 n`` hull LPs
+    of all ``K`` results are solved in one batched `box_lp` (``[2n, ..., K]``), and the
     candidate with the smallest sum over axes of ``width / (zonotope width 2 sum_j |G_ij|)``
     wins. -> ``(i, j, (lam, xi))``, the LP solutions of the winner (its certified hull,
-    :meth:`ConstrainedZonotope._hull_from_duals`). Detached."""
+    `ConstrainedZonotope._hull_from_duals`). Detached."""
     n = G.shape[-2]
     i = _pivot_row(A.unsqueeze(-3).expand(*cand.shape, *A.shape[-2:]), cand)  # [..., K]
     zc = G.new_zeros(*G.shape[:-1])
@@ -884,14 +884,14 @@ def _hull_choice(
 HULL_CANDIDATES = 4
 #: Interior-point iterations (at most) and early-stop tolerance of the ``"hull"`` ranking
 #: LPs. The winner's LP solutions certify the hull of the result (no second solve), so they
-#: are solved as accurately as :meth:`ConstrainedZonotope.interval_hull`.
+#: are solved as accurately as `ConstrainedZonotope.interval_hull`.
 HULL_ITERS = LP_ITERS
 HULL_TOL = LP_TOL
 
 
 def _scott_score(G: Tensor, A: Tensor, b: Tensor, Rlo: Tensor, Rhi: Tensor) -> Tensor:
     """Scott 2016 Appendix A estimate ``r_j / sqrt(s_j)`` ``[..., m]`` (``inf`` for columns
-    without a pivot), see :meth:`ConstrainedZonotope.reduce_constraints`."""
+    without a pivot), see `ConstrainedZonotope.reduce_constraints`."""
     k, m = A.shape[-2], A.shape[-1]
     r = (torch.maximum(Rlo.abs(), Rhi.abs()) - 1).clamp_min(0)  # eq. A.6
     r = torch.where(torch.isfinite(r), r, torch.full_like(r, 1e300))
@@ -915,7 +915,7 @@ def _elimination_choice(
     G: Tensor, A: Tensor, b: Tensor, heuristic: str = "lp"
 ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor] | None]:
     """Row i and column j ``[...]`` of the next elimination (Scott 2016 Appendix A), and for
-    ``"hull"`` the LP solutions of the result's hull (:func:`_hull_choice`, else ``None``)."""
+    ``"hull"`` the LP solutions of the result's hull (`_hull_choice`, else ``None``)."""
     m = A.shape[-1]
     if heuristic == "hull":
         pre = _scott_score(G, A, b, *_propagate(A, b, PROPAGATION_SWEEPS)[2:])

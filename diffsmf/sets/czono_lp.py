@@ -9,10 +9,10 @@ whose Lagrangian dual is (weak duality, any ``lam`` in R^k):
 
     h(d) <= d'c + phi(lam),   phi(lam) = lam'b + ||g - A'lam||_1.          (*)
 
-:func:`box_lp` solves the LP with at most a fixed number of Mehrotra predictor-corrector
+`box_lp` solves the LP with at most a fixed number of Mehrotra predictor-corrector
 interior-point iterations (primal-dual, bounded variables), batched over any leading dims.
 While tracing (``torch.compile``) every LP runs the fixed count, with no host sync and no
-data-dependent branch; eagerly, large batches run in chunks of :data:`CHUNK` LPs and each LP
+data-dependent branch; eagerly, large batches run in chunks of `CHUNK` LPs and each LP
 stops once it is solved to ``tol`` (one host sync per iteration). The iterate ``lam`` is only a
 *candidate*: the reported bound is always ``phi(lam)`` evaluated by (*) plus an outward float64
 rounding margin, so it is a valid outer bound whatever the solver did (stopped early, met an
@@ -22,9 +22,9 @@ iterate, ``A_B' lam = g_B``) is kept.
 
 An empty set (``A xi = b`` infeasible in the box) has an unbounded dual: ``phi`` goes to
 ``-inf`` along a Farkas ray and the bounds cross (``upper < lower``), which is how emptiness is
-certified (:meth:`ConstrainedZonotope.is_empty`).
+certified (`ConstrainedZonotope.is_empty`).
 
-Gradients (:func:`support_value`): the value is ``phi(lam*)`` and its gradient the saddle-point
+Gradients (`support_value`): the value is ``phi(lam*)`` and its gradient the saddle-point
 envelope gradient of the Lagrangian ``L = d'c + g'xi* - lam*'(A xi* - b)`` at the solver's
 primal-dual pair (detached), i.e. ``dh/dc = d``, ``dh/dG = d xi*'``, ``dh/dA = -lam* xi*'``,
 ``dh/db = lam*`` -- the derivative of the LP value wherever its solution is unique.
@@ -55,7 +55,7 @@ __all__ = [
 #: random LPs up to 20 x 62 in 12 iterations (measured against HiGHS; tests in
 #: tests/test_constrained_zonotope.py).
 LP_ITERS = 15
-#: Early-stop tolerance of :func:`box_lp` (eager only; see there).
+#: Early-stop tolerance of `box_lp` (eager only; see there).
 LP_TOL = 1e-9
 #: Largest batch of LPs iterated at once in eager mode: larger batches are split into chunks
 #: of this many LPs (each stays in cache and stops early on its own; a CZSMF step at batch
@@ -76,7 +76,7 @@ def dual_bound(g: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
 
 
 def _rounding(g_abs: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
-    """Outward margin for the float64 evaluation of :func:`dual_bound` (detached)."""
+    """Outward margin for the float64 evaluation of `dual_bound` (detached)."""
     k, m = A.shape[-2], A.shape[-1]
     la = lam.abs()
     mag = (la * b.abs()).sum(-1) + g_abs.sum(-1) + (A.abs() * la.unsqueeze(-1)).sum((-2, -1))
@@ -85,10 +85,10 @@ def _rounding(g_abs: Tensor, A: Tensor, b: Tensor, lam: Tensor) -> Tensor:
 
 def _step_length(r: Tensor) -> Tensor:
     """``min(1, _TAU / r)`` for ``r = 1 / (largest feasible step)``, and 1 where no
-    component blocks the step (``r <= 0``, including ``-0.0``). Before stop 29 this was
+    component blocks the step (``r <= 0``, including ``-0.0``). An earlier version used
     ``(_TAU / r).clamp(max=1)``, which gave a *negative* step for ``r < 0`` (every ``dz_j``
     and ``dw_j`` positive, as in a corrector step) and ``-inf`` for ``r = -0.0``: the iterate
-    left the interior (measured: 2-7 of about 10^6 LP iterations of a CZSMF run on the seed
+    left the interior (measured: 2-7 of about 10^6 LP iterations of a CZSMF run on the built-in
     systems; the 1-D infeasible ``xi = 5`` was not certified empty). For ``r > 0`` both forms
     give the same bits (and NaN stays NaN), so only LPs that met ``r <= 0`` change: the audit
     probes kept their fingerprints (docs/constrained_zonotopes.md)."""
@@ -118,7 +118,7 @@ def _rowvec(y: Tensor, A: Tensor) -> Tensor:
 
 def _normal_matrix(AD: Tensor, As: Tensor) -> Tensor:
     """``A D A'`` ``[..., r, r]`` from ``AD = A D [..., r, m]`` and ``A [..., r, m]``: ``@``
-    eagerly, a fused multiply-and-sum while traced (as :func:`_rowvec`)."""
+    eagerly, a fused multiply-and-sum while traced (as `_rowvec`)."""
     return traced_matmul(AD, As.mT, max_inner=None)
 
 
@@ -156,7 +156,7 @@ def box_lp(
         iters: the most interior-point iterations (exactly ``iters`` while tracing).
         tol: early stop (eager only, one host sync per iteration), LP by LP: an LP stops
             once its relative duality gap and relative primal and dual residuals of the
-            scaled problem are below ``tol`` (:func:`_solved`); the others go on.
+            scaled problem are below ``tol`` (`_solved`); the others go on.
             ``None``: all ``iters`` for every LP. Never affects validity: the bound is
             always a certificate.
 
@@ -213,7 +213,7 @@ def _ipm(
     g: Tensor, Ac: Tensor, b: Tensor, As: Tensor, bs: Tensor, T: Tensor, iters: int,
     tol: float | None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The interior-point iterations of :func:`box_lp` on one (chunk of a) batch.
+    """The interior-point iterations of `box_lp` on one (chunk of a) batch.
 
     ``g [..., m]``, raw ``Ac [..., k, m]`` (contiguous) and ``b [..., k]`` (for the
     certificates); orthonormal rows ``As [..., r, m]``, ``bs [..., r]`` and the multiplier map
@@ -222,7 +222,7 @@ def _ipm(
     ``lam [..., k]`` and its ``phi [...]``.
 
     With ``tol`` (eager only): from iteration ``_FIRST_CHECK`` on, each LP whose scaled problem
-    is solved to ``tol`` (:func:`_solved`; one host sync per check) *retires*: its iterate and
+    is solved to ``tol`` (`_solved`; one host sync per check) *retires*: its iterate and
     best candidate are final and the later iterations run on the remaining LPs only (about
     three in four spring_damper LPs are solved by iteration 9, the others stall near 1e-7 and
     run to ``iters``; their certificate comes from ``best`` and the purified vertex).
@@ -429,10 +429,10 @@ def certify_feasible(L: Tensor, r: Tensor, atol: float, iters: int = LP_ITERS) -
     """Certified ``exists |xi|_inf <= 1 with max |L xi - r| <= atol`` -> bool ``[...]``.
 
     ``L [..., k, m]``, ``r [..., k]`` (same batch shape). The interior-point iterate of the
-    feasibility LP (:func:`box_lp`, all ``iters`` iterations: a feasibility LP has no gap to stop
-    on), then, eagerly, :func:`feasible_residual` on the LPs it left uncertified. True is a
+    feasibility LP (`box_lp`, all ``iters`` iterations: a feasibility LP has no gap to stop
+    on), then, eagerly, `feasible_residual` on the LPs it left uncertified. True is a
     certificate (the residual of a box point); False means "not certified". The membership
-    tests of :class:`ConstrainedZonotope` and :class:`Zonotope` (LP fallback) use it.
+    tests of `ConstrainedZonotope` and `Zonotope` (LP fallback) use it.
     """
     _, _, _, xi = box_lp(torch.zeros_like(L[..., 0, :]), L, r, iters, None)
     ok = _residual(L, r, xi) <= atol

@@ -104,9 +104,9 @@ class Ellipsoid(ConvexSet):
     def volume(self) -> Tensor:
         """``V_n sqrt(det S)`` with ``V_n`` the unit-ball volume -> ``batch_shape``.
 
-        Up to n = 2 from the closed-form determinant (:func:`diffsmf.linalg.det`; 0.4 ms
+        Up to n = 2 from the closed-form determinant (`diffsmf.linalg.det`; 0.4 ms
         instead of 12 ms for the Cholesky factors of 110,000 2 x 2 shapes, one thread: most of
-        an ellipsoidal filter's compiled ``forward`` after its loop, issue 11), equal to the
+        an ellipsoidal filter's compiled ``forward`` after its loop), equal to the
         Cholesky form to rounding, when every shape is positive definite (``S_11 > 0`` and
         ``det S > 0``); otherwise the Cholesky form, which raises for a shape that is not.
         While traced for ``torch.compile`` (no host check) such elements give NaN.
@@ -289,7 +289,7 @@ class Ellipsoid(ConvexSet):
         erratum.) ``method="trace"``: ``p = sqrt(tr S1 / tr S2)``; ``"volume"``: the root of
         ``sum_i 1/(lambda_i + 1/p) = n p^2 / (p + 1)`` (``lambda`` eigenvalues of
         ``S1^-1 S2``); or an explicit ``p > 0`` ``[...]``. An Interval / Zonotope /
-        Parallelotope operand is first covered by an ellipsoid (:meth:`from_zonotope`); a
+        Parallelotope operand is first covered by an ellipsoid (`from_zonotope`); a
         tensor is a translation.
         """
         if isinstance(other, Tensor):
@@ -330,8 +330,8 @@ class Ellipsoid(ConvexSet):
         ``rho (1 - rho) e' D^-1 e`` > 1, a concave function) returns the input unchanged.
 
         One output (``m = 1``, ``n > 1``) with ``method="volume"``: the family's
-        minimal-volume member in closed form (Fogel-Huang, :meth:`_one_output_update`) instead
-        of about 150 evaluations of the bracketing search (issue 11: two thirds of a compiled
+        minimal-volume member in closed form (Fogel-Huang, `_one_output_update`) instead
+        of about 150 evaluations of the bracketing search (two thirds of a compiled
         ESMF step), and emptiness decided exactly.
         """
         H = as_tensor("H", H, like=self.center_, min_dim=2)
@@ -366,7 +366,7 @@ class Ellipsoid(ConvexSet):
 
     def _one_output_update(self, fam: _MeasFamily) -> Ellipsoid:
         """The minimal-volume member of the eq. 36-39 family for one output (``m = 1``): the
-        Fogel-Huang closed-form rho (:func:`_fogel_huang_rho`; the family's log-volume is the
+        Fogel-Huang closed-form rho (`_fogel_huang_rho`; the family's log-volume is the
         strip's) capped at ``1 - 1e-6`` as the search is for ``m < n``, and the exact emptiness
         test ``|e| > sqrt(H P H') + sqrt(R)`` (the maximum over rho of
         ``rho (1 - rho) e^2 / D(rho)`` is ``e^2 / (sqrt(G) + sqrt(R))^2``)."""
@@ -441,7 +441,7 @@ class Ellipsoid(ConvexSet):
         1).
 
         The strip is first tightened to E's extent along ``a`` (same intersection). Emptiness
-        is decided exactly with :meth:`intersects_strip`; an empty intersection returns the
+        is decided exactly with `intersects_strip`; an empty intersection returns the
         input unchanged (never NaN). ``method="volume"`` uses the Fogel-Huang closed form (root
         of a quadratic in rho, differentiable); ``"trace"`` a 1-D search; ``"fixed"`` eq. 13.
         A strip containing E returns E (rho = 0).
@@ -485,7 +485,7 @@ class Ellipsoid(ConvexSet):
         ``rho`` weights E2 (``rho = 0`` gives E1, ``rho -> 1`` gives E2). Erratum: eq. 11's
         ``Psi`` must read ``1 - d' (P1/(1 - rho) + P2/rho)^-1 d`` (consistent with eq. 36), the
         printed ``P1/rho + P2/(1 - rho)`` is not an outer bound. Methods as in
-        :meth:`intersect_measurement`; an empty intersection returns ``self`` unchanged.
+        `intersect_measurement`; an empty intersection returns ``self`` unchanged.
         """
         if not isinstance(other, Ellipsoid):
             raise ValueError("other: expected an Ellipsoid")
@@ -565,7 +565,7 @@ def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
 
 
 def _vol_condition_dp(p: Tensor, lam: Tensor) -> Tensor:
-    """``dF/dp`` of :func:`_vol_condition` (positive)."""
+    """``dF/dp`` of `_vol_condition` (positive)."""
     q = (1.0 / p).unsqueeze(-1)
     return (((2 * q**3) * (lam + q) + (lam - q * q) * q * q) / (lam + q) ** 2).sum(-1)
 
@@ -704,7 +704,7 @@ class _MeasFamily:
         W = linalg.cholesky_solve(PHt, L)  # D^-1 H P
         KHP = rr * self.PH @ W
         core = self.P - KHP
-        # guarantee floor (added by the filters engineer): as rho -> 1 with H P H' >> R the
+        # guarantee floor: as rho -> 1 with H P H' >> R the
         # difference cancels (e.g. 6e4 - 6e4 -> 3e-8); its absolute rounding error is below
         # 16 (n + m) eps (||P||_F + ||K H P||_F), so that much is added on the diagonal.
         eps = torch.finfo(core.dtype).eps
@@ -731,11 +731,11 @@ class _MeasFamily:
         return xi / (1 - rho) * (trP - rho * (self.PH * W.mT).sum((-2, -1)))
 
 
-#: Points per stage and stages of the bracketing search :func:`_zoom`: each stage keeps 2 of
+#: Points per stage and stages of the bracketing search `_zoom`: each stage keeps 2 of
 #: ZOOM_POINTS - 1 intervals (a factor 1/4), 13 stages narrow the bracket to 4^-13 = 1.5e-8 of
 #: its width, below the 36-step golden-section search it replaced (0.618^36 = 2.9e-8), in 13
 #: vectorised evaluations instead of 36 sequential ones (a third of the graph under
-#: torch.compile; issue 11).
+#: torch.compile).
 ZOOM_POINTS = 9
 ZOOM_STAGES = 13
 
@@ -816,7 +816,7 @@ def _rho_derivatives(obj: Any, r: Tensor) -> tuple[Tensor, Tensor]:
     in forward-over-reverse mode (``torch.func.jvp`` of ``torch.func.grad`` of the sum, unit
     tangent: each element's objective depends on its own ``r`` only), differentiable w.r.t.
     what ``obj`` closes over.
-    The traceable twin of :func:`_minimize_rho`'s two ``autograd.grad`` calls (equal up to
+    The traceable twin of `_minimize_rho`'s two ``autograd.grad`` calls (equal up to
     rounding)."""
     from torch.func import grad, jvp
 
@@ -832,7 +832,7 @@ def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     erratum).
 
     ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` times ``1 + INFLATE`` (this module's rounding margin),
-    with p from :func:`minkowski_weight`
+    with p from `minkowski_weight`
     (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"volume"``: the erratum's root, differentiable).
     Unlike ``Ellipsoid.minkowski_sum`` the operands may be positive *semi*definite (degenerate
     or zero ellipsoids, e.g. ``Gamma D Gamma'`` or a collapsed mean set): ``S2 = 0`` gives

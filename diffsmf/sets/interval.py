@@ -1,17 +1,17 @@
 """Intervals: Moore interval arithmetic (Song et al. 2017, sec. 3) and the axis-aligned box set.
 
-An :class:`Interval` holds ``lower`` and ``upper`` tensors of one shape. It plays two roles:
+An `Interval` holds ``lower`` and ``upper`` tensors of one shape. It plays two roles:
 
 * an *array of intervals* of any shape (scalars, vectors, interval matrices ``[..., k, n]``)
   with outward-correct Moore arithmetic, tensor-like indexing/reshaping and a
   ``__torch_function__`` hook, so that a plain torch function evaluated on Intervals returns its
-  natural interval extension (:func:`interval_eval`);
+  natural interval extension (`interval_eval`);
 * the *box set* ``{x : lower <= x <= upper}`` in R^n (last dim ``n``, leading batch dims) with
-  every method of :class:`~diffsmf.sets.base.ConvexSet`.
+  every method of `ConvexSet`.
 
 Outward rounding (guarantee): after every arithmetic operation the lower bound is moved down and
 the upper bound up by at least ``k`` units in the last place, by the relative offset
-``2 k eps |x|`` (plus the smallest subnormal for all but sums; see :func:`_step`) -- a few
+``2 k eps |x|`` (plus the smallest subnormal for all but sums; see `_step`) -- a few
 elementwise ops, cheaper than ``torch.nextafter`` with inf guards (``k = 1`` for correctly
 rounded IEEE operations ``+ - * / sqrt``, ``k = 2`` for library transcendental functions
 ``exp log sin cos tanh atan sigmoid``, ``k = |p| + 1`` for ``x ** p`` computed by
@@ -264,7 +264,7 @@ class Interval(ConvexSet):
         return self.abs()
 
     def reciprocal(self) -> Interval:
-        """``1 / x``; see :func:`_div` for intervals containing 0."""
+        """``1 / x``; see `_div` for intervals containing 0."""
         return _recip(self)
 
     def abs(self) -> Interval:
@@ -452,7 +452,7 @@ class Interval(ConvexSet):
         return Ellipsoid(c, torch.diag_embed(q))
 
     def intersect(self, other: Interval) -> Interval:
-        """Elementwise intersection; may be empty (check :meth:`is_empty`), not validated."""
+        """Elementwise intersection; may be empty (check `is_empty`), not validated."""
         other = _as_interval(other, self)
         return Interval._make(
             torch.maximum(self.lower, other.lower), torch.minimum(self.upper, other.upper)

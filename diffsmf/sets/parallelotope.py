@@ -27,7 +27,7 @@ __all__ = ["Parallelotope"]
 
 _EPS = torch.finfo(torch.float64).eps
 TIE_RTOL = 1e-12
-"""Relative volume tolerance of the tie rule of :meth:`Parallelotope.intersect_strip`
+"""Relative volume tolerance of the tie rule of `Parallelotope.intersect_strip`
 (Wang et al. 2022, eq. 38-39): candidates within it of the least volume are tied."""
 
 
@@ -91,10 +91,10 @@ class Parallelotope(ConvexSet):
     def volume(self) -> Tensor:
         """``2^n |det T|`` -> ``[...]`` (Wang et al. 2022).
 
-        The determinant in closed form up to n = 3 (:func:`diffsmf.linalg.det`; equal to
+        The determinant in closed form up to n = 3 (`diffsmf.linalg.det`; equal to
         LAPACK's LU to rounding): 45x faster than ``torch.linalg.det`` on 110,000 2 x 2
         matrices (0.2 vs 9 ms, one thread), which was most of a compiled HSNSMF ``forward``'s
-        time after its loop (issue 11). Not used inside a filter step.
+        time after its loop. Not used inside a filter step.
         """
         return (2.0**self.dim) * linalg.det(self.T).abs()
 
@@ -243,7 +243,7 @@ class Parallelotope(ConvexSet):
         16 eps relative to the magnitudes involved, and a tightened edge never shrinks below
         1e-12 of its length (no singular T). The index choice is made without gradient.
         An empty intersection (eq. 31-32: ``eps0+ < -1`` or ``eps0- > 1``) returns the input
-        unchanged (never NaN); use :meth:`intersects_strip` to flag it.
+        unchanged (never NaN); use `intersects_strip` to flag it.
         """
         from diffsmf.sets.zonotope import _strip_batch, _strip_fields
 

@@ -3,7 +3,7 @@
 
 A strip is unbounded (for n >= 2): ``volume()`` returns ``inf``, ``sample`` raises, and the
 support function is ``inf`` except along +-normal. It subclasses
-:class:`~diffsmf.sets.base.ConvexSet` for the batch utilities (indexing, ``expand``, ``stack``,
+`ConvexSet` for the batch utilities (indexing, ``expand``, ``stack``,
 ``where``, ``to``, ``detach``).
 """
 

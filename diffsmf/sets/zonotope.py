@@ -99,14 +99,14 @@ def _angle_sorted(G: Tensor) -> Tensor:
 def _planar_area(G: Tensor) -> Tensor:
     """``sum_{i<j} |det [g_i, g_j]|`` for 2-D generators ``G [..., 2, m]`` -> ``[...]`` in
     ``O(m log m)``: with the generators angle-sorted in the upper half plane
-    (:func:`_angle_sorted`), every ``det [g_i, g_j]`` with ``i < j`` is ``>= 0``, so the sum is
+    (`_angle_sorted`), every ``det [g_i, g_j]`` with ``i < j`` is ``>= 0``, so the sum is
     ``sum_j (b_j A_j - a_j B_j)`` with the prefix sums ``A_j, B_j`` of rows a, b (inclusive:
     the ``i = j`` terms cancel).
 
     Absolute rounding error a few ``m eps (sum_j |g_j|)^2``, the order of the pair table's
-    (:func:`_planar_pair_area`, each ``a_i b_j - b_i a_j`` has error ``eps |g_i| |g_j|``);
+    (`_planar_pair_area`, each ``a_i b_j - b_i a_j`` has error ``eps |g_i| |g_j|``);
     clamped at 0. ``Zonotope.volume`` in 2-D: the pair table's ``m^2`` products were a
-    quarter of a compiled MSZM forward at B = 10,000 (issue 11). Same subgradient as the sum
+    quarter of a compiled MSZM forward at B = 10,000. Same subgradient as the sum
     of ``|det|`` (every term enters with its sign).
     """
     Gs = _angle_sorted(G)
@@ -114,26 +114,26 @@ def _planar_area(G: Tensor) -> Tensor:
     return (b * torch.cumsum(a, -1) - a * torch.cumsum(b, -1)).sum(-1).clamp_min(0.0)
 
 
-#: Up to this many generators a traced 2-D :meth:`Zonotope.volume` sums the pair table
-#: (:func:`_planar_pair_area`, which Inductor fuses into one loop without a sort); above, the
+#: Up to this many generators a traced 2-D `Zonotope.volume` sums the pair table
+#: (`_planar_pair_area`, which Inductor fuses into one loop without a sort); above, the
 #: ``O(m log m)`` sorted sum. Compiled with a dynamic batch, the filters' options, one thread:
 #: 51 ms for MSZM's 110,000 stacked sets (m = 24), against 65-80 ms for the eager sorted sum
-#: (issue 11); at m = 64 0.38 s against 0.47 s (random generators), with no table in memory.
+#: at m = 64 0.38 s against 0.47 s (random generators), with no table in memory.
 PAIR_TABLE_MAX_M = 64
 
-#: Entries of the pair table per chunk in :func:`_planar_pair_area` (2 MB: stays in cache).
+#: Entries of the pair table per chunk in `_planar_pair_area` (2 MB: stays in cache).
 _PAIR_TABLE_ELEMS = 262_144
 
 
 def _planar_pair_area(G: Tensor) -> Tensor:
     """``sum_{i<j} |det [g_i, g_j]|`` for 2-D generators ``G [..., 2, m]`` -> ``[...]``.
 
-    The same 2 x 2 determinants as :func:`_sum_abs_det` (``a_i b_j - b_i a_j``, rows a and b of
+    The same 2 x 2 determinants as `_sum_abs_det` (``a_i b_j - b_i a_j``, rows a and b of
     G), from the ``m x m`` table of all pairs instead of a gather over the C(m, 2) subsets:
     elementwise and vectorised, no index kernel. The table is antisymmetric and its diagonal
     is zero exactly in floating point, so half its absolute sum is the sum over i < j (up to
-    the summation order). Chunked over the batch (:data:`_PAIR_TABLE_ELEMS` table entries per
-    chunk); exact for every m, so no :data:`MAX_VOLUME_SUBSETS` cap is needed in 2-D.
+    the summation order). Chunked over the batch (`_PAIR_TABLE_ELEMS` table entries per
+    chunk); exact for every m, so no `MAX_VOLUME_SUBSETS` cap is needed in 2-D.
     """
     a, b = G[..., 0, :], G[..., 1, :]
     batch = G.shape[:-2]
@@ -275,7 +275,7 @@ class Zonotope(ConvexSet):
         return Interval(self._c - r, self._c + r)
 
     def to_interval(self) -> Interval:
-        """Same as :meth:`interval_hull`."""
+        """Same as `interval_hull`."""
         return self.interval_hull()
 
     def linear_map(self, A: Tensor, b: Tensor | None = None) -> Zonotope:
@@ -312,9 +312,9 @@ class Zonotope(ConvexSet):
         """Exact volume ``2^n sum_{|S|=n} |det G_S|`` (Gover & Krikorian) -> ``[...]``.
 
         Batched over the C(m, n) subsets (in 2-D from the angle-sorted generators,
-        :func:`_planar_area`, ``O(m log m)``, exact for every m; while traced for
-        ``torch.compile`` and up to :data:`PAIR_TABLE_MAX_M` generators from the fused pair
-        table, :func:`_planar_pair_area`, the same sum to rounding). If C(m, n) >
+        `_planar_area`, ``O(m log m)``, exact for every m; while traced for
+        ``torch.compile`` and up to `PAIR_TABLE_MAX_M` generators from the fused pair
+        table, `_planar_pair_area`, the same sum to rounding). If C(m, n) >
         ``MAX_VOLUME_SUBSETS`` (n >= 3) the result is an *upper bound*: min(volume of the
         interval hull, volume of ``to_parallelotope()``).
         Differentiable (|det| has a subgradient at singular subsets).
@@ -355,9 +355,9 @@ class Zonotope(ConvexSet):
         zonotope is spanned by n-1 generators). For rank-deficient zonotopes in n >= 3 D or
         more than ``MAX_VOLUME_SUBSETS`` facet candidates it falls back to the feasibility LP
         ``x - c = G xi``, ``|xi|_inf <= 1`` for the points no half-space found excludes:
-        batched in torch first (:func:`~diffsmf.sets.czono_lp.box_lp` and
-        :func:`~diffsmf.sets.czono_lp.feasible_residual`, as in
-        :meth:`ConstrainedZonotope.contains`), then scipy HiGHS per point for what torch left
+        batched in torch first (`box_lp` and
+        `feasible_residual`, as in
+        `ConstrainedZonotope.contains`), then scipy HiGHS per point for what torch left
         uncertified; either way True needs a box point whose residual ``|G xi - (x - c)|_inf``
         is at most ``atol`` (not differentiable). Tolerance: ``atol`` in distance units; with
         the LP, a point within about 1e-8 of the boundary may be refused.
@@ -388,7 +388,7 @@ class Zonotope(ConvexSet):
 
     def to_ellipsoid(self) -> Ellipsoid:
         """Covering ellipsoid of the outer parallelotope ``c + T[-1,1]^n``
-        (:meth:`Parallelotope.to_ellipsoid`: ``n T T'`` plus a 1e-10 relative ridge)."""
+        (`Parallelotope.to_ellipsoid`: ``n T T'`` plus a 1e-10 relative ridge)."""
         return self.to_parallelotope().to_ellipsoid()
 
     def vertices_2d(self) -> Tensor:
@@ -419,7 +419,7 @@ class Zonotope(ConvexSet):
           * ``"pca"``: same selection as Girard, the rest are boxed in the frame of their
             principal axes (left singular vectors U: ``U diag(sum |U' g|)``).
           * ``"chisci"`` (Chisci et al. 1996): the rest are replaced by their minimal-volume
-            outer parallelotope (:meth:`to_parallelotope` of the removed part).
+            outer parallelotope (`to_parallelotope` of the removed part).
         A zonotope already within the target order is returned unchanged.
         """
         n, m = self.dim, self.num_generators
@@ -473,7 +473,7 @@ class Zonotope(ConvexSet):
           lambda when C(m, n) or C(m, n-1) > ``MAX_VOLUME_SUBSETS``.
 
         If the strip contains Z, lambda = 0 (Z itself, padded). If ``Z cap S`` is empty
-        (:meth:`intersects_strip`) the input padded with a zero generator is returned.
+        (`intersects_strip`) the input padded with a zero generator is returned.
         """
         if method not in ("fradius", "volume"):
             raise ValueError(f"method: unknown strip method {method!r}")
@@ -554,12 +554,12 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
     """Chisci 1996 minimal-volume outer parallelotope ``T [..., n, n]`` of ``{G xi}``.
 
     Elements without a regular basis (rank-deficient G) get axis generators of size
-    1e-9 x max|G| appended (outward) and the basis of :func:`_fallback_basis` (the longest
+    1e-9 x max|G| appended (outward) and the basis of `_fallback_basis` (the longest
     generator and n - 1 of the axis generators); Chisci's ``T = B diag(sum_j |(B^-1 G)_ij|)``
     contains Z for *any* regular basis B, so this is an outer bound, not the smallest one. The
     other elements get zero columns (no change) and their best basis. One search over G's own
     bases, also while traced (where both branches are computed): a second search over the
-    augmented columns cost 15 instead of 6 bases per set at n = 2 (issue 11).
+    augmented columns cost 15 instead of 6 bases per set at n = 2.
     """
     n, m = G.shape[-2], G.shape[-1]
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
@@ -614,7 +614,7 @@ def _basis_T(G: Tensor, basis: Tensor) -> Tensor:
 
 
 def _max_bases(n: int) -> int:
-    """Bases tried per set: :data:`MAX_BASES` up to n = 8, then a budget falling as n^-3 (each
+    """Bases tried per set: `MAX_BASES` up to n = 8, then a budget falling as n^-3 (each
     basis costs an n x n solve against all generators), at least n + 1 (so the candidates
     always include the pivoted basis and one alternative)."""
     return MAX_BASES if n <= 8 else max(n + 1, MAX_BASES * 512 // n**3)
@@ -648,7 +648,7 @@ def _candidate_columns(G: Tensor, L: int) -> Tensor:
 
 
 def _bases(G: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-    """The candidate bases of :func:`_best_basis`: ``(Gc [..., n, L], idx [K, n], cols)``,
+    """The candidate bases of `_best_basis`: ``(Gc [..., n, L], idx [K, n], cols)``,
     the candidate columns, the index of each basis into them, and the candidates' indices into
     G (None when all ``m`` columns are candidates)."""
     n, m = G.shape[-2], G.shape[-1]
@@ -672,7 +672,7 @@ def _regular_bases(Gc: Tensor, sub: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
-    """Index ``[..., n]`` of the basis with least |det T| (ties within :data:`BASIS_TIE_RTOL`:
+    """Index ``[..., n]`` of the basis with least |det T| (ties within `BASIS_TIE_RTOL`:
     the first in lexicographic order) and a validity flag ``[...]``."""
     n, m = G.shape[-2], G.shape[-1]
     batch = G.shape[:-2]
@@ -710,7 +710,7 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _alamo_lambda(c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, method: str) -> Tensor:
-    """lambda ``[..., n]`` of the Alamo 2005 family (see :meth:`Zonotope.intersect_strip`)."""
+    """lambda ``[..., n]`` of the Alamo 2005 family (see `Zonotope.intersect_strip`)."""
     Gp = (G * p.unsqueeze(-1)).sum(-2)  # p'G [..., m]
     GGp = (G * Gp.unsqueeze(-2)).sum(-1)  # G G' p [..., n]
     denom = (Gp * Gp).sum(-1) + sig * sig
@@ -735,7 +735,7 @@ def _alamo_lambda(c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, metho
         )  # [..., K, n]: vol(lam) = 2^n (|1-p.lam| V0 + sig |q lam|_1)
         if m < n:
             V0 = Gd.new_zeros(Gd.shape[:-2])
-        elif n == 2:  # the same determinants from the pair table, no gather (issue 11)
+        elif n == 2:  # the same determinants from the pair table, no gather
             V0 = _planar_pair_area(Gd)
         else:
             V0 = _sum_abs_det(Gd, _combinations(m, n, G.device))
@@ -834,7 +834,7 @@ def _facet_directions(G: Tensor) -> tuple[Tensor, Tensor | None]:
 
 
 def _zonotope_contains(c: Tensor, G: Tensor, x: Tensor, atol: float) -> Tensor:
-    """Exact membership (see :meth:`Zonotope.contains`).
+    """Exact membership (see `Zonotope.contains`).
 
     The half-space normals are computed per set (chunked over the flattened set batch to bound
     memory), then every point is tested against its set's half-spaces.
@@ -877,7 +877,7 @@ LP_POINTS_PER_CHUNK = 1024
 def _torch_lp_contains(c: Tensor, G: Tensor, x: Tensor, idx: Tensor, atol: float) -> Tensor:
     """Certified ``x in c + G [-1, 1]^m`` (to ``atol``, max-norm) for the points ``idx [N, d]``
     of the batch -> bool ``[N]`` (False: not certified), by
-    :func:`~diffsmf.sets.czono_lp.certify_feasible` in chunks of ``LP_POINTS_PER_CHUNK``."""
+    `certify_feasible` in chunks of ``LP_POINTS_PER_CHUNK``."""
     out = [
         certify_feasible(G[ii], x[ii] - c[ii], atol)  # L [N, n, m], r [N, n]
         for ii in (tuple(idx[s : s + LP_POINTS_PER_CHUNK].T)

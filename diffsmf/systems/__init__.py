@@ -1,4 +1,4 @@
-"""Systems: :class:`System` and the built-in library (``get``, ``names``, ``register``)."""
+"""Systems: `System` and the built-in library (``get``, ``names``, ``register``)."""
 
 from __future__ import annotations
 
@@ -35,21 +35,21 @@ def names() -> list[str]:
 
 
 def get(name: str, **kwargs) -> System:
-    """A fresh instance of the built-in system ``name`` (see :func:`names`).
+    """A fresh instance of the built-in system ``name`` (see `names`).
 
     ``name`` may carry the size argument of a sized system as ``"NAME:N"``
     (``get("oscillator_chain:16")`` is ``get("oscillator_chain", n=16)``), the spelling of the
     command line (``diffsmf audit --system oscillator_chain:16``) and of the benchmarks.
 
     Raises:
-        ValueError: see :func:`check_name`.
+        ValueError: see `check_name`.
     """
     factory, size = _parse(name, kwargs)
     return factory(**kwargs) if size is None else factory(n=size, **kwargs)
 
 
 def check_name(name: str, option: str = "name", **kwargs) -> None:
-    """Raise the ``ValueError`` that :func:`get` would raise for ``name``, without building the
+    """Raise the ``ValueError`` that `get` would raise for ``name``, without building the
     system: an unknown name, a size that is not an integer >= 1, a size given twice
     (``"NAME:N"`` and ``n=``), or a size for a system without one. The message starts with
     ``option`` (a command line passes its option, e.g. ``"--system"``)."""

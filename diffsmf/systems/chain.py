@@ -1,7 +1,7 @@
 """An n-dimensional benchmark system: a chain of coupled nonlinear (Duffing) oscillators.
 
-Not from the seed papers: a scalable test bed for the filters at n = 2 ... 32 and beyond
-(issue 11: the seed systems have n <= 3). Registered as ``"oscillator_chain"``.
+Not from the papers: a scalable test bed for the filters at n = 2 ... 32 and beyond
+(the papers' systems have n <= 3). Registered as ``"oscillator_chain"``.
 """
 
 from __future__ import annotations
@@ -54,8 +54,13 @@ def oscillator_chain(
 
     Args:
         n: state dimension (even, >= 2).
-        dt, stiffness, coupling, cubic, damping: model constants (positive).
-        w, v: process / measurement noise half-widths (>= 0).
+        dt: time step (positive).
+        stiffness: linear spring constant (positive).
+        coupling: spring constant between neighbouring masses (positive).
+        cubic: hardening cubic spring constant (positive).
+        damping: damping constant (positive).
+        w: process noise half-width (>= 0).
+        v: measurement noise half-width (>= 0).
         x0_radius: half-width of the initial box (> 0).
         horizon: the simulation length used by examples and benchmarks.
     """

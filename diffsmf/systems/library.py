@@ -1,12 +1,12 @@
-"""Built-in systems of the seed papers (registered with :func:`diffsmf.systems.register`).
+"""Built-in systems of the implemented papers (registered with `diffsmf.systems.register`).
 
-Every factory returns a fresh :class:`~diffsmf.systems.System` and accepts keyword overrides
+Every factory returns a fresh `System` and accepts keyword overrides
 (step, noise bounds, ...). Each system also carries two plain attributes used by examples and
 tests: ``horizon`` (the simulation length used here; the papers' figures, or a stated choice
 where the paper gives none) and ``paper_x0`` (the paper's true initial state, or ``None``).
 The model functions use only ``x[..., i]`` indexing, ``torch.stack``, arithmetic and
-elementwise torch functions, so they also run on :class:`~diffsmf.sets.Interval` arguments
-(interval extensions) and on :class:`~diffsmf.linearize.Jet` (interval Hessians).
+elementwise torch functions, so they also run on `Interval` arguments
+(interval extensions) and on `Jet` (interval Hessians).
 """
 
 from __future__ import annotations

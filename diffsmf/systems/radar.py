@@ -9,17 +9,17 @@ a radar at the origin measuring range and bearing every ``T = 1 s``::
 with ``Q = diag(0.5^2, 0.5^2)``, ``D = diag(0.8^2, 0.8^2)``, ``R = diag(20^2, 0.01^2)``,
 ``E = diag(30^2, 0.015^2)`` and ``x0 = [200, 12, 200, 10]``.
 
-:class:`~diffsmf.systems.System` adds process noise of dimension n directly, so both parts are
+`System` adds process noise of dimension n directly, so both parts are
 expressed in state space: the Gaussian part as ``Gamma Q Gamma'`` (positive semidefinite, which
 ``process_cov`` allows) and the bounded part as the ellipsoid ``F(0, Gamma D Gamma' + eps I)``.
-``Gamma D Gamma'`` has rank 2; an :class:`~diffsmf.sets.Ellipsoid` needs a positive definite
+``Gamma D Gamma'`` has rank 2; an `Ellipsoid` needs a positive definite
 shape, so ``eps = 1e-9`` (a radius of 3e-5 m or m/s in the two degenerate directions) is added.
 This only enlarges the noise set (it contains ``Gamma F(0, D)``), so every guarantee still holds;
 ``simulate`` draws the bounded noise from the enlarged set.
 
 The paper does not give the initial set; we choose (stated in docs/combined.md)
 ``S0 = diag(20^2, 2^2, 20^2, 2^2)`` for the initial mean set ``F(x0, S0)`` and
-``P0 = diag(10^2, 1^2, 10^2, 1^2)`` for the initial covariance (:func:`radar_initial_cov`).
+``P0 = diag(10^2, 1^2, 10^2, 1^2)`` for the initial covariance (`radar_initial_cov`).
 """
 
 from __future__ import annotations

@@ -6,13 +6,13 @@ Model (the convention of every filter in diffsmf, docs/design.md)::
     y_k = h(x_k) + v_k (+ e_k),                                        v in V,  e ~ N(0, R)
     x_0 in X0
 
-``W``, ``V``, ``X0`` are any :mod:`diffsmf.sets` set; ``theta`` is an unknown parameter known
-only to lie in the :class:`~diffsmf.sets.Interval` ``parameters`` (nominal value: its midpoint).
+``W``, ``V``, ``X0`` are any `diffsmf.sets` set; ``theta`` is an unknown parameter known
+only to lie in the `Interval` ``parameters`` (nominal value: its midpoint).
 
 Inputs: a system with ``n_inputs = p > 0`` needs ``u [..., p]`` at every step. They come either
 from an ``inputs`` schedule (built-ins such as ``"bilinear"``, ``"vdp"``) or from the caller
 (logged data: ``System(..., n_inputs=p)``, then ``filt(y, u=U)`` / ``sys.simulate(..., u=U)``).
-:meth:`System.check_input` is the one validator every filter and ``simulate`` use.
+`System.check_input` is the one validator every filter and ``simulate`` use.
 """
 
 from __future__ import annotations
@@ -74,7 +74,8 @@ class System(nn.Module):
             whose inputs come from logged data: filters and ``simulate`` then require ``u``.
         theta_schedule: the true parameter used by ``simulate`` at step k (``k -> [q]``,
             or a tensor ``[T, q]``); default: the midpoint of ``parameters``.
-        process_cov, measurement_cov: optional Gaussian covariances Q ``[n, n]``, R ``[m, m]``.
+        process_cov: optional Gaussian process covariance Q ``[n, n]``.
+        measurement_cov: optional Gaussian measurement covariance R ``[m, m]``.
         name: a label for tables and figures.
     """
 
@@ -276,11 +277,11 @@ class System(nn.Module):
                 ``[B, q]``, or a tensor ``[T, q]`` / ``[B, T, q]``).
             x0: initial states ``[B, n]``; default drawn from ``x0_set`` like the noise.
             u: inputs ``[B, T, p]`` (``u[:, k]`` drives ``x_k -> x_{k+1}``), checked by
-                :meth:`check_input`; overrides the ``inputs`` schedule. Required when
+                `check_input`; overrides the ``inputs`` schedule. Required when
                 ``n_inputs > 0`` and the system has no schedule.
 
         Returns:
-            :class:`Trajectory` with ``x [B, T+1, n]``, ``y [B, T, m]``, ``u``, ``theta``.
+            `Trajectory` with ``x [B, T+1, n]``, ``y [B, T, m]``, ``u``, ``theta``.
         """
         if noise not in ("uniform", "vertex"):
             raise ValueError(f"noise: expected 'uniform' or 'vertex', got {noise!r}")
@@ -358,7 +359,7 @@ def _output_dim(h: Callable[[Tensor], Tensor], c: Tensor) -> int:
 def _check_model_call(name: str, fn: Callable[[Tensor], Tensor], x: Tensor, out: Tensor) -> None:
     """``fn(x)`` (``out``, ``[1, k]``) must be finite and differentiable by autograd at ``x``.
 
-    Every filter linearises ``f`` and ``h`` with autograd (:func:`~diffsmf.linearize.jacobian`),
+    Every filter linearises ``f`` and ``h`` with autograd (`jacobian`),
     so a model written with numpy, ``.item()`` or ``.tolist()`` fails there; say so once, when
     the system is built, naming the function.
     """
@@ -406,8 +407,8 @@ def _check_cov(name: str, cov: Tensor | None, dim: int) -> Tensor | None:
 
 
 def check_system(name: str, system: object) -> System:
-    """``system`` itself, or a ``ValueError`` naming ``name`` when it is not a :class:`System`
-    (a :class:`Trajectory` passed in its place, e.g. by swapped arguments, says so)."""
+    """``system`` itself, or a ``ValueError`` naming ``name`` when it is not a `System`
+    (a `Trajectory` passed in its place, e.g. by swapped arguments, says so)."""
     if not isinstance(system, System):
         hint = (" (a Trajectory: pass the System it comes from, and the trajectory where a "
                 "trajectory is asked for)") if isinstance(system, Trajectory) else ""

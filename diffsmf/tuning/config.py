@@ -28,7 +28,7 @@ class TuneConfig:
     ``tie``: ``noise`` (one shared scale for all noise bounds), ``none``, or ``auto`` (``noise``
     without ground truth, where the split between process and measurement noise is not
     identifiable, else ``none``); ``window``: steps per window of truncated
-    back-propagation (``tune(window=...)``, :mod:`diffsmf.tuning.windows`), 0 = the whole horizon;
+    back-propagation (``tune(window=...)``, `diffsmf.tuning.windows`), 0 = the whole horizon;
     ``compile``: tune through the compiled step (``tune(compile=True)``: a one-off compile,
     then 5-8x faster epochs, measured).
     """
@@ -68,7 +68,7 @@ class TuneConfig:
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
-    """Read a TOML file of :class:`TuneConfig` keys; unknown keys raise ``ValueError``."""
+    """Read a TOML file of `TuneConfig` keys; unknown keys raise ``ValueError``."""
     p = Path(path)
     if not p.exists():
         raise ValueError(f"config: no such file {str(p)!r}")

@@ -2,7 +2,7 @@
 
     report, filt = tune(filt, traj, epochs=200, batch_size=64, validation=0.25, seed=0)
 
-Runs data-parallel when ``torch.distributed`` is initialised (see :mod:`diffsmf.tuning.ddp`).
+Runs data-parallel when ``torch.distributed`` is initialised (see `diffsmf.tuning.ddp`).
 """
 
 from __future__ import annotations
@@ -61,11 +61,11 @@ class Data:
 
 @dataclass
 class TuneReport:
-    """What :func:`tune` did.
+    """What `tune` did.
 
     history: one dict per epoch (``epoch``, ``loss``, loss terms, ``val_*`` when validated);
     initial / final: hyperparameter values before and after (final = best validation epoch);
-    validation_before / validation_after: :func:`evaluate` metrics on the validation set;
+    validation_before / validation_after: `evaluate` metrics on the validation set;
     nonfinite_steps: optimiser steps skipped because a gradient was not finite.
     """
 
@@ -92,7 +92,7 @@ class TuneReport:
 
 # ---------------------------------------------------------------------------- helpers
 def as_data(trajectories: Any) -> Data:
-    """Accept a :class:`diffsmf.Trajectory` (or anything with ``y``/``x``/``u``) or a tensor y."""
+    """Accept a `diffsmf.Trajectory` (or anything with ``y``/``x``/``u``) or a tensor y."""
     if isinstance(trajectories, Data):
         return trajectories
     if isinstance(trajectories, Tensor):
@@ -113,7 +113,7 @@ def resolve_params(
     """Map hyperparameter names to the ``nn.Parameter`` to optimise.
 
     ``name`` selects ``raw_name`` (softplus-positive hyperparameters) or the parameter ``name``
-    itself; ``"all"`` selects every parameter. Names of :data:`KNOWN_PARAMS` (the default
+    itself; ``"all"`` selects every parameter. Names of `KNOWN_PARAMS` (the default
     trio, ``remainder_margin`` and ``minkowski_scale``) that the filter lacks are skipped
     (returned second); any other unknown name raises ``ValueError``. A softplus-positive
     hyperparameter whose scale is 0 everywhere (e.g. the default ``remainder_margin=0``)
@@ -339,7 +339,7 @@ def tune(
     """Tune ``filt``'s hyperparameters in place; returns ``(report, filt)``.
 
     Args:
-        trajectories: :class:`diffsmf.Trajectory` (``x`` may be ``None``: no ground truth).
+        trajectories: `diffsmf.Trajectory` (``x`` may be ``None``: no ground truth).
         params: hyperparameter names (``raw_<name>`` or parameter ``<name>``) or ``"all"``;
             besides the default trio the filters have ``remainder_margin`` (HSNSMF, MSZM,
             CDSMF, ESMF; start it from a positive value, a 0 margin stays 0) and
@@ -362,7 +362,7 @@ def tune(
             consistency loss should be used with ``tie="noise"``.
         window: ``None`` (default: back-propagate through the whole horizon) or a number of
             steps ``L``: truncated back-propagation with carried states
-            (:mod:`diffsmf.tuning.windows`): all ``ceil(T / L)`` windows of a mini-batch run side by
+            (`diffsmf.tuning.windows`): all ``ceil(T / L)`` windows of a mini-batch run side by
             side, ``L`` sequential steps per pass instead of ``T`` (about ``T / L`` times
             faster on a CPU). The gradient is truncated at window boundaries and the window
             start states lag one epoch; validation and the returned filter are exact.
@@ -372,7 +372,7 @@ def tune(
         compile: compile the filter's step first (``filt.compile()``, in place; a filter
             compiled before the call is used as it is): every pass of the loop, training and
             validation, then runs the compiled step together with the consistency excess
-            (:func:`~diffsmf.tuning.losses.filter_with_predictions`), with the same sets and
+            (`filter_with_predictions`), with the same sets and
             gradients as eagerly up to rounding. Pays a one-off compile per batch size and grad
             mode (about 1-3 minutes for HSNSMF on a 2-core CPU) and is then 5-8x faster per
             epoch (measured, docs/training.md). CZSMF tunes eagerly.

@@ -3,15 +3,15 @@
 Three terms, each a mean over trajectories and time steps so that weights do not depend on the
 batch size or horizon:
 
-* :func:`log_volume_loss` -- mean ``log vol(X_{k|k})`` of the posterior sets (the quantity to
+* `log_volume_loss` -- mean ``log vol(X_{k|k})`` of the posterior sets (the quantity to
   shrink; log so that steps with tiny and large sets count alike).
-* :func:`containment_loss` -- hinge on the normalised distance of the true state outside the
+* `containment_loss` -- hinge on the normalised distance of the true state outside the
   posterior set (needs ground truth ``x``).
-* :func:`consistency_loss` -- hinge on the normalised distance of each measurement outside the
+* `consistency_loss` -- hinge on the normalised distance of each measurement outside the
   *predicted output set* ``h(X_{k|k-1}) (+) V`` (no ground truth needed): a measurement outside
   it means the noise bounds are too small (the filter then reports ``consistent=False``).
 
-:func:`filter_with_predictions` runs a filter through its public online API
+`filter_with_predictions` runs a filter through its public online API
 (``initial_state``/``predict``/``update``/``collect``) and returns the result together with the
 consistency excess of every measurement, so all three losses come from one pass.
 """
@@ -63,7 +63,7 @@ class LossWeights:
     the hinges are means over all steps, so at equilibrium with the volume gradient only about
     0.1 % of the steps may sit in the penalised band (a weight of 100 let about 1 % of the
     training measurements go inconsistent in the toy test). ``margin=0.1``: a measurement
-    less than 0.1 noise units (:func:`consistency_excess`) inside the edge of the predicted
+    less than 0.1 noise units (`consistency_excess`) inside the edge of the predicted
     output set is already penalised, a safety buffer because outer-bounding filters detect
     inconsistency late (their predicted sets are larger than the true feasible sets).
     ``skip`` initial steps are left out of the volume term (the initial set is not tunable).
@@ -228,10 +228,10 @@ def filter_with_predictions(
 def _guarded_step(
     filt: SetFilter, state: FilterState, u: Tensor | None, yk: Tensor, guard_empty: bool
 ) -> tuple[FilterState, Tensor]:
-    """One step of :func:`filter_with_predictions` -> ``(state, excess [B, m])``.
+    """One step of `filter_with_predictions` -> ``(state, excess [B, m])``.
 
     Eagerly the guard runs only when some element needs it (one host sync); while tracing
-    (:meth:`SetFilter.compile`) it always runs, branch-free: for an element that is not
+    (`SetFilter.compile`) it always runs, branch-free: for an element that is not
     guarded it selects the unguarded update, so the values are the same bits either way.
     """
     pred = filt.predict(state, u)
@@ -303,7 +303,7 @@ def _output_centre(filt: SetFilter, predicted: ConvexSet) -> Tensor:
 
 
 def consistency_loss(excess: Tensor, margin: float = 0.1) -> Tensor:
-    """Mean hinge ``relu(excess + margin)`` over ``[B, T, m]`` (see :func:`consistency_excess`)."""
+    """Mean hinge ``relu(excess + margin)`` over ``[B, T, m]`` (see `consistency_excess`)."""
     return torch.relu(excess + margin).mean()
 
 

@@ -129,7 +129,7 @@ class WindowCache:
 
     def sync(self, glob: Tensor) -> None:
         """Under ``torch.distributed``: give every process the start states that each one
-        stored for its round-robin shard (:func:`diffsmf.tuning.ddp.shard`) of the global
+        stored for its round-robin shard (`diffsmf.tuning.ddp.shard`) of the global
         mini-batch ``glob``, so all processes keep the same cache (a no-op otherwise).
 
         Each row comes from exactly one process and the others add zeros, so the all-reduced
