@@ -51,3 +51,25 @@ def on_config(config: Any, **kwargs: Any) -> Any:
     for p in missing:
         chapters.append({_title(p): p.name})
     return config
+
+
+#: The marker on docs/writing_models.md replaced by the table of supported operations.
+OPS_MARKER = "<!-- supported-ops -->"
+
+
+def ops_table() -> str:
+    """Markdown table of the engine's rule registry, by category (cannot drift from the code)."""
+    import diffsmf.interval.capture  # noqa: F401 - registers the extension rule
+    from diffsmf.interval.rules import supported_ops
+
+    lines = ["| category | ATen operations with an inclusion rule |", "|---|---|"]
+    for cat, ops in supported_ops().items():
+        lines.append(f"| {cat} | " + ", ".join(f"`{o}`" for o in ops) + " |")
+    return "\n".join(lines)
+
+
+def on_page_markdown(markdown: str, **kwargs: Any) -> str:
+    """Fill the supported-operations table of the "Writing models" page from the registry."""
+    if OPS_MARKER in markdown:
+        return markdown.replace(OPS_MARKER, ops_table())
+    return markdown
