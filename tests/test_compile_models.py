@@ -81,11 +81,14 @@ def test_interval_and_jet_matmul_under_compile():
     A = torch.tensor([[1.0, 2.0], [-3.0, 0.5]], dtype=torch.float64)  # square: A @ x fits too
     lo = torch.tensor([[0.0, -1.0], [0.5, 0.2]], dtype=torch.float64)  # B = n = 2
 
+    def model(x):  # captured by the engine at its first (eager) call, before compiling
+        return (x * x) @ A
+
     def run(lo, hi):
         box = ds.Interval(lo, hi)
         right = interval_eval(lambda x: x @ A, box)
         left = interval_eval(lambda x: A @ x[0], box)
-        jet = jet_eval(lambda x: (x * x) @ A, box, order=2)
+        jet = jet_eval(model, box, order=2)
         return right.lower, right.upper, left.lower, jet.val.upper, jet.grad.lower
 
     eager = run(lo, lo + 0.25)

@@ -267,36 +267,69 @@ def capture(fn: Callable[..., Tensor], example: Sequence[Tensor], name: str) -> 
     return Program(gm, name)
 
 
+class _Slot:
+    """A reference to the value of an earlier node (a slot of the evaluation list)."""
+
+    __slots__ = ("i",)
+
+    def __init__(self, i: int) -> None:
+        self.i = i
+
+
+def _template(a: Any, slot: dict) -> Any:
+    """Node arguments with every fx Node replaced by its :class:`_Slot` (so that evaluation
+    touches no fx object: it traces under torch.compile)."""
+    if isinstance(a, torch.fx.Node):
+        return _Slot(slot[a])
+    if isinstance(a, (list, tuple)):
+        return type(a)(_template(b, slot) for b in a)
+    return a
+
+
+def _fill(a: Any, env: list) -> Any:
+    if isinstance(a, _Slot):
+        return env[a.i]
+    if isinstance(a, (list, tuple)):
+        return type(a)(_fill(b, env) for b in a)
+    return a
+
+
 class Program:
     """A captured model graph, evaluated on enclosures by the per-op rules."""
 
     def __init__(self, gm: torch.fx.GraphModule, name: str) -> None:
         self.name = name
-        self.gm = gm
-        self.placeholders: list[torch.fx.Node] = []
-        self.steps: list[tuple[torch.fx.Node, Callable, Ctx]] = []
-        self.consts: dict[torch.fx.Node, Any] = {}
         self.ops: list[str] = []
+        self._slot: dict[torch.fx.Node, int] = {}
+        self._init: list[Any] = []  # constants, None for computed slots
+        self._inputs: list[int] = []
+        #: (slot, rule, ctx, args template, kwargs template)
+        self.steps: list[tuple[int, Callable, Ctx, Any, dict]] = []
         const: set[torch.fx.Node] = set()
         for node in gm.graph.nodes:
             if node.op == "placeholder":
-                self.placeholders.append(node)
+                self._inputs.append(self._new(node, None))
             elif node.op == "get_attr":
-                self.consts[node] = getattr(gm, node.target)
-                t = self.consts[node]
+                t = getattr(gm, node.target)
+                self._new(node, t)
                 if not (isinstance(t, Tensor) and t.requires_grad):
                     const.add(node)
             elif node.op == "call_function":
                 self._add(node, const)
             elif node.op == "output":
-                self.output = node.args[0]
-        self.out_rank = _rank(self.output)
+                self._output = _template(node.args[0], self._slot)
+                self.out_rank = _rank(node.args[0])
+        del self._slot
+
+    def _new(self, node: torch.fx.Node, value: Any) -> int:
+        self._slot[node] = len(self._init)
+        self._init.append(value)
+        return self._slot[node]
 
     def _add(self, node: torch.fx.Node, const: set) -> None:
-        deps = [a for a in node.all_input_nodes]
-        is_const = all(d in const for d in deps)
+        is_const = all(d in const for d in node.all_input_nodes)
         if node.target is operator.getitem:
-            rule: Callable = lambda ctx, seq, i: seq[i]  # noqa: E731
+            rule: Callable = _getitem
             ctx = Ctx((None,), 0, "getitem")
         else:
             packet = getattr(node.target, "overloadpacket", node.target)
@@ -317,39 +350,33 @@ class Program:
             ranks = tuple(_rank(a) if isinstance(a, torch.fx.Node) else None for a in node.args)
             shapes = tuple(_shape(a) for a in node.args)
             ctx = Ctx(ranks, _rank(node), opname, shapes)
+        args = _template(node.args, self._slot)
+        kwargs = {k: _template(v, self._slot) for k, v in node.kwargs.items()}
         if is_const:  # constant subgraph: evaluate once now
-            args, kwargs = self._resolve(node.args, node.kwargs, self.consts)
             try:
-                self.consts[node] = node.target(*args, **kwargs)
+                value = node.target(*_fill(args, self._init), **_fill(kwargs, self._init))
+                self._new(node, value)
                 const.add(node)
                 return
             except Exception:  # noqa: BLE001 - evaluate it per call instead
                 pass
-        self.steps.append((node, rule, ctx))
-
-    @staticmethod
-    def _resolve(args: Any, kwargs: dict, env: dict) -> tuple[Any, dict]:
-        def r(a: Any) -> Any:
-            if isinstance(a, torch.fx.Node):
-                return env[a]
-            if isinstance(a, (list, tuple)):
-                return type(a)(r(b) for b in a)
-            return a
-
-        return r(args), {k: r(v) for k, v in kwargs.items()}
+        self.steps.append((self._new(node, None), rule, ctx, args, kwargs))
 
     def run(self, inputs: Sequence[Any]) -> Any:
         """Evaluate on ``inputs`` (one per placeholder: a Jet, a Tensor, in capture order)."""
-        env: dict[torch.fx.Node, Any] = dict(self.consts)
-        for node, value in zip(self.placeholders, inputs, strict=True):
-            env[node] = value
-        for node, rule, ctx in self.steps:
-            args, kwargs = self._resolve(node.args, node.kwargs, env)
-            env[node] = rule(ctx, *args, **kwargs)
-        out = env[self.output] if isinstance(self.output, torch.fx.Node) else self.output
+        env = list(self._init)
+        for i, value in zip(self._inputs, inputs, strict=True):
+            env[i] = value
+        for slot, rule, ctx, args, kwargs in self.steps:
+            env[slot] = rule(ctx, *_fill(args, env), **_fill(kwargs, env))
+        out = _fill(self._output, env)
         if isinstance(out, BoolBox):
             raise EngineError(f"{self.name}: the model returns a comparison")
         return out
+
+
+def _getitem(ctx: Ctx, seq: Any, i: int) -> Any:
+    return seq[i]
 
 
 def _no_rule(ctx: Ctx, *args: Any, **kwargs: Any) -> Any:

@@ -14,15 +14,35 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from diffsmf.interval.capture import EngineError, Program, capture, seed, to_trailing
 from diffsmf.interval.jet import Jet, point
 from diffsmf.sets.interval import Interval
 
-__all__ = ["Enclosure", "StepModel", "enclose", "enclose_dynamics", "program_for"]
+__all__ = ["Enclosure", "StepModel", "enclose", "enclose_dynamics", "program_for",
+           "register_row_model"]
 
 _PROGRAMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def register_row_model(fn: Callable[..., Tensor]) -> None:
+    """Declare ``fn(x [..., n]) -> [..., k]`` batch-elementwise (no batched closures): one
+    program, captured on a batch row, then serves every batch shape."""
+    if _is_row_model(fn):
+        return
+
+    def call(x: Tensor, u: Tensor | None = None, theta: Tensor | None = None) -> Tensor:
+        return fn(x)
+
+    call.__name__ = getattr(fn, "__name__", "h")
+    try:
+        if isinstance(fn, nn.Module):
+            object.__setattr__(fn, "_diffsmf_row_call", call)
+        else:
+            fn._diffsmf_row_call = call  # type: ignore[attr-defined]
+    except (AttributeError, TypeError):  # cannot carry it: the shape-specific path is taken
+        pass
 _BY_ID: dict[tuple, Program] = {}
 
 
@@ -82,10 +102,12 @@ class StepModel:
         theta: parameter ``[..., q]`` or ``None``.
     """
 
-    def __init__(self, f: Callable[..., Tensor], u: Tensor | None, theta: Tensor | None) -> None:
+    def __init__(self, f: Callable[..., Tensor], u: Tensor | None, theta: Tensor | None,
+                 name: str = "f") -> None:
         self.f = f
         self.u = u
         self.theta = theta
+        self.name = name
 
     def __call__(self, x: Tensor) -> Tensor:
         return self.f(x, self.u, self.theta)
@@ -106,7 +128,7 @@ class StepModel:
             return self.f(x_, u_, th_)
 
         ex = [x] + [t for t in (u_ex, th_ex) if t is not None]
-        return program_for(self.f, g, ex, "f", key=has)
+        return program_for(self.f, g, ex, self.name, key=has)
 
 
 def program_for(owner: Any, fn: Callable[..., Tensor], example: list[Tensor], name: str,
@@ -114,10 +136,7 @@ def program_for(owner: Any, fn: Callable[..., Tensor], example: list[Tensor], na
     """The program of ``fn`` captured on ``example`` (cached on ``owner`` and ``key``)."""
     shapes = tuple((tuple(e.shape), e.dtype, e.device.type) for e in example)
     k = (key, shapes)
-    try:
-        cache = _PROGRAMS.setdefault(owner, {})
-    except TypeError:  # not weak-referenceable
-        cache = _BY_ID.setdefault((id(owner),), {})  # type: ignore[assignment]
+    cache = _cache_of(owner)
     prog = cache.get(k)
     if prog is None:
         prog = capture(fn, example, name)
@@ -147,6 +166,8 @@ def enclose(fn: Callable[..., Tensor], box: Interval, order: int = 2,
         x = Interval._make(lo.unsqueeze(-2), box.upper.unsqueeze(-2))
         out = prog.run([seed(x, order, n, 0), *[t.unsqueeze(-2) for t in fn.points()]])
         return Enclosure(to_trailing(out, order, lo, n, row=True))
+    if _is_row_model(fn):
+        return enclose(StepModel(_RowCall(fn), None, None, name), box, order, name)
     # any function (it may close over batched tensors): captured at this box's shape
     prog = program_for(fn, fn, [torch.zeros_like(lo)], getattr(fn, "__name__", name))
     if prog.out_rank < 1:
@@ -178,3 +199,31 @@ def enclose_dynamics(
     inputs.append(seed(th, order, n + q, n))
     out = prog.run(inputs)
     return Enclosure(to_trailing(out, order, lo, n + q, row=True))
+
+
+def _cache_of(owner: Any) -> dict:
+    """The program cache of ``owner``, an attribute of the object itself where possible (a
+    lookup torch.compile traces without guards on a global weak dictionary)."""
+    cache = getattr(owner, "_diffsmf_programs", None)
+    if cache is not None:
+        return cache
+    cache = {}
+    try:
+        object.__setattr__(owner, "_diffsmf_programs", cache) if isinstance(owner, nn.Module) \
+            else setattr(owner, "_diffsmf_programs", cache)
+        return cache
+    except (AttributeError, TypeError):
+        pass
+    try:
+        return _PROGRAMS.setdefault(owner, cache)
+    except TypeError:  # not weak-referenceable
+        return _BY_ID.setdefault((id(owner),), cache)
+
+
+def _is_row_model(fn: Any) -> bool:
+    return getattr(fn, "_diffsmf_row_call", None) is not None
+
+
+def _RowCall(fn: Callable[..., Tensor]) -> Callable[..., Tensor]:  # noqa: N802 - a factory
+    """``fn(x)`` as ``f(x, u, theta)``, one stable object per ``fn`` (its program's owner)."""
+    return fn._diffsmf_row_call  # type: ignore[attr-defined]

@@ -203,12 +203,19 @@ def _lower_order(
     state that may jump), zeroth order: ``r in [f](box) - f(c) - J (S - c)``.
     """
     d = box.__sub__(c)
-    Jref = jet.grad if J is None else J
-    R1 = (jet.grad.__sub__(Jref) * d.unsqueeze(-2)).sum(-1)
+    # infinite Jacobian bounds are masked out of the products and put back in the result, so
+    # that no 0 * inf reaches the gradients of the other batch elements
+    finite = torch.isfinite(jet.grad.lower) & torch.isfinite(jet.grad.upper)
+    zero = torch.zeros_like(jet.grad.lower)
+    G = Interval._make(torch.where(finite, jet.grad.lower, zero),
+                       torch.where(finite, jet.grad.upper, zero))
+    R1 = (G.__sub__(G if J is None else J) * d.unsqueeze(-2)).sum(-1)
+    rows = finite.all(-1)
+    inf = torch.full_like(R1.lower, torch.inf)
+    R1 = Interval._make(torch.where(rows, R1.lower, -inf), torch.where(rows, R1.upper, inf))
     mag = d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2)
     scale = _abs_max(jet.val) + (0.0 if J is None else (J.abs() * mag).sum(-1).detach())
     R = R.intersect(_padded(R1.lower, R1.upper, scale))
-    finite = torch.isfinite(jet.grad.lower) & torch.isfinite(jet.grad.upper)
     if not tracing() and bool(finite.all()):
         return R
     Jc = jacobian(fn, c) if J is None else J
@@ -483,14 +490,10 @@ def mean_value_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = Non
     c, J = _check(S, c, J)
     box = _hull_with(S, c)
     jet = jet_eval(fn, box, order=1)
-    Jint = jet.grad  # [..., k, n]
     if J is None:
         J = jacobian(fn, c)
-    d = box.__sub__(c)  # [..., n] (outward rounded; the method call traces under Dynamo)
-    R = (Jint.__sub__(J) * d.unsqueeze(-2)).sum(-1)
-    mag = d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2)
-    scale = _abs_max(jet.val) + (J.abs() * mag).sum(-1).detach()
-    return _lower_order(fn, jet, box, S, c, J, _padded(R.lower, R.upper, scale))
+    inf = torch.full_like(jet.val.lower, torch.inf)
+    return _lower_order(fn, jet, box, S, c, J, Interval._make(-inf, inf))  # the first-order bound
 
 
 #: Remainder bounds selectable by name in the filters (``remainder=...``).

@@ -167,7 +167,8 @@ class System(nn.Module):
         """Capture ``f`` and ``h`` with the guarantee engine now, so that a model it cannot
         enclose (an op without a rule, a Python branch on the state, a cast) is reported when
         the system is built, naming the function; and require float64."""
-        from diffsmf.interval.engine import StepModel, program_for
+        from diffsmf.interval.engine import StepModel, enclose, register_row_model
+        from diffsmf.sets.interval import Interval
 
         x = self.x0_set.center.detach().unsqueeze(0)
         u = None if self.n_inputs == 0 else torch.zeros(1, self.n_inputs, dtype=x.dtype)
@@ -177,7 +178,8 @@ class System(nn.Module):
                         self.f(x, u, th))
             check_dtype("h", self.h, self.h(x))
         StepModel(self.f, u, th).program(x)
-        program_for(self.h, self.h, [torch.zeros_like(x)], "h")
+        register_row_model(self.h)
+        enclose(self.h, Interval(x, x), 0, "h")
 
     @property
     def theta_nominal(self) -> Tensor | None:
