@@ -101,11 +101,19 @@ def test_branch_on_the_state_encloses_values_and_gives_no_derivative():
     assert torch.isfinite(E.grad.upper[1]).all() and E.val.lower[1, 0] >= 0.04 - 1e-12
 
 
-def test_domain_exit_is_nan_only_for_that_element():
+def test_domain_boundary_encloses_the_part_inside_and_poles_are_nan():
+    """sqrt / asin of a box reaching outside their domain enclose the part inside it (the true
+    states lie there), with no derivative at the boundary; log reaches -inf there; a box
+    across a pole of tan is NaN, for that element only."""
     lo = torch.tensor([[-0.1, 1.0], [0.5, 1.0]])
-    E = enclose(lambda x: torch.sqrt(x) + torch.asin(0.5 * x), Interval(lo, lo + 0.5), 2)
-    assert torch.isnan(E.val.lower[0, 0])
+    box = Interval(lo, lo + 0.5)
+    E = enclose(lambda x: torch.sqrt(x) + torch.asin(0.5 * x), box, 2)
+    assert float(E.val.lower[0, 0]) <= 0.0 and math.isfinite(float(E.val.upper[0, 0]))
+    assert torch.isinf(E.grad.upper[0, 0]).any()
     assert torch.isfinite(E.val.lower[1]).all() and torch.isfinite(E.hess.lower[1]).all()
+    assert float(enclose(torch.log, box, 0).val.lower[0, 0]) == -math.inf
+    T = enclose(torch.tan, Interval(torch.tensor([[1.4], [0.0]]), torch.tensor([[1.7], [0.2]])), 2)
+    assert torch.isnan(T.val.lower[0]).all() and torch.isfinite(T.val.lower[1]).all()
 
 
 def test_user_inclusion_rule_is_used_as_a_leaf():

@@ -28,7 +28,6 @@ from diffsmf.utils import (
     Positive,
     StrictlyPositive,
     check_strictly_positive,
-    fix_dynamo_matmul,
     register_positive,
     retain_freed_memory,
     tracing,
@@ -849,7 +848,7 @@ class SetFilter(nn.Module):
         return y
 
     def compile(  # type: ignore[override]
-        self, steps_per_call: int = 1, *, retain_memory: bool = True, **compile_kwargs: Any
+        self, steps_per_call: int = 1, *, retain_memory: bool = False, **compile_kwargs: Any
     ) -> SetFilter:
         """The fast path: compile one filter step with ``torch.compile(fullgraph=True)``.
 
@@ -872,11 +871,12 @@ class SetFilter(nn.Module):
                 shorter than ``K`` runs the same graph on the last ``y`` / ``u`` repeated and
                 its extra states are dropped (steps are causal: the kept states are
                 unchanged). The online `step` always uses the one-step graph.
-            retain_memory: call `diffsmf.utils.retain_freed_memory` (glibc): the
+            retain_memory: opt in to `diffsmf.utils.retain_freed_memory` (glibc): the
                 process keeps freed memory for reuse instead of page-faulting the step's
                 buffers in again on every call (HSNSMF at B = 10,000: 10.5 % of the step was
-                the kernel zeroing pages; a process-wide setting, as
-                ``MALLOC_TRIM_THRESHOLD_`` would be).
+                the kernel zeroing pages). Off by default: it is a process-wide setting, as
+                ``MALLOC_TRIM_THRESHOLD_`` would be, and ``compile()`` changes no
+                process-wide state unless asked.
             compile_kwargs: passed to `torch.compile` (default ``fullgraph=True,
                 dynamic=False`` and, for Inductor, ``options=COMPILE_OPTIONS``: no SIMD
                 vectorisation of the generated C++ kernels, which halves the compile time
@@ -894,7 +894,6 @@ class SetFilter(nn.Module):
             raise ValueError(f"steps_per_call: must be an integer >= 1, got {steps_per_call!r}")
         if retain_memory:
             retain_freed_memory()
-        fix_dynamo_matmul()  # `x @ A` on jets / intervals in the traced model (torch 2.13 bug)
         kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
         self._direct_options = None  # streaming() calls Inductor's graphs directly
         if kw.get("backend", "inductor") == "inductor" and "mode" not in kw:

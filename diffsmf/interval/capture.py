@@ -205,7 +205,7 @@ def _leaf_rule(ctx: Ctx, x: Any, key: int) -> Any:
     if x.order >= 1 and x.grad is not None:
         J = Interval._make(jlo.unsqueeze(0), jhi.unsqueeze(0))  # [1, ..., k, d]
         g = Interval._make(x.grad.lower.unsqueeze(-1), x.grad.upper.unsqueeze(-1))
-        grad = J @ g  # [n, ..., k, 1]
+        grad = J.__matmul__(g)  # [n, ..., k, 1]
         grad = Interval._make(grad.lower.squeeze(-1), grad.upper.squeeze(-1))
     if x.order >= 2 and grad is not None:
         # affine over the box where the Jacobian enclosure is a point (one linear piece)

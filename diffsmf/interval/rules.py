@@ -9,9 +9,12 @@ tangent dims of gradients and Hessians); a rule applies the op's shape and dim a
 the *trailing* dims only, so one rule serves values, gradients and Hessians alike. ``ctx`` gives
 the captured rank of each argument and of the result.
 
-Rules never raise for numerical reasons: where an argument leaves an op's domain (``sqrt`` or
-``log`` of a box reaching below 0, ``asin`` outside ``[-1, 1]``, a pole of ``tan``) the
-enclosure of that element is NaN, which the filters flag as a domain event for that trajectory.
+Rules never raise for numerical reasons. Where a box reaches outside an op's domain (``sqrt``,
+``log`` or a real power of a box reaching below 0, ``asin`` outside ``[-1, 1]``), only its part
+inside the domain is enclosed: the true states lie there (the model is evaluated on them). The
+value of ``log`` at 0 is then ``-inf`` (the filters flag the trajectory's set as unbounded).
+Where no such bound exists (a box across a pole of ``tan``) the enclosure of that element is
+NaN, which the filters flag as a domain event for that trajectory.
 
 Register a rule for a further op with :func:`register` (see the "Writing models" docs page).
 """
@@ -461,17 +464,21 @@ def _pow_scalar(a: Jet, pv: float) -> Jet:
     if pv == 2:
         return mul(a, a)
     x = a.val
-    integer = pv == int(pv)
-    bad = None
-    if not integer:  # real power: defined for x >= 0 (x > 0 for negative p and derivatives)
-        bad = x.lower < 0 if pv > 1 and pv >= 2 else x.lower <= 0 if pv < 1 else x.lower < 0
+    if pv != int(pv):  # a real power is defined for x >= 0: its part of the box (see _domain)
         x = Interval._make(x.lower.clamp_min(0.0), x.upper.clamp_min(0.0))
-    v = x**pv
-    d1 = x ** (pv - 1) * pv if a.order >= 1 else None
-    d2 = x ** (pv - 2) * (pv * (pv - 1)) if a.order >= 2 and pv != 2 else None
-    if a.order >= 2 and integer and pv == 1:
-        d2 = None
-    return _nan_where(chain(a, v, d1, d2), bad)
+    v = _rpow(x, pv)
+    d1 = _rpow(x, pv - 1) * pv if a.order >= 1 else None
+    d2 = _rpow(x, pv - 2) * (pv * (pv - 1)) if a.order >= 2 else None
+    return chain(a, v, d1, d2)
+
+
+def _rpow(x: Interval, q: float) -> Interval:
+    """``x ** q``; a negative real ``q`` as ``1 / x ** -q`` (``inf`` at 0, never an error)."""
+    if q == 0:
+        return point(torch.ones_like(x.lower))
+    if q < 0 and q != int(q):
+        return (x ** (-q)).reciprocal()
+    return x**q
 
 
 # ----------------------------------------------------------------------------- elementwise
@@ -494,7 +501,12 @@ def _exp_j(a: Jet) -> Jet:
 
 
 def _domain(a: Jet, low: float, strict: bool) -> tuple[Interval, Tensor]:
-    """The argument clamped into ``[low, inf)`` and the mask of elements that left it."""
+    """The argument clamped into ``[low, inf)`` and the mask of elements that left it.
+
+    Clamping is sound: the true states are in the model's domain (the model is evaluated on
+    them), so only the part of the set inside it must be enclosed; the function is enclosed by
+    its continuous extension ``phi(max(x, low))``, whose derivative enclosure is unbounded where
+    ``phi'`` is at ``low`` (sqrt, asin), and the filters then use a bound of lower order."""
     lo = a.val.lower
     bad = (lo <= low) if strict else (lo < low)
     cl = Interval._make(lo.clamp_min(low), a.val.upper.clamp_min(low))
@@ -504,13 +516,13 @@ def _domain(a: Jet, low: float, strict: bool) -> tuple[Interval, Tensor]:
 def _log_j(a: Jet) -> Jet:
     x, bad = _domain(a, 0.0, strict=False)
     r = x.reciprocal()
-    return _nan_where(chain(a, x.log(), r, -r.square()), bad)
+    return chain(a, x.log(), r, -r.square())
 
 
 def _log1p_j(a: Jet) -> Jet:
     x, bad = _domain(a, -1.0, strict=False)
     r = (x + 1.0).reciprocal()
-    return _nan_where(chain(a, x.log1p(), r, -r.square()), bad)
+    return chain(a, x.log1p(), r, -r.square())
 
 
 def _sqrt_j(a: Jet) -> Jet:
@@ -518,7 +530,7 @@ def _sqrt_j(a: Jet) -> Jet:
     v = x.sqrt()
     d1 = v.reciprocal() * 0.5 if _o(a, 1) else None
     d2 = -(d1 * x.reciprocal()) * 0.5 if _o(a, 2) else None
-    return _nan_where(chain(a, v, d1, d2), bad)
+    return chain(a, v, d1, d2)
 
 
 def _rsqrt_j(a: Jet) -> Jet:
@@ -527,7 +539,7 @@ def _rsqrt_j(a: Jet) -> Jet:
     r = x.reciprocal()
     d1 = v * r * (-0.5) if _o(a, 1) else None
     d2 = v * r.square() * 0.75 if _o(a, 2) else None
-    return _nan_where(chain(a, v, d1, d2), bad)
+    return chain(a, v, d1, d2)
 
 
 def _expm1_j(a: Jet) -> Jet:
@@ -560,7 +572,7 @@ def _tan_j(a: Jet) -> Jet:
 
 def _asin_like(a: Jet, fn: Callable[[Tensor], Tensor], sign: float) -> Jet:
     lo, hi = a.val.lower, a.val.upper
-    bad = (lo < -1.0) | (hi > 1.0)
+    (lo < -1.0) | (hi > 1.0)
     x = Interval._make(lo.clamp(-1.0, 1.0), hi.clamp(-1.0, 1.0))
     f_lo, f_hi = fn(x.lower), fn(x.upper)
     v = Interval._make(down(torch.minimum(f_lo, f_hi), 4), up(torch.maximum(f_lo, f_hi), 4))
@@ -569,7 +581,7 @@ def _asin_like(a: Jet, fn: Callable[[Tensor], Tensor], sign: float) -> Jet:
     r = q.sqrt().reciprocal()  # 1 / sqrt(1 - x^2), inf at +-1
     d1 = r * sign if _o(a, 1) else None
     d2 = x * r * q.reciprocal() * sign if _o(a, 2) else None
-    return _nan_where(chain(a, v, d1, d2), bad)
+    return chain(a, v, d1, d2)
 
 
 def _atan_j(a: Jet) -> Jet:
@@ -1025,19 +1037,19 @@ def _matmul_jets(a: Any, b: Any) -> Any:
         mm = lambda t: _iv_matmul(t, A, right=False)  # noqa: E731
         return b.like(mm(b.val), move_iv(b.grad, mm), move_iv(b.hess, mm))
     # both depend on x: product rule with interval matrix products
-    grad = hadd(None if a.grad is None else a.grad @ _t(b.val, 1),
-                None if b.grad is None else _t(a.val, 1) @ b.grad)
+    grad = hadd(None if a.grad is None else a.grad.__matmul__(_t(b.val, 1)),
+                None if b.grad is None else _t(a.val, 1).__matmul__(b.grad))
     hess = None
     if a.order >= 2:
         cross = None
         if a.grad is not None and b.grad is not None:
             ga = Interval._make(a.grad.lower.unsqueeze(1), a.grad.upper.unsqueeze(1))
             gb = Interval._make(b.grad.lower.unsqueeze(0), b.grad.upper.unsqueeze(0))
-            o = ga @ gb
+            o = ga.__matmul__(gb)
             cross = o + Interval._make(o.lower.transpose(0, 1), o.upper.transpose(0, 1))
-        hess = hadd(None if a.hess is None else a.hess @ _t(b.val, 2),
-                    None if b.hess is None else _t(a.val, 2) @ b.hess, cross)
-    return a.like(a.val @ b.val, grad, hess)
+        hess = hadd(None if a.hess is None else a.hess.__matmul__(_t(b.val, 2)),
+                    None if b.hess is None else _t(a.val, 2).__matmul__(b.hess), cross)
+    return a.like(a.val.__matmul__(b.val), grad, hess)
 
 
 def move_iv(t: Interval | None, fn: Callable[[Interval], Interval]) -> Interval | None:
@@ -1053,10 +1065,11 @@ def _iv_matmul(t: Interval, M: Tensor, right: bool) -> Interval:
     """
     fin = torch.isfinite(t.lower) & torch.isfinite(t.upper)
     if not torch.compiler.is_compiling() and bool(fin.all()):
-        return t @ M if right else M @ t
+        # explicit method calls: Dynamo reflects `interval @ tensor` into `tensor @ interval`
+        return t.__matmul__(M) if right else t.__rmatmul__(M)
     z = torch.zeros_like(t.lower)
     safe = Interval._make(torch.where(fin, t.lower, z), torch.where(fin, t.upper, z))
-    out = safe @ M if right else M @ safe
+    out = safe.__matmul__(M) if right else safe.__rmatmul__(M)
     nz = (M != 0).to(t.lower.dtype)
     lo_inf = torch.isinf(t.lower).to(t.lower.dtype)
     hi_inf = torch.isinf(t.upper).to(t.lower.dtype)
