@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count
-from diffsmf.utils import tracing
+from diffsmf.utils import checking, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -128,7 +128,7 @@ class Interval(ConvexSet):
             raise ValueError(
                 f"upper: shape {tuple(hi.shape)} does not broadcast with lower {tuple(lo.shape)}"
             ) from exc
-        if not tracing() and (lo.detach() > hi.detach()).any():
+        if checking() and (lo.detach() > hi.detach()).any():
             raise ValueError("lower: must be <= upper elementwise")
         self._set(lower=lo, upper=hi)
 
@@ -145,7 +145,7 @@ class Interval(ConvexSet):
         """Box ``[c - r, c + r]`` (bounds rounded outward); ``radius >= 0`` elementwise."""
         c = as_tensor("center", center)
         r = as_tensor("radius", radius, like=c)
-        if not tracing() and (r.detach() < 0).any():
+        if checking() and (r.detach() < 0).any():
             raise ValueError("radius: must be >= 0")
         return cls._make(_down(c - r), _up(c + r))
 
@@ -352,7 +352,7 @@ class Interval(ConvexSet):
         return _monotone(self, torch.nn.functional.softplus, 2, clamp_min=0.0)
 
     def log1p(self) -> Interval:
-        if not tracing() and bool((self.lower.detach() < -1).any()):  # traced: NaN, flagged
+        if checking() and bool((self.lower.detach() < -1).any()):  # else NaN, flagged
             low = float(self.lower.detach().min())
             raise ValueError(f"x: log1p needs lower >= -1, its argument reaches {low:.6g} "
                              "(interval leaves the domain)")
@@ -663,8 +663,8 @@ def _pow(x: Interval, p: Any) -> Interval:
 
 
 def _check_domain(x: Interval, name: str, strict: bool) -> None:
-    if tracing():  # no host sync: out of the domain, the bounds are NaN and the filters flag them
-        return
+    if not checking():  # traced or in a filter step: out of the domain the bounds are NaN
+        return  # (no host sync), and the filters flag those elements (FilterEvent.DOMAIN)
     bad = (x.lower <= 0) if strict else (x.lower < 0)
     if bool(bad.detach().any()):
         rel = ">" if strict else ">="
