@@ -93,9 +93,13 @@ class FilterState:
         """This state with the `FilterEvent` bits ``events [B]`` (int) recorded: OR-ed into
         ``extras["events"]``; with ``unbounded`` (events of the set itself, e.g. its
         prediction remainder), ``bounded`` is False where one of them loses the bound
-        (``LOSES_BOUND``: diverged, domain, non-finite). ``unbounded=False`` for events that
-        keep the guarantee (a measurement update skipped). Branch-free."""
+        (``LOSES_BOUND``: diverged, domain, non-finite). ``unbounded=False`` for events of a
+        measurement update, which keep the guarantee: a lost bound there is recorded as
+        ``MEASUREMENT_SKIPPED`` (the update was skipped). Branch-free."""
         ev = events.to(torch.int64)
+        if not unbounded:  # a measurement that could not be bounded: skipped, not a lost bound
+            skipped = (ev & LOSES_BOUND) != 0
+            ev = (ev & ~LOSES_BOUND) | torch.where(skipped, int(FilterEvent.MEASUREMENT_SKIPPED), 0)
         old = self.extras.get("events")
         new = self.replace(extras={**self.extras, "events": ev if old is None else old | ev})
         return new.and_bounded((ev & LOSES_BOUND) == 0) if unbounded else new

@@ -45,14 +45,16 @@ class FilterEvent(enum.IntFlag):
             no bounded guaranteed set exists from this step on (``bounded`` False).
         DOMAIN: the set left the domain of the model (sqrt, log or a real power of a set
             reaching below 0, asin / acos outside [-1, 1], atan2 meeting its branch cut): the
-            model's enclosure is NaN there, so no bound holds (``bounded`` False). A
-            measurement function that leaves its domain only skips that update (no shrink,
-            the guarantee holds).
+            model's enclosure is NaN there, so no bound holds (``bounded`` False).
         DEGENERATE_STRIP: a measurement strip had a zero or non-finite normal (the
             linearised output does not depend on the state there, or overflowed): it was
             skipped, so the measurement did not shrink the set (the guarantee holds).
         NON_FINITE: the set itself became NaN / inf (an overflow in a set operation):
             ``bounded`` False from this step on.
+        MEASUREMENT_SKIPPED: the measurement function could not be bounded over the set (it
+            left its domain, met an atan2 branch cut, or its remainder was unbounded): that
+            update was skipped, so the measurement did not shrink the set (the guarantee
+            holds).
     """
 
     NONE = 0
@@ -60,6 +62,7 @@ class FilterEvent(enum.IntFlag):
     DOMAIN = 2
     DEGENERATE_STRIP = 4
     NON_FINITE = 8
+    MEASUREMENT_SKIPPED = 16
 
 
 #: The events after which no bounded guaranteed set exists (``bounded`` turns False).
@@ -69,11 +72,13 @@ _TEXT = {
     FilterEvent.DIVERGED: "the set became unbounded (a remainder or the set grew without "
     "bound, e.g. at a pole of the model); bounds are -inf/+inf from here",
     FilterEvent.DOMAIN: "the set left the model's domain (sqrt/log/power below 0, asin/acos "
-    "outside [-1, 1] or an atan2 branch cut); bounds are -inf/+inf from here, or a "
-    "measurement update was skipped",
+    "outside [-1, 1] or an atan2 branch cut); bounds are -inf/+inf from here",
     FilterEvent.DEGENERATE_STRIP: "a measurement strip was degenerate (zero or non-finite "
     "normal) and was skipped; the bounds stay guaranteed",
     FilterEvent.NON_FINITE: "the set became NaN/inf (overflow); bounds are -inf/+inf from here",
+    FilterEvent.MEASUREMENT_SKIPPED: "the measurement function could not be bounded over the "
+    "set (domain exit, atan2 branch cut or unbounded remainder of h); the update was skipped, "
+    "the bounds stay guaranteed",
 }
 
 

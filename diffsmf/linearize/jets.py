@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from diffsmf.sets.interval import Interval
+from diffsmf.utils import checking
 
 __all__ = ["Jet", "JetError", "interval_hessian", "interval_jacobian", "jet_eval"]
 
@@ -452,14 +453,34 @@ def _where(cond: Tensor, a: Jet, b: Jet) -> Jet:
 def _atan2(y: Any, x: Any) -> Jet:
     """``atan2(y, x)`` away from its branch cut: ``atan(y/x)`` where ``x > 0`` on the box,
     ``+-pi/2 - atan(x/y)`` where ``y > 0`` / ``y < 0``; boxes meeting the cut (x <= 0, y
-    straddling 0) raise (the function is discontinuous there)."""
+    straddling 0) raise (the function is discontinuous there), except inside a filter step
+    or while traced (`diffsmf.utils.checking` False), where those elements get NaN bounds
+    (the filter flags them: ``FilterEvent.DOMAIN``) and the others are unaffected."""
     y, x = _lift_all([y, x])
-    lo = y.val.lower
     xpos = x.val.lower > 0
     ypos = y.val.lower > 0
     yneg = y.val.upper < 0
-    if not bool((xpos | ypos | yneg).all()):
-        raise JetError("atan2: the box meets the branch cut (x <= 0, y = 0)")
+    cut = ~(xpos | ypos | yneg)
+    if checking():
+        if bool(cut.any()):
+            raise JetError("atan2: the box meets the branch cut (x <= 0, y = 0)")
+        return _atan2_off_cut(y, x, xpos, ypos)
+    out = _atan2_off_cut(y, x, xpos, ypos)
+    return _where(cut, _nan_jet(out), out)
+
+
+def _nan_jet(j: Jet) -> Jet:
+    """A jet like ``j`` whose every bound is NaN (a domain exit, flagged by the filters)."""
+    def nan(iv: Interval) -> Interval:
+        t = torch.full_like(iv.lower, math.nan)
+        return Interval._make(t, t)
+
+    return j._new(nan(j.val), nan(j.grad), None if j._h is None else nan(j._h))
+
+
+def _atan2_off_cut(y: Jet, x: Jet, xpos: Tensor, ypos: Tensor) -> Jet:
+    """``atan2(y, x)`` of :func:`_atan2` on boxes that do not meet the branch cut."""
+    lo = y.val.lower
     h = math.pi / 2
     inf = torch.full_like(lo, math.inf)
     half_pi = Interval(torch.nextafter(torch.full_like(lo, h), -inf),
