@@ -248,8 +248,9 @@ def run_filter(filt, y: torch.Tensor, u: torch.Tensor | None, progress: bool = T
     ``update(state, y_{k+1})`` (the loop ``forward`` runs), with a progress bar over steps.
     The bounds are those of ``state.guaranteed_set`` (+-inf where the set is unbounded).
     A model error (``JetError``: an operation the interval engine does not support) raises a
-    ``ValueError`` naming the step; any other exception of a step raises
-    :class:`NumericalFailure` naming the step.
+    ``ValueError`` naming the step; an arithmetic, runtime (e.g. a linear-algebra failure)
+    or value error of a step raises :class:`NumericalFailure` naming the step (other
+    exceptions, bugs, propagate).
     """
     from tqdm.auto import tqdm
 
@@ -266,7 +267,7 @@ def run_filter(filt, y: torch.Tensor, u: torch.Tensor | None, progress: bool = T
                 state = filt.update(state, y[k : k + 1])
             except JetError as exc:
                 raise ValueError(f"--model: step {k + 1}: {exc}") from exc
-            except Exception as exc:
+            except (ArithmeticError, RuntimeError, ValueError) as exc:  # e.g. LinAlgError
                 raise NumericalFailure(
                     f"step {k + 1}: {type(exc).__name__}: {exc}"
                 ) from exc

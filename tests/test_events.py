@@ -243,3 +243,16 @@ def test_event_text():
     lines = describe_events(ev)
     assert lines == [f"trajectory 1, step 2: domain: {event_text(FilterEvent.DOMAIN)}"]
     assert describe_events(ev[0]) == []
+
+
+def test_gauge_of_an_unbounded_element_is_zero():
+    """Audits and comparison tables (``audit.gauge``) count no violation at an unbounded
+    element, whatever its placeholder."""
+    from diffsmf.audit import gauge
+
+    s = _cubic_system(4.0)
+    tr = _cubic_system(1.0).simulate(steps=12, batch=2, seed=0)
+    far = tr.x + torch.tensor([0.0, 100.0], dtype=F64)  # outside every finite set
+    res = ds.filters.HSNSMF(s)(tr.y)
+    g = gauge(res.sets, far)
+    assert (g[~res.bounded] == 0).all() and (g[res.bounded] > 1).all()
