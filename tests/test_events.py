@@ -256,3 +256,18 @@ def test_gauge_of_an_unbounded_element_is_zero():
     res = ds.filters.HSNSMF(s)(tr.y)
     g = gauge(res.sets, far)
     assert (g[~res.bounded] == 0).all() and (g[res.bounded] > 1).all()
+
+
+def test_eigh_of_a_batch_with_a_non_finite_matrix():
+    """LAPACK fails the whole batch for one non-finite matrix; ``linalg.eigh`` / ``eigvalsh``
+    give NaN for that matrix only (a filter flags it), the others as before."""
+    from diffsmf import linalg
+
+    A = torch.randn(3, 4, 4, dtype=F64, generator=torch.Generator().manual_seed(0))
+    S = A @ A.mT
+    S[1, 0, 0] = torch.nan
+    ev, V = linalg.eigh(S)
+    assert torch.isnan(ev[1]).all() and torch.isnan(V[1]).all()
+    ref = torch.linalg.eigvalsh(S[[0, 2]])
+    torch.testing.assert_close(ev[[0, 2]], ref)
+    torch.testing.assert_close(linalg.eigvalsh(S)[[0, 2]], ref)
