@@ -249,7 +249,7 @@ def run_filter(filt, y: torch.Tensor, u: torch.Tensor | None, progress: bool = T
     The bounds are those of ``state.guaranteed_set`` (+-inf where the set is unbounded).
     A model error (``JetError``: an operation the interval engine does not support) raises a
     ``ValueError`` naming the step; an arithmetic, runtime (e.g. a linear-algebra failure)
-    or value error of a step raises :class:`NumericalFailure` naming the step (other
+    or value error of a step raises `NumericalFailure` naming the step (other
     exceptions, bugs, propagate).
     """
     from tqdm.auto import tqdm

@@ -45,7 +45,7 @@ def remainder_events(R: Interval) -> Tensor:
     bound is NaN (the model left its domain over the set: sqrt / log / power below 0,
     asin / acos outside [-1, 1], an atan2 branch cut; the model-evaluation engine returns NaN
     bounds there and never raises), else ``DIVERGED`` where a bound is +-inf or beyond
-    :data:`~diffsmf.filters.base.MAX_SET_RADIUS` (a pole of the model, or a set grown without
+    `MAX_SET_RADIUS` (a pole of the model, or a set grown without
     bound: squaring such a radius, as the ellipsoidal covers do, would overflow before the
     guard sees the set), else 0. Branch-free, per element."""
     nan = (torch.isnan(R.lower) | torch.isnan(R.upper)).any(-1)
@@ -69,7 +69,7 @@ def checked_remainder(R: Interval) -> tuple[Interval, Tensor]:
 def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:
     """``(R', ok)``: `checked_remainder` with ``ok = events == 0`` (``[...]`` bool: False where
     the remainder box ``R [..., n]`` is NaN, infinite or beyond
-    :data:`~diffsmf.filters.base.MAX_SET_RADIUS`); there ``R'`` is 0. The caller must mark those
+    `MAX_SET_RADIUS`); there ``R'`` is 0. The caller must mark those
     elements unbounded (``FilterState.and_bounded(ok)``, or ``FilterState.flag`` with the
     events of `checked_remainder`, which also says why). Branch-free; the bounds of the other
     elements are returned unchanged.
@@ -152,8 +152,8 @@ def prediction_remainder(
     events: bool = False,
 ) -> tuple[Interval, Tensor]:
     """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``,
-    and ``ok [B]``: False where no finite box exists (:func:`sanitize_remainder`); with
-    ``events=True`` the `FilterEvent` codes ``[B]`` instead (:func:`checked_remainder`:
+    and ``ok [B]``: False where no finite box exists (`sanitize_remainder`); with
+    ``events=True`` the `FilterEvent` codes ``[B]`` instead (`checked_remainder`:
     ``DOMAIN`` / ``DIVERGED``, 0 where the box is finite), for ``FilterState.flag``.
 
     ``remainder`` is a :mod:`diffsmf.linearize` remainder bound (``dc_remainder`` for Wang et al.

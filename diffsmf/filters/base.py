@@ -137,7 +137,7 @@ def _carry(prev: FilterState, new: FilterState, update: bool = False) -> FilterS
 
 
 def _flagging(fn: Callable[..., FilterState], *args: Any) -> FilterState:
-    """``fn(*args)`` inside :func:`~diffsmf.utils.numerical_events` (a numerical event is
+    """``fn(*args)`` inside `diffsmf.utils.numerical_events` (a numerical event is
     flagged per element, never raised); traced code has no value checks anyway."""
     if tracing():
         return fn(*args)
@@ -162,7 +162,7 @@ class FilterResult:
     center, lower, upper: ``[B, T+1, n]``; volume: ``[B, T+1]``; consistent: ``[B, T+1]``
     bool; extras: stacked filter-specific tensors, e.g. ``"covariance" [B, T+1, n, n]``;
     bounded: ``[B, T+1]`` bool, False where the set stopped being finite (see
-    :class:`FilterState`): there ``lower = -inf``, ``upper = +inf``, ``volume = inf``,
+    `FilterState`): there ``lower = -inf``, ``upper = +inf``, ``volume = inf``,
     ``center`` is NaN (never a plausible-looking number), ``consistent`` is True (no
     measurement contradicts an unbounded prediction) and ``sets`` is all of R^n
     (`diffsmf.filters.events.mark_unbounded`: ``sets.contains(x)`` True, its hull +-inf).
@@ -674,7 +674,7 @@ class SetFilter(nn.Module):
         return _flagging(type(self)._guarded_update, self, state, y, bad)
 
     def _guarded_update(self, state: FilterState, y: Tensor, bad: Tensor) -> FilterState:
-        """:meth:`update` on a validated ``y`` (``bad [B]``: its NaN rows)."""
+        """`update` on a validated ``y`` (``bad [B]``: its NaN rows)."""
         if not self.skip_nan or (not tracing() and not bool(bad.any())):
             return self.guard(_carry(state, self._update(state, y)))
         new = _carry(state, self._update(
@@ -698,7 +698,7 @@ class SetFilter(nn.Module):
 
         An element is unbounded when a step flagged it (a remainder bound was not finite) or
         its set has a non-finite field (event ``NON_FINITE``) or an interval-hull half-width
-        above :data:`MAX_SET_RADIUS` (event ``DIVERGED``). Its set is replaced by the initial
+        above `MAX_SET_RADIUS` (event ``DIVERGED``). Its set is replaced by the initial
         set (a finite placeholder, so that no NaN reaches the rest of the batch), it stays
         flagged, and its ``consistent`` is True (no measurement contradicts R^n).
         Branch-free.

@@ -479,7 +479,7 @@ def _nan_jet(j: Jet) -> Jet:
 
 
 def _atan2_off_cut(y: Jet, x: Jet, xpos: Tensor, ypos: Tensor) -> Jet:
-    """``atan2(y, x)`` of :func:`_atan2` on boxes that do not meet the branch cut."""
+    """``atan2(y, x)`` of `_atan2` on boxes that do not meet the branch cut."""
     lo = y.val.lower
     h = math.pi / 2
     inf = torch.full_like(lo, math.inf)
