@@ -271,3 +271,27 @@ def test_eigh_of_a_batch_with_a_non_finite_matrix():
     ref = torch.linalg.eigvalsh(S[[0, 2]])
     torch.testing.assert_close(ev[[0, 2]], ref)
     torch.testing.assert_close(linalg.eigvalsh(S)[[0, 2]], ref)
+
+
+def test_interval_product_keeps_nan_of_a_domain_exit():
+    """A NaN enclosure (a domain exit or branch cut) times anything stays NaN: a product must
+    not turn it into 0 (the Lagrange remainder of atan2 over a box meeting its cut came out
+    as +-1e-14 and ESMF's bounds missed the truth); 0 * inf is still 0."""
+    a = ds.Interval._make(torch.tensor([float("nan"), 0.0], dtype=F64),
+                          torch.tensor([float("nan"), 0.0], dtype=F64))
+    b = ds.Interval._make(torch.tensor([1.0, -float("inf")], dtype=F64),
+                          torch.tensor([2.0, float("inf")], dtype=F64))
+    p = a * b
+    assert torch.isnan(p.lower[0]) and torch.isnan(p.upper[0])
+    assert abs(float(p.lower[1])) < 1e-300 and abs(float(p.upper[1])) < 1e-300
+
+
+@pytest.mark.parametrize("name", ["esmf", "hsnsmf"])
+def test_bearing_through_the_branch_cut_vertex_noise_contained(name):
+    s = _bearing_system()
+    tr = s.simulate(steps=12, batch=200, seed=1, noise="vertex")
+    with torch.no_grad():
+        res = ds.filters.by_name(name)(s)(tr.y)
+    assert bool(res.sets.contains(tr.x).all())
+    finite = torch.isfinite(res.lower)
+    assert not (((tr.x < res.lower - 1e-12) | (tr.x > res.upper + 1e-12)) & finite).any()

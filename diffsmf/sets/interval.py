@@ -562,11 +562,14 @@ def _add(a: Interval, b: Interval) -> Interval:
 
 def _mul(a: Interval, b: Interval) -> Interval:
     # Song et al. 2017, sec. 3: [a] * [b] = [min, max] of the four endpoint products (0 * inf := 0)
+    # a NaN operand (an enclosure outside its domain) stays NaN: only 0 * inf becomes 0
     al, au, bl, bu = torch.broadcast_tensors(a.lower, a.upper, b.lower, b.upper)
     p = torch.stack([al, au]).unsqueeze(1) * torch.stack([bl, bu]).unsqueeze(0)  # [2, 2, ...]
     p = torch.nan_to_num(p.flatten(0, 1), nan=0.0, posinf=math.inf, neginf=-math.inf)
     lo, hi = torch.aminmax(p, dim=0)
-    return Interval._make(_down(lo), _up(hi))
+    nan = torch.isnan(al) | torch.isnan(au) | torch.isnan(bl) | torch.isnan(bu)
+    return Interval._make(torch.where(nan, al + au + bl + bu, _down(lo)),
+                          torch.where(nan, al + au + bl + bu, _up(hi)))
 
 
 def _scale(a: Interval, s: float) -> Interval:
