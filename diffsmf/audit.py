@@ -101,11 +101,18 @@ def _zonotope_gauge_lp(c: np.ndarray, G: np.ndarray, x: np.ndarray) -> float:
 def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
     """Scale factor about the centre at which ``S`` reaches ``x`` -> ``[...]`` (detached).
 
+    0 at the unbounded elements of a filter result (``mark_unbounded``: all of R^n there).
     Exact for Interval, Parallelotope, Ellipsoid. For a Zonotope, points that ``contains``
     accepts (with ``atol = tol * scale``) get gauge 0 (not computed) and the others an LP. For
-    a ConstrainedZonotope (whose centre may lie outside it) certified points get 0 and the
-    others ``1 + distance / scale`` (HiGHS distance; > 1 means outside).
+    a ConstrainedZonotope (whose centre may lie outside it) points that ``contains`` accepts
+    (not proved farther than ``tol * scale``) get 0 and the others ``1 + distance / scale``
+    (HiGHS distance; > 1 means outside).
     """
+    from diffsmf.filters.events import is_marked
+
+    if is_marked(S):  # a filter result's unbounded elements are all of R^n: gauge 0 there
+        g = gauge(S._plain(), x, tol)
+        return torch.where(S.bounded, g, torch.zeros_like(g))
     S = S.detach()
     x = as_vector("x", x, S.center, S.dim).detach()
     c = S.center
@@ -131,7 +138,7 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
         return g
     if isinstance(S, ConstrainedZonotope):
         # the centre need not lie in a constrained zonotope: points that ``contains``
-        # certifies get gauge 0, the others 1 + (HiGHS distance to the set) / scale, so a
+        # accepts get gauge 0, the others 1 + (HiGHS distance to the set) / scale, so a
         # violation (gauge > 1 + tol) is exactly a point farther than tol * scale
         scale = 1.0 + x.abs().amax(-1) + S.generators.abs().sum(-1).amax(-1)
         inside = S.contains(x, atol=tol * float(scale.max()))

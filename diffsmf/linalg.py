@@ -144,7 +144,8 @@ def eigvalsh(S: Tensor) -> Tensor:
     """Eigenvalues (ascending) of symmetric ``S [..., n, n]`` -> ``[..., n]``.
 
     Closed form up to n = 2 (the off-diagonal is read as ``(S_01 + S_10) / 2``), else
-    ``torch.linalg.eigvalsh`` (which reads the lower triangle).
+    ``torch.linalg.eigvalsh`` (which reads the lower triangle). A matrix with a NaN / inf entry
+    gives NaN eigenvalues (the others are unaffected).
     """
     n = _check_square("S", S)
     if n == 1:
@@ -156,7 +157,8 @@ def eigvalsh(S: Tensor) -> Tensor:
         # the tiny floor keeps the gradient finite at a double eigenvalue (sqrt'(0) = inf)
         r = torch.sqrt(h * h + b * b + torch.finfo(S.dtype).tiny)
         return torch.stack([m - r, m + r], -1)
-    return torch.linalg.eigvalsh(S)
+    bad, safe = _finite_or_eye(S)
+    return torch.where(bad.unsqueeze(-1), torch.nan, torch.linalg.eigvalsh(safe))
 
 
 def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
@@ -170,6 +172,8 @@ def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
     eigenvalues (``b = (S_01 + S_10) / 2``; ``S`` diagonal with ``a = d`` gives the identity).
     Eigenvector signs may differ from LAPACK's. Not differentiable at repeated eigenvalues (the
     callers wrap it in autograd Functions with their own backward), else ``torch.linalg.eigh``.
+    A matrix with a NaN / inf entry gives NaN eigenvalues and eigenvectors (the others are
+    unaffected).
     """
     n = _check_square("S", S)
     if n == 1:
@@ -181,7 +185,20 @@ def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
         c, s = torch.cos(theta), torch.sin(theta)
         V = torch.stack([torch.stack([-s, c], -1), torch.stack([c, s], -1)], -2)
         return eigvalsh(S), V
-    return torch.linalg.eigh(S)
+    bad, safe = _finite_or_eye(S)
+    evals, V = torch.linalg.eigh(safe)
+    return (torch.where(bad.unsqueeze(-1), torch.nan, evals),
+            torch.where(bad[..., None, None], torch.nan, V))
+
+
+def _finite_or_eye(S: Tensor) -> tuple[Tensor, Tensor]:
+    """``(bad [...], S')``: ``bad`` where ``S [..., n, n]`` has a NaN / inf entry, and ``S``
+    with those matrices replaced by the identity, so that LAPACK (which fails on the whole
+    batch for one non-finite matrix) serves the others; the callers return NaN for ``bad``
+    (a filter flags those elements). Branch-free."""
+    bad = ~torch.isfinite(S).all(-1).all(-1)
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    return bad, torch.where(bad[..., None, None], eye, S)
 
 
 def cholesky(S: Tensor) -> Tensor:

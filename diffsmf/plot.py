@@ -190,6 +190,7 @@ def bounds_figure(
     title: str | None = None,
     guaranteed: bool = True,
     state_names: list[str] | None = None,
+    bounded: np.ndarray | Tensor | None = None,
 ) -> Figure:
     """Bounds of every state over time for one trajectory -> a Figure (saved to ``path``).
 
@@ -201,6 +202,9 @@ def bounds_figure(
         guaranteed: False for a filter whose bounds carry no guarantee (EKF); the legend
             says so.
         state_names: labels of the states (default ``x1 .. xn``).
+        bounded: ``[T+1]`` bool; from the first False step on the guarantee is lost (the set
+            is unbounded, its bounds are -inf / +inf): that part is shaded grey and labelled,
+            and no bound is drawn there (infinite bounds are never drawn as finite ones).
 
     One row per state: left, the bounds (shaded) and the truth; right, the bound width
     ``upper - lower`` on a log scale (bounds that are tight relative to the state's size are
@@ -211,6 +215,12 @@ def bounds_figure(
         raise ValueError(f"lower, upper: expected the same shape [T+1, n], got {lo.shape} "
                          f"and {up.shape}")
     T1, n = lo.shape
+    lost = None
+    if bounded is not None:
+        bnd = np.asarray(_as_np(bounded), bool).reshape(-1)
+        lost = int(np.flatnonzero(~bnd)[0]) if (~bnd).any() else None
+    lo = np.where(np.isfinite(lo), lo, np.nan)  # an infinite bound is not drawn
+    up = np.where(np.isfinite(up), up, np.nan)
     names = state_names or [f"x{i + 1}" for i in range(n)]
     k = np.arange(T1)
     label = "guaranteed bounds" if guaranteed else "bounds (NOT guaranteed)"
@@ -233,6 +243,10 @@ def bounds_figure(
                 for j, kk in enumerate(bad):
                     a.axvline(kk, color="C3", lw=0.6, alpha=0.7,
                               label="inconsistent step" if j == 0 else None)
+        if lost is not None:
+            for a in (ax, axw):
+                a.axvspan(lost - 0.5, T1 - 0.5, color="0.6", alpha=0.35, linewidth=0,
+                          label=f"guarantee lost from step {lost} (unbounded: -inf..+inf)")
         ax.set_ylabel(names[i])
         axw.set_ylabel(f"upper - lower of {names[i]}")
         ax.grid(alpha=0.3)

@@ -52,6 +52,31 @@ def tracing() -> bool:
 
 
 _TRACED = False  # set by traced()
+_EVENTS = 0  # depth of numerical_events() blocks
+
+
+def checking() -> bool:
+    """True where value checks (NaN, inf, a domain, a singular or indefinite matrix) raise a
+    ``ValueError``: not while traced (`tracing`) and not inside `numerical_events`
+    (a filter step), where such a value is a per-element event that the filter flags."""
+    return not _EVENTS and not tracing()
+
+
+@contextlib.contextmanager
+def numerical_events() -> Iterator[None]:
+    """Inside the block, value checks of the sets and interval functions do not raise
+    (`checking` is False, as in a compiled step): an interval function outside its
+    domain (sqrt / log / power of an interval below 0, log1p below -1) returns NaN bounds for
+    the offending elements, and sets are built from non-finite or degenerate fields as they
+    are. The filters run their predict / update steps inside it and flag those elements
+    (``FilterResult.events``); the other elements are unaffected. Shape and type errors
+    still raise."""
+    global _EVENTS
+    _EVENTS += 1
+    try:
+        yield
+    finally:
+        _EVENTS -= 1
 
 
 #: glibc ``mallopt`` parameters set by `retain_freed_memory`.

@@ -48,6 +48,16 @@ MODEL = textwrap.dedent(
     def not_a_system():
         return 42
 
+    def make_diverging():
+        # x1 unmeasured, 0.5 x1 - 0.1 x1^3: from |x1| <= 4 every linearising filter's set
+        # diverges (the exact image of [-4, 4] is [-4.4, 4.4]); the truth is stable near 0
+        def f(x, u=None, theta=None):
+            return torch.stack([0.5 * x[..., 0] - 0.1 * x[..., 0] ** 3, 0.5 * x[..., 1]], -1)
+
+        return ds.System(f, lambda x: x[..., 1:2], ds.Interval([-4.0, -0.2], [4.0, 0.2]),
+                         ds.Interval([-1e-3, -1e-3], [1e-3, 1e-3]), ds.Interval([-0.5], [0.5]),
+                         name="diverging")
+
     def make_branchy():
         s = make_system()
         return ds.System(lambda x, u, th=None: s.f(x, u) if float(x.sum()) > 0 else -s.f(x, u), s.h,
@@ -92,8 +102,9 @@ def test_csv_run_writes_bounds_figure_and_summary(case):
               "--inputs", "u1", "--filter", "hsnsmf", "--out", str(out))
     assert rc == 0
     head, b = _read_bounds(out / "bounds.csv")
-    assert head == ["step", "lower_0", "lower_1", "upper_0", "upper_1", "consistent"]
-    assert b.shape == (T + 1, 6)
+    assert head == ["step", "lower_0", "lower_1", "upper_0", "upper_1", "consistent", "bounded"]
+    assert b.shape == (T + 1, 7)
+    assert (b[:, 6] == 1).all()
     np.testing.assert_array_equal(b[:, 0], np.arange(T + 1))
     x = traj.x[0].numpy()
     assert (b[:, 1:3] <= x).all() and (x <= b[:, 3:5]).all()  # guaranteed: contains the truth
@@ -148,9 +159,11 @@ def test_schedule_inputs_skip_missing_and_ekf_not_guaranteed(case, capsys):
     d, model, log, system, traj = case
     # the model's own schedule supplies u when --inputs is left out
     out = d / "run_sched"
+    # (exit 1: the log was driven by other inputs, so some measurements are inconsistent)
     assert _run("--model", f"{model}:make_scheduled", "--data", str(log), "--outputs", "y1",
-                "--out", str(out), "--no-figure") == 0
-    assert json.loads((out / "summary.json").read_text())["inputs"] == "schedule"
+                "--out", str(out), "--no-figure") in (0, 1)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["inputs"] == "schedule" and s["exit_status"] == (1 if s["inconsistent_steps"] else 0)
     # a blank measurement: error by default, skipped update with --skip-missing
     text = log.read_text().splitlines()
     cells = text[3].split(",")
@@ -256,3 +269,93 @@ def test_load_model_returns_the_system(case):
     d, model, *_ = case
     s = load_model(f"{model}:make_system")
     assert isinstance(s, ds.System) and s.n == 2 and s.m == 1 and s.n_inputs == 1
+
+
+# ------------------------------------------------------------------ a lost guarantee
+@pytest.fixture(scope="module")
+def diverging(case):
+    d, model, *_ = case
+    s = load_model(f"{model}:make_diverging")
+    small = ds.System(s.f, s.h, ds.Interval([-1.0, -0.2], [1.0, 0.2]), s.process_noise,
+                      s.measurement_noise)
+    traj = small.simulate(12, batch=1, seed=0)  # true states from |x1| <= 1: in s's X0
+    log = d / "diverging.csv"
+    np.savetxt(log, traj.y[0].numpy(), delimiter=",", header="y", comments="")
+    return d, model, log, traj
+
+
+@pytest.mark.parametrize("name", ["hsnsmf", "mszm", "cdsmf", "esmf", "czsmf", "combined"])
+def test_unbounded_steps_are_inf_never_a_finite_placeholder(diverging, capsys, name):
+    d, model, log, traj = diverging
+    out = d / f"div_{name}"
+    rc = _run("--model", f"{model}:make_diverging", "--data", str(log), "--outputs", "y",
+              "--filter", name, "--out", str(out), "--no-figure")
+    assert rc == 3  # the guarantee was lost
+    err = capsys.readouterr().err
+    assert "warning: the guarantee was lost at step" in err  # said even with --quiet
+    head, b = _read_bounds(out / "bounds.csv")
+    assert head[-1] == "bounded"
+    unb = b[:, -1] == 0
+    assert unb.any() and unb[-1]
+    lo, up = b[:, 1:3], b[:, 3:5]
+    assert np.isneginf(lo[unb]).all() and np.isposinf(up[unb]).all()
+    assert np.isfinite(lo[~unb]).all()
+    x = traj.x[0].numpy()
+    assert ((lo <= x) & (x <= up)).all()  # no finite bound misses the truth
+    assert (b[unb, 5] == 1).all()  # never inconsistent against an unbounded set
+    s = json.loads((out / "summary.json").read_text())
+    k = int(np.flatnonzero(unb)[0])
+    assert s["bounded"] is False and s["guarantee_lost_at_step"] == k
+    assert s["unbounded_steps"][0] == k and s["exit_status"] == 3
+    assert s["events"] and s["events"][0].startswith(f"trajectory 0, step {k}: ")
+
+
+def test_figure_marks_lost_guarantee_and_state_names(diverging, capsys):
+    d, model, log, traj = diverging
+    out = d / "div_names"
+    rc = _run("--model", f"{model}:make_diverging", "--data", str(log), "--outputs", "y",
+              "--out", str(out), "--state-names", "conc,temp", "--format", "csv")
+    assert rc == 3
+    head, _ = _read_bounds(out / "bounds.csv")
+    assert head[1:5] == ["lower_conc", "lower_temp", "upper_conc", "upper_temp"]
+    assert json.loads((out / "summary.json").read_text())["state_names"] == ["conc", "temp"]
+    assert (out / "bounds.png").stat().st_size > 10_000
+    from diffsmf.plot import bounds_figure
+
+    lo = np.array([[0.0, 1.0], [-np.inf, -np.inf]])
+    fig = bounds_figure(lo, -lo + 1, state_names=["conc", "temp"], bounded=[True, False])
+    labels = {a.get_ylabel() for a in fig.axes}
+    assert {"conc", "temp"} <= labels
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert any("guarantee lost from step 1" in t for t in legend)
+    capsys.readouterr()
+    bad = _error(capsys, "--model", f"{model}:make_diverging", "--data", str(log), "--outputs",
+                 "y", "--out", str(out), "--state-names", "a")
+    assert "--state-names: expected 2 names" in bad
+
+
+def test_inconsistent_steps_warn_with_quiet_and_exit_1(case, capsys):
+    d, model, log, system, traj = case
+    out = d / "run_incons"
+    rc = _run("--model", f"{model}:make_system", "--data", str(log), "--outputs", "y1",
+              "--inputs", "u1", "--out", str(out), "--no-figure", "--measurement-noise", "1e-9")
+    err = capsys.readouterr().err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["inconsistent_steps"]
+    assert rc == 1 and s["exit_status"] == 1
+    assert "warning:" in err and "inconsistent step(s)" in err
+
+
+def test_a_numerical_failure_is_not_a_user_error(case, capsys, monkeypatch):
+    d, model, log, *_ = case
+
+    def boom(self, state, u=None):
+        raise RuntimeError("linalg: the algorithm failed to converge")
+
+    monkeypatch.setattr(ds.filters.HSNSMF, "predict", boom)
+    rc = main(["filter", "--model", f"{model}:make_system", "--data", str(log), "--outputs",
+               "y1", "--inputs", "u1", "--out", str(d / "boom"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 4 and len(err) == 1
+    assert err[0].startswith("diffsmf filter: numerical failure at step 1: RuntimeError")
+    assert "error:" not in err[0] and "Traceback" not in err[0]

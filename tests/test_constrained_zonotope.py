@@ -204,7 +204,7 @@ def test_contains_against_highs():
     got = Z.contains(pts, atol=1e-9)
     out = Z.excludes(pts)
     dist = distance_lp(Z, pts)
-    assert not (got & out).any()
+    assert got[dist <= 1e-12].all()  # inside (HiGHS): never reported outside
     far_out = dist > 1e-6
     # certified answers agree with HiGHS; points clearly outside are certified outside
     assert not (got & far_out).any()
@@ -516,27 +516,54 @@ def test_box_lp_early_stop_valid_and_accurate():
 
 
 def test_contains_boundary_points_certified():
-    """Boundary points (``sample_extreme``) are certified by ``contains`` at 1e-9: the
-    feasibility LP runs all its iterations (no early stop on a residual of ~tol)."""
+    """Boundary points (``sample_extreme``) are inside by ``contains`` at 1e-9 (no
+    certificate of a distance above 1e-9 exists for them)."""
     Z = random_cz(10, 2, 30, 6, seed=23)
     x = Z.sample_extreme(20, generator=torch.Generator().manual_seed(3)).transpose(0, 1)
     assert float(distance_lp(Z, x).max()) <= 1e-9
     assert bool(Z.contains(x, atol=1e-9).all())
 
 
-def test_contains_certifies_states_reached_by_vertex_noise():
+@pytest.mark.parametrize("threads", [1, 2])
+def test_contains_states_reached_by_vertex_noise(threads):
     """CZSMF sets are tight: true states driven by vertex noise lie on their boundary, where
     the feasible set of the membership LP is one point on the box's boundary and the
-    interior-point iterate stalls ~1e-8 away (3 % of these states were left uncertified before
-    the polish of ``feasible_residual``). HiGHS (feasibility 1e-10) puts all of them within
-    1e-9, and ``contains`` must now certify all of them."""
-    sd = ds.systems.get("spring_damper")
-    traj = sd.simulate(steps=15, batch=40, seed=0, noise="vertex")
-    with torch.no_grad():
-        sets = ds.filters.CZSMF(sd)(traj.y).sets
-    assert float(distance_lp(sets, traj.x).max()) <= 1e-9
-    assert bool(sets.contains(traj.x).all())
-    assert not bool(sets.excludes(traj.x).any())
+    interior-point iterate stalls ~1e-8 away. ``contains`` answers False only with a Farkas
+    certificate that the point is farther than ``atol``, so all 640 states are inside
+    (HiGHS puts them within 1e-9), at 1 and 2 threads; the same states pushed 100 atol or
+    more outside (HiGHS distance) are all reported outside."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        sd = ds.systems.get("spring_damper")
+        traj = sd.simulate(steps=15, batch=40, seed=0, noise="vertex")
+        with torch.no_grad():
+            sets = ds.filters.CZSMF(sd)(traj.y).sets
+        assert float(distance_lp(sets, traj.x).max()) <= 1e-9
+        assert bool(sets.contains(traj.x, atol=1e-9).all())
+        assert not bool(sets.excludes(traj.x).any())
+        g = torch.Generator().manual_seed(1)
+        out = traj.x + 1e-6 * torch.randn(traj.x.shape, generator=g, dtype=torch.float64)
+        dist = distance_lp(sets, out)
+        got = sets.contains(out, atol=1e-9)
+        far = dist >= 1e-7
+        assert int(far.sum()) > 300  # most pushes leave the tight sets
+        assert not bool(got[far].any())
+        assert bool(got[dist <= 1e-12].all())
+    finally:
+        torch.set_num_threads(old)
+
+
+def test_contains_tolerance_is_part_of_the_meaning():
+    """A point at distance d (HiGHS) from the set: inside at ``atol >= 10 d``, outside at
+    ``atol <= d / 100``; ``atol = 0`` is ``~excludes``."""
+    Z = CZ(torch.zeros(2), torch.eye(2), torch.tensor([[1.0, 1.0]]), torch.tensor([0.0]))
+    x = torch.tensor([0.5 + 1e-6, -0.5])  # the set is the segment t (1, -1): 5e-7 off it
+    d = float(distance_lp(Z, x))
+    assert d > 1e-7
+    assert bool(Z.contains(x, atol=10 * d))
+    assert not bool(Z.contains(x, atol=d / 100))
+    assert bool(Z.contains(x, atol=0.0)) == (not bool(Z.excludes(x)))
 
 
 def test_feasible_residual_reaches_a_box_vertex():

@@ -11,11 +11,21 @@ x_0 lies in the system's x0_set. Columns not named by --outputs / --inputs are i
 Data formats: CSV with a header row; .npz (each named array of shape [N] or [N, k] is a column
 or a group of k columns, selected by its name); .npy (one [N, C] array, columns named 0..C-1).
 
-Writes to --out: bounds.csv (or bounds.npz with --format npz) with columns step, lower_0..,
-upper_0.., consistent (1/0), one row per step and a row for the initial set at step 0;
-bounds.png, the bounds of every state over time; summary.json (filter, settings, inconsistent
-steps, time). Bounds are written with 17 significant digits, so rounding never cuts into a
-guaranteed set.
+Writes to --out: bounds.csv (or bounds.npz with --format npz) with columns step, lower_NAME..,
+upper_NAME.., consistent (1/0), bounded (1/0), one row per step and a row for the initial set
+at step 0 (NAME: the --state-names, default 0, 1, ...); bounds.png, the bounds of every state
+over time, labelled with the same names; summary.json (filter, settings, inconsistent steps,
+where the guarantee was lost, numerical events, time). Bounds are written with 17 significant
+digits, so rounding never cuts into a guaranteed set. Where the set became unbounded
+(bounded = 0) the bounds are -inf / +inf, never a finite placeholder, and the figure shades
+those steps.
+
+Exit status: 0 every step bounded and consistent; 1 some measurement was inconsistent with
+the predicted set (the model, the noise bounds or the data were violated; the steps are in
+summary.json); 2 a user error (one line on stderr); 3 the guarantee was lost: a set became
+unbounded (bounds -inf / +inf from that step on, see summary.json); 4 a numerical failure the
+filter could not flag (one line naming the step; not an error in your input, please report
+it). Files are written for statuses 0, 1 and 3.
 """
 
 from __future__ import annotations
@@ -23,6 +33,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,12 +43,22 @@ import torch
 
 import diffsmf as ds
 from diffsmf.filters import names as filter_names
+from diffsmf.filters.events import describe_events
 from diffsmf.plot import bounds_figure
 from diffsmf.systems import System
 from diffsmf.utils import load_object  # the shared FILE.py:FUNC loader (re-exported)
 
+#: Exit statuses of ``diffsmf filter`` (see the module docstring).
+EXIT_OK, EXIT_INCONSISTENT, EXIT_USER, EXIT_UNBOUNDED, EXIT_NUMERICAL = 0, 1, 2, 3, 4
+
 __all__ = [
+    "EXIT_INCONSISTENT",
+    "EXIT_NUMERICAL",
+    "EXIT_OK",
+    "EXIT_UNBOUNDED",
+    "EXIT_USER",
     "FilterRun",
+    "NumericalFailure",
     "add_arguments",
     "load_model",
     "load_object",
@@ -198,14 +219,21 @@ def _floats(text: str | None, what: str, dim: int) -> torch.Tensor | None:
 
 
 # ------------------------------------------------------------------ filtering
+class NumericalFailure(RuntimeError):
+    """A filter step raised for a numerical reason the filter could not flag (not a user
+    error: ``diffsmf filter`` reports it in one line with exit status 4)."""
+
+
 @dataclass
 class FilterRun:
     """Result of `run_filter` for one logged trajectory.
 
-    lower, upper: ``[T+1, n]`` interval hull of the set at each step (row 0 = initial set);
-    consistent: ``[T+1]`` bool (False where the measurement did not meet the predicted set);
-    bounded: ``[T+1]`` bool (False from the step where the set stopped being finite; its bounds
-    are then +-inf); seconds: wall time of the filter loop.
+    lower, upper: ``[T+1, n]`` interval hull of the guaranteed set at each step (row 0 =
+    initial set); -inf / +inf where it is unbounded; consistent: ``[T+1]`` bool (False where
+    the measurement did not meet the predicted set; True where the set is unbounded);
+    bounded: ``[T+1]`` bool (False from the step where the set stopped being finite);
+    events: ``[T+1]`` int64 ``FilterEvent`` bits met at or before each step; seconds: wall
+    time of the filter loop.
     """
 
     lower: np.ndarray
@@ -213,6 +241,7 @@ class FilterRun:
     consistent: np.ndarray
     bounded: np.ndarray
     seconds: float
+    events: np.ndarray | None = None
 
 
 def run_filter(filt, y: torch.Tensor, u: torch.Tensor | None, progress: bool = True) -> FilterRun:
@@ -220,61 +249,104 @@ def run_filter(filt, y: torch.Tensor, u: torch.Tensor | None, progress: bool = T
 
     ``state = filt.initial_state(batch=1)``; then, for each step, ``predict(state, u_k)`` and
     ``update(state, y_{k+1})`` (the loop ``forward`` runs), with a progress bar over steps.
+    The bounds are those of ``state.guaranteed_set`` (+-inf where the set is unbounded).
+    A model error (``JetError``: an operation the interval engine does not support) raises a
+    ``ValueError`` naming the step; an arithmetic, runtime (e.g. a linear-algebra failure)
+    or value error of a step raises `NumericalFailure` naming the step (other
+    exceptions, bugs, propagate).
     """
     from tqdm.auto import tqdm
 
+    from diffsmf.linearize import JetError
+
     T = y.shape[0]
     state = filt.initial_state(batch=1)
-    hull = state.set.interval_hull()
-    lows, ups, cons = [hull.lower[0]], [hull.upper[0]], [state.consistent[0]]
-    bnds = [_bounded(state)]
+    rows = [_row(state)]
     t0 = time.perf_counter()
     with torch.no_grad():
         for k in tqdm(range(T), desc="filter", unit="step", disable=not progress, leave=False):
-            state = filt.predict(state, None if u is None else u[k : k + 1])
-            state = filt.update(state, y[k : k + 1])
-            hull = state.set.interval_hull()
-            lows.append(hull.lower[0])
-            ups.append(hull.upper[0])
-            cons.append(state.consistent[0])
-            bnds.append(_bounded(state))
+            try:
+                state = filt.predict(state, None if u is None else u[k : k + 1])
+                state = filt.update(state, y[k : k + 1])
+            except JetError as exc:
+                raise ValueError(f"--model: step {k + 1}: {exc}") from exc
+            except (ArithmeticError, RuntimeError, ValueError) as exc:  # e.g. LinAlgError
+                raise NumericalFailure(
+                    f"step {k + 1}: {type(exc).__name__}: {exc}"
+                ) from exc
+            rows.append(_row(state))
     seconds = time.perf_counter() - t0
+    lows, ups, cons, bnds, evs = zip(*rows)
     return FilterRun(
-        lower=torch.stack(lows).cpu().numpy(),
-        upper=torch.stack(ups).cpu().numpy(),
-        consistent=torch.stack(cons).cpu().numpy().astype(bool),
-        bounded=np.array(bnds, dtype=bool),
-        seconds=seconds,
+        lower=np.stack(lows), upper=np.stack(ups), consistent=np.array(cons, dtype=bool),
+        bounded=np.array(bnds, dtype=bool), seconds=seconds,
+        events=np.array(evs, dtype=np.int64),
     )
 
 
-def _bounded(state) -> bool:
-    """The state's ``bounded`` flag (older filter states have none: finite hull = bounded)."""
+def _row(state) -> tuple[np.ndarray, np.ndarray, bool, bool, int]:
+    """``(lower [n], upper [n], consistent, bounded, events)`` of a batch-1 state: the hull of
+    its guaranteed set (+-inf where unbounded; a state without ``bounded``: a finite hull is
+    bounded)."""
     flag = getattr(state, "bounded", None)
-    if flag is not None:
-        return bool(flag.reshape(-1)[0])
-    hull = state.set.interval_hull()
-    return bool(torch.isfinite(hull.lower).all() and torch.isfinite(hull.upper).all())
+    S = getattr(state, "guaranteed_set", state.set)
+    hull = S.interval_hull()
+    lo, up = hull.lower[0].cpu().numpy(), hull.upper[0].cpu().numpy()
+    bounded = bool(flag.reshape(-1)[0]) if flag is not None else bool(
+        np.isfinite(lo).all() and np.isfinite(up).all()
+    )
+    if not bounded:  # never a finite placeholder
+        lo, up = np.full_like(lo, -np.inf), np.full_like(up, np.inf)
+    ev = getattr(state, "events", None)
+    events = 0 if ev is None else int(ev.reshape(-1)[0])
+    consistent = bool(state.consistent[0]) or not bounded
+    return lo, up, consistent, bounded, events
 
 
-def write_bounds(out: Path, run: FilterRun, fmt: str = "csv") -> Path:
-    """``out/bounds.csv`` (``step, lower_0.., upper_0.., consistent``) or ``out/bounds.npz``."""
+def write_bounds(
+    out: Path, run: FilterRun, fmt: str = "csv", state_names: list[str] | None = None
+) -> Path:
+    """``out/bounds.csv`` (``step, lower_NAME.., upper_NAME.., consistent, bounded``) or
+    ``out/bounds.npz`` (arrays ``step, lower, upper, consistent, bounded, events,
+    state_names``). NAME: ``state_names`` (default ``0 .. n-1``). Unbounded steps are written
+    as ``-inf`` / ``inf``."""
     n = run.lower.shape[1]
+    names = state_names or [str(i) for i in range(n)]
     steps = np.arange(run.lower.shape[0])
+    events = run.events if run.events is not None else np.zeros(len(steps), np.int64)
     if fmt == "npz":
         path = out / "bounds.npz"
-        np.savez(path, step=steps, lower=run.lower, upper=run.upper, consistent=run.consistent)
+        np.savez(path, step=steps, lower=run.lower, upper=run.upper, consistent=run.consistent,
+                 bounded=run.bounded, events=events, state_names=np.array(names))
         return path
     path = out / "bounds.csv"
-    head = ["step", *(f"lower_{i}" for i in range(n)), *(f"upper_{i}" for i in range(n)),
-            "consistent"]
+    head = ["step", *(f"lower_{c}" for c in names), *(f"upper_{c}" for c in names),
+            "consistent", "bounded"]
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(head)
         for k in steps:
             w.writerow([int(k), *(repr(float(v)) for v in run.lower[k]),
-                        *(repr(float(v)) for v in run.upper[k]), int(run.consistent[k])])
+                        *(repr(float(v)) for v in run.upper[k]), int(run.consistent[k]),
+                        int(run.bounded[k])])
     return path
+
+
+def _state_names(text: str | None, n: int) -> list[str] | None:
+    """``--state-names a,b,c`` -> ``["a", "b", "c"]`` (exactly n distinct, non-empty names of
+    letters, digits, ``_``, ``.`` and ``-``), or None."""
+    if text is None:
+        return None
+    names = [c.strip() for c in text.split(",")]
+    if len(names) != n:
+        raise ValueError(f"--state-names: expected {n} names (one per state), got {len(names)}")
+    bad = [c for c in names if not c or not all(ch.isalnum() or ch in "_.-" for ch in c)]
+    if bad:
+        raise ValueError(f"--state-names: names must be non-empty and use letters, digits, "
+                         f"'_', '.', '-' only, got {bad}")
+    if len(set(names)) != n:
+        raise ValueError(f"--state-names: names must be distinct, got {names}")
+    return names
 
 
 # ------------------------------------------------------------------ command line
@@ -301,11 +373,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--skip-missing", action="store_true",
       help="blank / NaN measurement cells skip that update (default: they are an error)")
     a("--no-figure", dest="figure", action="store_false", help="do not write bounds.png")
-    a("--quiet", action="store_true", help="no progress bar and no summary on stdout")
+    a("--state-names", default=None, metavar="NAMES",
+      help="comma-separated names of the states, one per state, used in the CSV columns "
+           "(lower_NAME, upper_NAME) and the figure (default: 0, 1, ...)")
+    a("--quiet", action="store_true",
+      help="no progress bar and no summary on stdout (warnings about inconsistent steps and "
+           "a lost guarantee still go to stderr)")
 
 
 def main(args: argparse.Namespace) -> int:
-    """Run ``diffsmf filter``; exit status 0 (also when steps were inconsistent: see summary)."""
+    """Run ``diffsmf filter``; the exit status (module docstring): 0 bounded and consistent,
+    1 inconsistent steps, 3 the guarantee was lost (unbounded), 4 a numerical failure."""
     try:
         cls = ds.filters.by_name(args.filter)
     except ValueError:
@@ -362,18 +440,31 @@ def main(args: argparse.Namespace) -> int:
             raise
         raise ValueError(f"{opts}: the {cls.__name__} filter does not take this option "
                          "(it has its own noise parameters)") from None
-    run = run_filter(filt, y, u, progress=not args.quiet)
+    state_names = _state_names(getattr(args, "state_names", None), system.n)
+    try:
+        run = run_filter(filt, y, u, progress=not args.quiet)
+    except NumericalFailure as exc:
+        print(f"diffsmf filter: numerical failure at {exc} (not an error in your input; "
+              "please report it)", file=sys.stderr)
+        return EXIT_NUMERICAL
     out.mkdir(parents=True, exist_ok=True)
-    bounds_path = write_bounds(out, run, args.format)
+    bounds_path = write_bounds(out, run, args.format, state_names)
     files = {"bounds": bounds_path.name}
     name = type(filt).__name__
     guaranteed = ds.filters.is_guaranteed(filt)
     if args.figure:
         title = f"{name} on {system.name}: {T} steps of {Path(args.data).name}"
+        names = state_names or [str(i) for i in range(system.n)]
         bounds_figure(run.lower, run.upper, out / "bounds.png", consistent=run.consistent,
-                      title=title, guaranteed=guaranteed)
+                      title=title, guaranteed=guaranteed,
+                      state_names=names if state_names else [f"state {c}" for c in names],
+                      bounded=run.bounded)
         files["figure"] = "bounds.png"
     inconsistent = [int(k) for k in np.flatnonzero(~run.consistent)]
+    lost = int(np.flatnonzero(~run.bounded)[0]) if not run.bounded.all() else None
+    status = EXIT_UNBOUNDED if lost is not None else (
+        EXIT_INCONSISTENT if inconsistent else EXIT_OK
+    )
     skipped = [int(k) + 1 for k in np.flatnonzero(np.isnan(Y).any(1))]
     summary = {
         "filter": name,
@@ -393,30 +484,44 @@ def main(args: argparse.Namespace) -> int:
             "skip_missing": bool(args.skip_missing),
             "format": args.format,
         },
+        "state_names": state_names or [str(i) for i in range(system.n)],
         "inconsistent_steps": inconsistent,
         "skipped_updates": skipped,
+        "bounded": bool(run.bounded.all()),
+        "guarantee_lost_at_step": lost,
         "unbounded_steps": [int(k) for k in np.flatnonzero(~run.bounded)],
+        "events": describe_events(run.events)[:100] if run.events is not None else [],
         "seconds": run.seconds,
+        "exit_status": status,
         "files": {**files, "summary": "summary.json"},
         "diffsmf_version": ds.__version__,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    # warnings go to stderr, also with --quiet: they say the bounds cannot be used as they are
+    if inconsistent:
+        print(f"diffsmf filter: warning: {len(inconsistent)} inconsistent step(s) (measurement "
+              f"outside the predicted set: the model, the noise bounds or the data were "
+              f"violated), first at step {inconsistent[0]}; see {out / 'summary.json'}",
+              file=sys.stderr)
+    if lost is not None:
+        print(f"diffsmf filter: warning: the guarantee was lost at step {lost}: "
+              f"{_event_reason(run)}; see {out / 'summary.json'}", file=sys.stderr)
     if not args.quiet:
         width = run.upper[-1] - run.lower[-1]
         print(f"{name} on {system.name}: {T} steps in {run.seconds:.2f} s; final bound widths "
               f"{np.array2string(width, precision=3)}")
-        if inconsistent:
-            print(f"  {len(inconsistent)} inconsistent step(s) (measurement outside the "
-                  f"predicted set: model, bounds or data violated), first at step "
-                  f"{inconsistent[0]}")
-        else:
+        if not inconsistent:
             print("  every measurement was consistent with the model and the noise bounds")
-        if not run.bounded.all():
-            print(f"  the set stopped being finite at step {int(np.flatnonzero(~run.bounded)[0])}"
-                  " (bounds inf from there): the model left the region where its remainder "
-                  "bounds are finite")
         if not guaranteed:
             print(f"  note: {name} is not a guaranteed filter; its bounds are not guaranteed")
         print(f"  wrote {out / files['bounds']}, " +
               (f"{out / 'bounds.png'}, " if args.figure else "") + f"{out / 'summary.json'}")
-    return 0
+    return status
+
+
+def _event_reason(run: FilterRun) -> str:
+    """The reason of the event that lost the bound, as text."""
+    from diffsmf.filters.events import LOSES_BOUND, event_text
+
+    code = 0 if run.events is None else int(run.events[-1]) & LOSES_BOUND
+    return event_text(code) if code else "the set became unbounded; bounds are -inf/+inf from here"

@@ -6,6 +6,7 @@ from diffsmf.filters.combined import CombinedFilter
 from diffsmf.filters.czsmf import CZSMF
 from diffsmf.filters.ekf import EKF
 from diffsmf.filters.esmf import ESMF
+from diffsmf.filters.events import FilterEvent, describe_events, event_text
 from diffsmf.filters.hsnsmf import HSNSMF
 from diffsmf.filters.mszm import MSZM
 
@@ -17,11 +18,14 @@ __all__ = [
     "ESMF",
     "HSNSMF",
     "MSZM",
+    "FilterEvent",
     "FilterResult",
     "FilterState",
     "SetFilter",
     "by_name",
     "is_guaranteed",
+    "describe_events",
+    "event_text",
     "names",
 ]
 

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.base import MAX_SET_RADIUS, FilterState, SetFilter, state_batch
+from diffsmf.filters.events import FilterEvent
 from diffsmf.sets.base import ConvexSet, align, check_nonempty, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -36,21 +37,42 @@ def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor
     return StepModel(system.f, u, system.theta_nominal)
 
 
-def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:
-    """``(R', ok)``: ``ok [...]`` is False where the remainder box ``R [..., n]`` is not finite
-    (NaN / inf: the set reached a singularity of the model, e.g. the pole of the fermenter's
-    ``mu``) or has a bound beyond `MAX_SET_RADIUS` (the set grew
-    without bound: squaring such a radius, as the ellipsoidal covers do, would overflow before
-    the guard sees the set); there ``R'`` is 0 so that no NaN reaches the rest of the batch.
-    The caller must mark those elements unbounded (``FilterState.and_bounded(ok)``): no
-    bounded guaranteed set exists for them. Branch-free; the bounds of the other elements are
-    returned unchanged.
-    """
+def remainder_events(R: Interval) -> Tensor:
+    """`FilterEvent` code ``[...]`` (int64) of a remainder box ``R [..., n]``: ``DOMAIN`` where a
+    bound is NaN (the model left its domain over the set: sqrt / log / power below 0,
+    asin / acos outside [-1, 1], an atan2 branch cut; the model-evaluation engine returns NaN
+    bounds there and never raises), else ``DIVERGED`` where a bound is +-inf or beyond
+    `MAX_SET_RADIUS` (a pole of the model, or a set grown without
+    bound: squaring such a radius, as the ellipsoidal covers do, would overflow before the
+    guard sees the set), else 0. Branch-free, per element."""
+    nan = (torch.isnan(R.lower) | torch.isnan(R.upper)).any(-1)
     big = MAX_SET_RADIUS
     ok = ((R.lower.abs() <= big) & (R.upper.abs() <= big)).all(-1)  # False for NaN and inf
-    keep = ok.unsqueeze(-1)
+    ev = torch.where(ok, 0, int(FilterEvent.DIVERGED))
+    return torch.where(nan, int(FilterEvent.DOMAIN), ev)
+
+
+def checked_remainder(R: Interval) -> tuple[Interval, Tensor]:
+    """``(R', events)``: ``events [...]`` the `remainder_events` of ``R [..., n]``; ``R'`` is
+    ``R`` where they are 0 and the box 0 elsewhere, so that no NaN / inf reaches the rest of
+    the batch. The caller records the events (``FilterState.flag``), which marks those
+    elements unbounded: no bounded guaranteed set exists for them."""
+    ev = remainder_events(R)
+    keep = (ev == 0).unsqueeze(-1)
     z = torch.zeros_like(R.lower)
-    return Interval._make(torch.where(keep, R.lower, z), torch.where(keep, R.upper, z)), ok
+    return Interval._make(torch.where(keep, R.lower, z), torch.where(keep, R.upper, z)), ev
+
+
+def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:
+    """``(R', ok)``: `checked_remainder` with ``ok = events == 0`` (``[...]`` bool: False where
+    the remainder box ``R [..., n]`` is NaN, infinite or beyond
+    `MAX_SET_RADIUS`); there ``R'`` is 0. The caller must mark those
+    elements unbounded (``FilterState.and_bounded(ok)``, or ``FilterState.flag`` with the
+    events of `checked_remainder`, which also says why). Branch-free; the bounds of the other
+    elements are returned unchanged.
+    """
+    R2, ev = checked_remainder(R)
+    return R2, ev == 0
 
 
 def rounding_margin(*terms: Tensor) -> Tensor:
@@ -124,9 +146,12 @@ def prediction_remainder(
     J: Tensor,
     u: Tensor | None,
     margin: Tensor | None = None,
+    events: bool = False,
 ) -> tuple[Interval, Tensor]:
     """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``,
-    and ``ok [B]``: False where no finite box exists (`sanitize_remainder`).
+    and ``ok [B]``: False where no finite box exists (`sanitize_remainder`); with
+    ``events=True`` the `FilterEvent` codes ``[B]`` instead (`checked_remainder`:
+    ``DOMAIN`` / ``DIVERGED``, 0 where the box is finite), for ``FilterState.flag``.
 
     ``remainder`` is a `diffsmf.linearize` remainder bound (``dc_remainder`` for Wang et al.
     2022, ``lagrange_remainder`` for Song et al. 2017); when the system has mismatched parameters
@@ -143,8 +168,9 @@ def prediction_remainder(
     R = remainder(fn, S, c, J)
     if system.parameters is not None:
         D = parameter_deviation(system.f, S, system.parameters, system.theta_nominal, u)
-        R = Interval(R.lower + D.lower, R.upper + D.upper)
-    return sanitize_remainder(add_remainder_margin(R, margin))
+        R = Interval._make(R.lower + D.lower, R.upper + D.upper)
+    R = add_remainder_margin(R, margin)
+    return checked_remainder(R) if events else sanitize_remainder(R)
 
 
 def add_remainder_margin(R: Interval, margin: Tensor | None) -> Interval:
@@ -165,17 +191,22 @@ def measurement_strips(
     H: Tensor,
     y: Tensor,
     vbox: Interval,
-) -> tuple[Tensor, Tensor, Tensor]:
+    events: bool = False,
+) -> tuple[Tensor, ...]:
     """Strips of Wang et al. 2022, Theorem 3 (eq. 23-29), one per measurement component.
 
     ``{x : |H_i x - (y_i - v_c,i - h_i(c) + H_i c - e_mid,i)| <= eps_v,i + e_rad,i}`` with
     ``[e_min, e_max]`` the remainder of ``h`` about ``c`` over ``S``. Written un-normalised
     (eq. 24-25 divide both sides by the half-width, the same set).
 
-    Returns normal ``[B, m, n]``, offset ``[B, m]``, halfwidth ``[B, m]``.
+    Returns normal ``[B, m, n]``, offset ``[B, m]``, halfwidth ``[B, m]`` and, with
+    ``events=True``, the `FilterEvent` codes ``[B]`` of the remainder of ``h`` (``DOMAIN`` /
+    ``DIVERGED``: its strips then have an infinite half-width, all of R^n: the measurement
+    is skipped, the guarantee holds).
     """
     hc = h(c)
-    E, ok = sanitize_remainder(remainder(h, S, c, H))
+    E, ev = checked_remainder(remainder(h, S, c, H))
+    ok = ev == 0
     Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
     offset = y - vbox.center - hc + Hc - E.center
     half = vbox.radius + E.radius
@@ -183,7 +214,7 @@ def measurement_strips(
     # unbounded remainder of h over S: the strip is all of R^n (half-width inf, skipped by
     # sequential_strip_update) -- guaranteed, the measurement just cannot shrink the set
     half = torch.where(ok.unsqueeze(-1), half, torch.full_like(half, torch.inf))
-    return H, offset, half
+    return (H, offset, half, ev) if events else (H, offset, half)
 
 
 def sequential_strip_update(
@@ -192,30 +223,44 @@ def sequential_strip_update(
     offset: Tensor,
     half: Tensor,
     intersect: Callable[[ConvexSet, object], ConvexSet],
-) -> tuple[ConvexSet, Tensor]:
+) -> tuple[ConvexSet, Tensor, Tensor]:
     """Intersect ``S`` with the m strips one by one (Wang et al. 2022, sec. 3.3).
 
-    Returns the updated set and ``consistent [B]``. Where some strip misses the current set
-    (empty intersection: a fault, Wang et al. 2022, eq. 31-32) the input set is returned unchanged
-    for that batch element and ``consistent`` is False. A strip of infinite half-width (an
-    unbounded remainder of ``h``) is all of R^n and is skipped for that element.
+    Returns the updated set, ``consistent [B]`` and the `FilterEvent` codes ``[B]``. Where some
+    strip misses the current set (empty intersection: a fault, Wang et al. 2022, eq. 31-32) the
+    input set is returned unchanged for that batch element and ``consistent`` is False. A
+    strip of infinite half-width (an unbounded remainder of ``h``) is all of R^n and is
+    skipped for that element. A degenerate strip (a zero or non-finite normal, a non-finite
+    offset or a NaN half-width: the linearised output does not depend on the state there, or
+    overflowed) is skipped too, with the event ``DEGENERATE_STRIP``; a zero normal with finite
+    offset is still checked for consistency (``|offset| <= halfwidth``). Skipping a strip
+    never loses the guarantee (the set is only not shrunk by it). Branch-free.
     """
     from diffsmf.sets.strip import Strip
 
     ok = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
+    ev = torch.zeros(S.batch_shape, dtype=torch.int64, device=S.device)
     cur = S
     for i in range(normal.shape[-2]):
-        w = half[..., i]
-        inf = torch.isinf(w)
-        w = torch.where(inf, torch.ones_like(w), w)
-        d = torch.where(inf, torch.zeros_like(offset[..., i]), offset[..., i])
-        strip = Strip(normal[..., i, :], d, w)
-        atol = rounding_margin(d, w).detach()
-        ok = ok & (inf | cur.intersects_strip(strip, atol=atol))
+        a, w, d = normal[..., i, :], half[..., i], offset[..., i]
+        zero = (a == 0).all(-1)
+        bad = ~torch.isfinite(a).all(-1) | ~torch.isfinite(d) | torch.isnan(w)
+        degen = zero | bad
+        inf = torch.isinf(w) & ~bad
+        skip = inf | degen
+        ev = ev | torch.where(degen & ~inf, int(FilterEvent.DEGENERATE_STRIP), 0)
+        atol = rounding_margin(torch.where(bad, 0.0, d), torch.where(skip, 0.0, w)).detach()
+        # a zero normal: the strip is R^n (|d| <= w) or empty -- checked, never intersected
+        zero_ok = torch.where(zero & ~bad & ~inf, d.abs() <= w + atol, True)
+        a = torch.where(degen.unsqueeze(-1), torch.ones_like(a), a)
+        w = torch.where(skip, torch.ones_like(w), w)
+        d = torch.where(skip, torch.zeros_like(d), d)
+        strip = Strip(a, d, w)
+        ok = ok & zero_ok & (skip | cur.intersects_strip(strip, atol=atol))
         nxt = intersect(cur, strip)
-        a, b = align([nxt, cur])
-        cur = where(inf, b, a)
-    return where(ok, cur, _like(S, cur)), ok
+        a_, b_ = align([nxt, cur])
+        cur = where(skip, b_, a_)
+    return where(ok, cur, _like(S, cur)), ok, ev
 
 
 def stirling_strip_update(
@@ -224,19 +269,23 @@ def stirling_strip_update(
     region: ConvexSet,
     y: Tensor,
     intersect: Callable[[ConvexSet, object], ConvexSet],
-) -> tuple[ConvexSet, Tensor]:
+) -> tuple[ConvexSet, Tensor, Tensor]:
     """Wang et al. 2022, Theorem 3 update shared by HSNSMF, MSZM and CDSMF: Stirling slopes of ``h``
     at the centre (eq. 13), DC remainder of ``h`` over ``region`` folded into the strips
-    (eq. 23-29), strips intersected one by one with ``intersect`` -> (set, consistent ``[B]``).
+    (eq. 23-29), strips intersected one by one with ``intersect`` -> (set, consistent ``[B]``,
+    `FilterEvent` codes ``[B]``: ``DOMAIN`` / ``DIVERGED`` of the remainder of ``h``, whose
+    update is then skipped, and ``DEGENERATE_STRIP``; none of them loses the guarantee).
     """
     from diffsmf.linearize import stirling_jacobian
 
     c = S.center
     H = stirling_jacobian(filt.system.h, c, filt.stirling_step)  # eq. 13
-    a, d, w = measurement_strips(
-        filt.system.h, filt.remainder_fn, region, c, H, y, filt.measurement_noise_box()
+    a, d, w, ev_h = measurement_strips(
+        filt.system.h, filt.remainder_fn, region, c, H, y, filt.measurement_noise_box(),
+        events=True,
     )
-    return sequential_strip_update(S, a, d, w, intersect)
+    new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
+    return new, ok, ev | ev_h
 
 
 def _like(S: ConvexSet, ref: ConvexSet) -> ConvexSet:
@@ -409,6 +458,8 @@ __all__ = [
     "X0_LOWER",
     "X0_UPPER",
     "add_remainder_margin",
+    "checked_remainder",
+    "remainder_events",
     "register_remainder",
     "register_remainder_margin",
     "register_stirling_step",

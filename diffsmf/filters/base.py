@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.filters._direct import CaptureError, DirectSteps, config_key
+from diffsmf.filters.events import LOSES_BOUND, FilterEvent, mark_unbounded
 from diffsmf.sets.base import ConvexSet, align, check_count, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System, check_system
@@ -28,6 +29,7 @@ from diffsmf.utils import (
     Positive,
     StrictlyPositive,
     check_strictly_positive,
+    numerical_events,
     register_positive,
     retain_freed_memory,
     tracing,
@@ -61,7 +63,9 @@ class FilterState:
     from the step where the set stopped being finite (a remainder became unbounded, e.g. at a
     singularity of the model, or the set outgrew `MAX_SET_RADIUS`). Such an element's
     guaranteed set is all of R^n; ``set`` then holds a finite placeholder (the initial set)
-    so that the batch carries on, and must not be read as an estimate.
+    so that the batch carries on, and must not be read as an estimate: read
+    ``guaranteed_set`` (R^n there). ``extras["events"]`` ``[B]`` int64: the `FilterEvent`
+    bits met so far (sticky; see `diffsmf.filters.events`).
     """
 
     set: ConvexSet
@@ -84,6 +88,70 @@ class FilterState:
         b = ok if self.bounded is None else self.bounded & ok
         return self.replace(bounded=b)
 
+    def flag(self, events: Tensor, unbounded: bool = True) -> FilterState:
+        """This state with the `FilterEvent` bits ``events [B]`` (int) recorded: OR-ed into
+        ``extras["events"]``; with ``unbounded`` (events of the set itself, e.g. its
+        prediction remainder), ``bounded`` is False where one of them loses the bound
+        (``LOSES_BOUND``: diverged, domain, non-finite). ``unbounded=False`` for events of a
+        measurement update, which keep the guarantee: a lost bound there is recorded as
+        ``MEASUREMENT_SKIPPED`` (the update was skipped). Branch-free."""
+        ev = events.to(torch.int64)
+        if not unbounded:  # a measurement that could not be bounded: skipped, not a lost bound
+            skipped = (ev & LOSES_BOUND) != 0
+            ev = (ev & ~LOSES_BOUND) | torch.where(skipped, int(FilterEvent.MEASUREMENT_SKIPPED), 0)
+        old = self.extras.get("events")
+        new = self.replace(extras={**self.extras, "events": ev if old is None else old | ev})
+        return new.and_bounded((ev & LOSES_BOUND) == 0) if unbounded else new
+
+    @property
+    def events(self) -> Tensor:
+        """``[B]`` int64 `FilterEvent` bits met so far (0 = none)."""
+        ev = self.extras.get("events")
+        return torch.zeros_like(self.consistent, dtype=torch.int64) if ev is None else ev
+
+    @property
+    def guaranteed_set(self) -> ConvexSet:
+        """The set to read as the estimate: ``set`` where ``bounded``, all of R^n where not
+        (`diffsmf.filters.events.mark_unbounded`: ``contains`` True, ``interval_hull``
+        -inf / +inf, ``volume`` inf there)."""
+        return mark_unbounded(self.set, self.bounded)
+
+
+def _carry(prev: FilterState, new: FilterState, update: bool = False) -> FilterState:
+    """``new`` with what ``prev`` had met: ``bounded`` stays False once False and the event
+    bits accumulate (a filter's step may build its state afresh); after an update, a
+    measurement is never inconsistent against an unbounded set (``consistent |= ~bounded``)."""
+    b = new.bounded
+    if prev.bounded is not None:
+        b = prev.bounded if b is None else prev.bounded & b
+    ev = prev.extras.get("events")
+    extras = new.extras
+    if ev is not None:
+        now = extras.get("events")
+        extras = {**extras, "events": ev if now is None else ev | now}
+    consistent = new.consistent
+    if update and b is not None:
+        consistent = consistent | ~b
+    return FilterState(new.set, consistent, extras, b)
+
+
+def _flagging(fn: Callable[..., FilterState], *args: Any) -> FilterState:
+    """``fn(*args)`` inside `diffsmf.utils.numerical_events` (a numerical event is
+    flagged per element, never raised); traced code has no value checks anyway."""
+    if tracing():
+        return fn(*args)
+    with numerical_events():
+        return fn(*args)
+
+
+def _with_events(state: FilterState) -> FilterState:
+    """``state`` with ``extras["events"]`` (zeros ``[B]`` int64) when it has none, so that
+    every state of a run has the same structure (one compiled graph)."""
+    if "events" in state.extras:
+        return state
+    ev = torch.zeros(state.consistent.shape, dtype=torch.int64, device=state.consistent.device)
+    return state.replace(extras={**state.extras, "events": ev})
+
 
 @dataclass(frozen=True)
 class FilterResult:
@@ -93,8 +161,12 @@ class FilterResult:
     center, lower, upper: ``[B, T+1, n]``; volume: ``[B, T+1]``; consistent: ``[B, T+1]``
     bool; extras: stacked filter-specific tensors, e.g. ``"covariance" [B, T+1, n, n]``;
     bounded: ``[B, T+1]`` bool, False where the set stopped being finite (see
-    `FilterState`): there ``lower = -inf``, ``upper = +inf``, ``volume = inf`` and
-    ``center`` is NaN (never a plausible-looking number); ``sets`` holds a placeholder.
+    `FilterState`): there ``lower = -inf``, ``upper = +inf``, ``volume = inf``,
+    ``center`` is NaN (never a plausible-looking number), ``consistent`` is True (no
+    measurement contradicts an unbounded prediction) and ``sets`` is all of R^n
+    (`diffsmf.filters.events.mark_unbounded`: ``sets.contains(x)`` True, its hull +-inf).
+    events (property): ``[B, T+1]`` int64 `FilterEvent` bits met at or before each step
+    (``describe_events(res.events)`` says what happened where).
     """
 
     sets: ConvexSet
@@ -109,6 +181,16 @@ class FilterResult:
     @property
     def covariance(self) -> Tensor | None:
         return self.extras.get("covariance")
+
+    @property
+    def events(self) -> Tensor:
+        """``[B, T+1]`` int64: the `FilterEvent` bits met by each trajectory at or before
+        each step (0 = none; zeros for a result without events)."""
+        ev = self.extras.get("events")
+        if ev is None:
+            return torch.zeros(self.consistent.shape, dtype=torch.int64,
+                               device=self.consistent.device)
+        return ev
 
 
 def state_batch(batch: Any) -> int:
@@ -175,13 +257,15 @@ def bounded_result(
     )
     b = bounded.unsqueeze(-1)
     inf = torch.full_like(lower, torch.inf)
+    if "events" not in extras and all("events" in s.extras for s in states):
+        extras = {**extras, "events": torch.stack([s.extras["events"] for s in states], 1)}
     return cls(
-        sets=sets,
+        sets=sets if tracing() or bool(bounded.all()) else mark_unbounded(sets, bounded),
         center=torch.where(b, center, torch.full_like(center, torch.nan)),
         lower=torch.where(b, lower, -inf),
         upper=torch.where(b, upper, inf),
         volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
-        consistent=torch.stack([s.consistent for s in states], 1),
+        consistent=torch.stack([s.consistent for s in states], 1) | ~bounded,
         extras=extras,
         bounded=bounded,
     )
@@ -443,7 +527,8 @@ class SetFilter(nn.Module):
             def predict(
                 self: SetFilter, state: FilterState, u: Tensor | None = None
             ) -> FilterState:
-                return raw(self, state, self._check_u(u, state))
+                u = self._check_u(u, state)
+                return _carry(state, _flagging(raw, self, state, u))
 
             predict._checks_u = True  # type: ignore[attr-defined]
             cls.predict = predict  # type: ignore[method-assign]
@@ -452,10 +537,20 @@ class SetFilter(nn.Module):
 
             @functools.wraps(raw_update)
             def update(self: SetFilter, state: FilterState, y: Tensor) -> FilterState:
-                return raw_update(self, state, self._check_update_y(y, state))
+                y = self._check_update_y(y, state)
+                return _carry(state, _flagging(raw_update, self, state, y), update=True)
 
             update._checks_y = True  # type: ignore[attr-defined]
             cls.update = update  # type: ignore[method-assign]
+        raw_init = cls.__dict__.get("initial_state")
+        if raw_init is not None and not getattr(raw_init, "_adds_events", False):
+
+            @functools.wraps(raw_init)
+            def initial_state(self: SetFilter, batch: int | None = None) -> FilterState:
+                return _with_events(raw_init(self, batch))
+
+            initial_state._adds_events = True  # type: ignore[attr-defined]
+            cls.initial_state = initial_state  # type: ignore[method-assign]
 
     def __init__(
         self,
@@ -555,9 +650,9 @@ class SetFilter(nn.Module):
         """State at k = 0 (the system's initial set), batch shape ``[batch]``."""
         x0 = self.system.x0_set
         b = state_batch(batch)
-        return FilterState(
+        return _with_events(FilterState(
             set=x0.expand(b), consistent=torch.ones(b, dtype=torch.bool, device=x0.device)
-        )
+        ))
 
     def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Time update with input ``u [B, p]`` (the input that drives x_{k-1} -> x_k)."""
@@ -574,14 +669,17 @@ class SetFilter(nn.Module):
         with the boundedness guard (`guard`)."""
         y = self._check_update_y(y, state)
         bad = torch.isnan(y).any(-1)
-        if not tracing():
-            if not bad.any():
-                return self.guard(self._update(state, y))
-            if not self.skip_nan:
-                raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
-        elif not self.skip_nan:
-            return self.guard(self._update(state, y))
-        new = self._update(state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y))
+        if not tracing() and bool(bad.any()) and not self.skip_nan:
+            raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
+        return _flagging(type(self)._guarded_update, self, state, y, bad)
+
+    def _guarded_update(self, state: FilterState, y: Tensor, bad: Tensor) -> FilterState:
+        """`update` on a validated ``y`` (``bad [B]``: its NaN rows)."""
+        if not self.skip_nan or (not tracing() and not bool(bad.any())):
+            return self.guard(_carry(state, self._update(state, y)))
+        new = _carry(state, self._update(
+            state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y)
+        ))
         keep = ~bad
         extras = {
             k: torch.where(keep.reshape(keep.shape + (1,) * (v.dim() - 1)), v, state.extras[k])
@@ -599,31 +697,37 @@ class SetFilter(nn.Module):
         """Flag and replace sets that stopped being finite (``bounded``, see FilterState).
 
         An element is unbounded when a step flagged it (a remainder bound was not finite) or
-        its set has a non-finite field or an interval-hull half-width above
-        `MAX_SET_RADIUS`. Its set is replaced by the initial set (a finite placeholder,
-        so that no NaN reaches the rest of the batch) and it stays flagged. Branch-free.
+        its set has a non-finite field (event ``NON_FINITE``) or an interval-hull half-width
+        above `MAX_SET_RADIUS` (event ``DIVERGED``). Its set is replaced by the initial
+        set (a finite placeholder, so that no NaN reaches the rest of the batch), it stays
+        flagged, and its ``consistent`` is True (no measurement contradicts R^n).
+        Branch-free.
         """
         S = state.set
-        ok = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
+        finite = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
         for t in S._tensors():
-            ok = ok & torch.isfinite(t.detach()).flatten(len(S.batch_shape)).all(-1)
-        init = self.initial_state(batch=int(ok.shape[0]) if ok.dim() else None)
+            finite = finite & torch.isfinite(t.detach()).flatten(len(S.batch_shape)).all(-1)
+        init = self.initial_state(batch=int(finite.shape[0]) if finite.dim() else None)
         ref = init.set
         same = type(ref) is type(S) and ref.batch_shape == S.batch_shape
         if same:
             S_a, ref_a = align([S, ref])
         # eager hulls check their fields, so take the hull of a NaN set's placeholder (the
-        # element is flagged by ``ok`` already); traced code has no checks and keeps S
-        hull = (where(ok, S_a, ref_a) if same and not tracing() else S).interval_hull()
-        ok = ok & (hull.radius.detach() <= MAX_SET_RADIUS).all(-1)
-        new = state.and_bounded(ok)
+        # element is flagged by ``finite`` already); traced code has no checks and keeps S
+        hull = (where(finite, S_a, ref_a) if same and not tracing() else S).interval_hull()
+        small = (hull.radius.detach() <= MAX_SET_RADIUS).all(-1)
+        was = torch.ones_like(finite) if state.bounded is None else state.bounded
+        ev = torch.where(was & ~finite, int(FilterEvent.NON_FINITE), 0)
+        ev = ev | torch.where(was & finite & ~small, int(FilterEvent.DIVERGED), 0)
+        new = _with_events(state).flag(ev).and_bounded(finite & small)
         b = new.bounded
+        new = new.replace(consistent=new.consistent | ~b)  # nothing contradicts R^n
         if not same:
             return new
         safe = where(b, S_a, ref_a)
         extras = dict(new.extras)
         for k, v in new.extras.items():
-            if k in init.extras and init.extras[k].shape == v.shape:
+            if k != "events" and k in init.extras and init.extras[k].shape == v.shape:
                 keep = b.reshape(b.shape + (1,) * (v.dim() - b.dim()))
                 extras[k] = torch.where(keep, v, init.extras[k])
         return new.replace(set=safe, extras=extras)
@@ -1087,11 +1191,16 @@ def scaled_minkowski_sum(E1: Any, E2: Any, method: str, scale: Tensor) -> Any:
     ``"volume"``); every ``p > 0`` gives an outer bound, so the factor ``scale > 0`` never
     costs the guarantee. ``scale == 1`` reproduces ``E1.minkowski_sum(E2, method)`` bit for bit
     (``x * 1.0 == x`` in IEEE arithmetic). Both operands are ellipsoids (positive definite).
+    A weight that is not finite and positive (shapes that overflowed) is replaced by 1.
     """
     from diffsmf.sets.ellipsoid import minkowski_weight
 
     rule_p = minkowski_weight(E1.shape, E2.shape, method)
-    return E1.minkowski_sum(E2, p=rule_p * scale)
+    p = rule_p * scale
+    # an overflowed / underflowed rule (shapes beyond 1e150: the set is diverging) gives
+    # p = 0, inf or NaN; any p > 0 is an outer bound, and the guard flags the set
+    p = torch.where(torch.isfinite(p) & (p > 0), p, torch.ones_like(p))
+    return E1.minkowski_sum(E2, p=p)
 
 
 # =============================================================================================

@@ -102,8 +102,8 @@ class CDSMF(C.EllipsoidalSetFilter):
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, c, self.stirling_step)  # Wang et al. 2022, eq. 12
         box = C.remainder_box(E, state.extras)
-        R, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
-            self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin
+        R, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
+            self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin, events=True
         )
         Well = C.noise_ellipsoid(self)  # None: a box W, summed with the remainder box
         W = self.process_noise_box() if Well is None else None
@@ -119,12 +119,12 @@ class CDSMF(C.EllipsoidalSetFilter):
         if Well is not None:  # an ellipsoidal / zonotope W as given, not its hull
             new = scaled_minkowski_sum(new, Well, self.sum_method, self.minkowski_scale)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
-        return state.replace(set=new, extras=C.spent_initial_box(state.extras)).and_bounded(bounded)
+        return state.replace(set=new, extras=C.spent_initial_box(state.extras)).flag(ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Wang et al. 2022, Theorem 3 strips intersected one by one with the ellipsoid."""
         E = state.set
-        new, ok = C.stirling_strip_update(
+        new, ok, ev = C.stirling_strip_update(
             self, E, E.interval_hull(), y, lambda S, st: S.intersect_strip(st)
         )
-        return state.replace(set=new, consistent=ok)
+        return state.replace(set=new, consistent=ok).flag(ev, unbounded=False)

@@ -46,6 +46,7 @@ from diffsmf.filters.base import (
     SetFilter,
     bounded_result,
 )
+from diffsmf.filters.events import LOSES_BOUND, FilterEvent
 from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet, check_count, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
@@ -245,8 +246,9 @@ class CZSMF(SetFilter):
         p = 0.5 * (lo + hi)  # expansion point: the hull midpoint
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, p, self.stirling_step)  # Wang et al. 2022, eq. 12
-        E, finite = C.prediction_remainder(  # not finite: flagged unbounded (placeholder set)
-            self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin
+        E, ev = C.prediction_remainder(  # not finite: flagged unbounded (placeholder set)
+            self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin,
+            events=True,
         )  # remainder over the interval hull of Z (+ margin)
         wc, wr, Wz = self._noise()
         fp = fn(p)
@@ -258,8 +260,10 @@ class CZSMF(SetFilter):
         Zp = FZ.translate(shift)
         if Wz is not None:  # a non-box W: its own generators (and constraints), exact
             Zp = Zp.minkowski_sum(Wz)
+        Zp, rad, ev = _finite_or_point(Zp, rad, ev, state.bounded)  # no NaN reaches the LPs
         Zp = self._cap(Zp, rad) if self.reduces else Zp._append_box(rad)
-        return self._state(Zp, state.consistent).replace(bounded=state.bounded).and_bounded(finite)
+        new = self._state(Zp, state.consistent).replace(bounded=state.bounded)
+        return new.flag(ev)
 
     def update(self, state: FilterState, y: Tensor) -> FilterState:
         """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) leave the set
@@ -278,9 +282,16 @@ class CZSMF(SetFilter):
         hull = Interval._make(lo, hi)
         p = 0.5 * (lo + hi)
         H = stirling_jacobian(self.system.h, p, self.stirling_step)  # Wang et al. 2022, eq. 13
-        a, d, w = C.measurement_strips(
-            self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box()
+        a, d, w, ev = C.measurement_strips(
+            self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box(),
+            events=True,
         )  # eq. 23-29: |a_i x - d_i| <= w_i, [B, m, n], [B, m], [B, m]
+        # a degenerate strip (non-finite normal or offset: an overflow) skips the update
+        degen = (~torch.isfinite(a).all(-1) | ~torch.isfinite(d)).any(-1)
+        ev = ev | torch.where(degen, int(FilterEvent.DEGENERATE_STRIP), 0)
+        a = torch.where(degen[..., None, None], torch.ones_like(a), a)
+        d = torch.where(degen.unsqueeze(-1), torch.zeros_like(d), d)
+        w = torch.where(degen.unsqueeze(-1), torch.full_like(w, torch.inf), w)
         # projection of the predicted hull on each normal: the strip that contains the set
         pm = (a * p.unsqueeze(-2)).sum(-1)
         pr = (a.abs() * (0.5 * (hi - lo)).unsqueeze(-2)).sum(-1)
@@ -316,8 +327,15 @@ class CZSMF(SetFilter):
             ulo, uhi = torch.where(e1, lo, ulo), torch.where(e1, hi, uhi)
         bounded = torch.isfinite(ulo).all(-1) & torch.isfinite(uhi).all(-1)
         bounded = bounded & ((uhi - ulo) <= 2 * MAX_SET_RADIUS).all(-1)
+        if state.bounded is not None:
+            bounded = bounded & state.bounded
+        Zu, _, _ = _finite_or_point(Zu, ulo, torch.zeros_like(ev), bounded)
+        ulo = torch.where(bounded.unsqueeze(-1), ulo, torch.zeros_like(ulo))
+        uhi = torch.where(bounded.unsqueeze(-1), uhi, torch.zeros_like(uhi))
         new = FilterState(set=Zu, consistent=ok, extras={"lower": ulo, "upper": uhi})
-        return new.replace(bounded=state.bounded).and_bounded(bounded)
+        was = torch.ones_like(bounded) if state.bounded is None else state.bounded
+        ev = ev | torch.where(was & ~bounded, int(FilterEvent.DIVERGED), 0)
+        return new.replace(bounded=state.bounded).and_bounded(bounded).flag(ev, unbounded=False)
 
     def _fault_set(
         self, Z: ConstrainedZonotope, Zu: ConstrainedZonotope, a: Tensor, pm: Tensor, pr: Tensor
@@ -359,3 +377,22 @@ class CZSMF(SetFilter):
             FilterResult, states, sets, center, lower, upper, volume,
             {"lower": lower, "upper": upper},
         )
+
+
+def _finite_or_point(
+    Z: ConstrainedZonotope, rad: Tensor, ev: Tensor, bounded: Tensor | None
+) -> tuple[ConstrainedZonotope, Tensor, Tensor]:
+    """``(Z', rad', ev')``: where ``Z [B]`` or ``rad [B, n]`` has a non-finite entry (event
+    ``NON_FINITE``), an event already lost the bound, or ``bounded [B]`` is False, the set is
+    replaced by the point 0 (every field 0) and ``rad`` by 0: a finite placeholder of the same
+    shape, so that no NaN / inf reaches the LPs of the batch; those elements are flagged
+    unbounded and never read. Branch-free."""
+    nb = len(Z.batch_shape)
+    fin = torch.isfinite(rad).all(-1)
+    for t in Z._tensors():
+        fin = fin & torch.isfinite(t.detach()).flatten(nb).all(-1)
+    was = torch.ones_like(fin) if bounded is None else bounded
+    ev = ev | torch.where(was & ~fin & (ev == 0), int(FilterEvent.NON_FINITE), 0)
+    keep = fin & was & ((ev & LOSES_BOUND) == 0)
+    Z0 = Z._rebuild([torch.zeros_like(t) for t in Z._tensors()])
+    return where(keep, Z, Z0), torch.where(keep.unsqueeze(-1), rad, torch.zeros_like(rad)), ev

@@ -125,7 +125,7 @@ class ESMF(C.EllipsoidalSetFilter):
         box = C.remainder_box(E, state.extras)  # eq. 27 (∩ the initial box at k = 0)
         fn = C.step_function(self.system, u)
         A = jacobian(fn, c)  # eq. 25
-        R, bounded = C.sanitize_remainder(self.remainder_fn(fn, box, c, A))  # eq. 26-28
+        R, ev = C.checked_remainder(self.remainder_fn(fn, box, c, A))  # eq. 26-28
         fc = fn(c)
         R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
         R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
@@ -137,13 +137,13 @@ class ESMF(C.EllipsoidalSetFilter):
             D = parameter_deviation(
                 self.system.f, box, self.system.parameters, self.system.theta_nominal, u
             )
-            D, ok_d = C.sanitize_remainder(D)
-            bounded = bounded & ok_d
+            D, ev_d = C.checked_remainder(D)
+            ev = ev | ev_d
             Qhat = scaled_minkowski_sum(Qhat, D.to_ellipsoid(), "trace", s)
         lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
         new = scaled_minkowski_sum(lin, Qhat, "trace", s)  # eq. 34-35
         new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
-        return state.replace(set=new, extras=C.spent_initial_box(state.extras)).and_bounded(bounded)
+        return state.replace(set=new, extras=C.spent_initial_box(state.extras)).flag(ev)
 
     def _observation_noise(self, y: Tensor, hc: Tensor, Rh: Interval) -> Ellipsoid:
         """Ellipsoid ``E(v', Rhat) [B, m]`` containing measurement noise + remainder of ``h``.
@@ -174,7 +174,8 @@ class ESMF(C.EllipsoidalSetFilter):
         H = jacobian(h, c)
         hc = h(c)
         # unbounded remainder of h: the measurement cannot shrink the set (update skipped)
-        Rh, ok_h = C.sanitize_remainder(self.remainder_fn(h, E.interval_hull(), c, H))
+        Rh, ev_h = C.checked_remainder(self.remainder_fn(h, E.interval_hull(), c, H))
+        ok_h = ev_h == 0
         noise = self._observation_noise(y, hc, Rh)
         Rhat = noise.shape
         nu = y - hc - noise.center  # innovation
@@ -190,7 +191,9 @@ class ESMF(C.EllipsoidalSetFilter):
             xi = (1 - r * (1 - r) * (nu * Dnu.squeeze(-1)).sum(-1)).amin(0)
             ok = (xi > 0) | ~ok_h
             new = E.intersect_measurement(H, ylin, Rhat, method="volume")
-            return state.replace(set=where(ok & ok_h, new, E), consistent=ok)
+            return state.replace(set=where(ok & ok_h, new, E), consistent=ok).flag(
+                ev_h, unbounded=False
+            )
         d1, d2 = _max_sv(Rhat), _max_sv(HPH)
         if self.rho_rule == "eq13":
             d1, d2 = d2, d1
@@ -200,4 +203,6 @@ class ESMF(C.EllipsoidalSetFilter):
         xi = 1 - rho * (1 - rho) * (nu * Dnu).sum(-1)  # eq. 36 (times rho (1 - rho))
         ok = (xi > 0) | ~ok_h  # Song et al. 2017: xi <= 0 means the bounds are violated (a fault)
         new = E.intersect_measurement(H, ylin, Rhat, rho=torch.where(ok, rho, 0.5 * rho))
-        return state.replace(set=where(ok & ok_h, new, E), consistent=ok)
+        return state.replace(set=where(ok & ok_h, new, E), consistent=ok).flag(
+            ev_h, unbounded=False
+        )

@@ -84,14 +84,14 @@ class HSNSMF(SetFilter):
         c, T = P.center, P.T
         fn = C.step_function(self.system, u)
         F = stirling_jacobian(fn, c, self.stirling_step)  # eq. 12
-        E, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
-            self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin
+        E, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
+            self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin, events=True
         )  # eq. 14-18 (+ margin)
         Z = C.zonotope_prediction(self, fn(c), linalg.traced_matmul(F, T), E)  # eq. 20-21
-        return state.replace(set=Z.to_parallelotope()).and_bounded(bounded)  # eq. 22 (Chisci)
+        return state.replace(set=Z.to_parallelotope()).flag(ev)  # eq. 22 (Chisci)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Theorem 3 strips (eq. 23-29) intersected one by one (eq. 30-41)."""
         P = state.set  # remainder of h at the parallelotope's vertices
-        new, ok = C.stirling_strip_update(self, P, P, y, lambda S, st: S.intersect_strip(st))
-        return state.replace(set=new, consistent=ok)
+        new, ok, ev = C.stirling_strip_update(self, P, P, y, lambda S, st: S.intersect_strip(st))
+        return state.replace(set=new, consistent=ok).flag(ev, unbounded=False)

@@ -148,23 +148,24 @@ class MSZM(SetFilter):
         F = stirling_jacobian(fn, c, self.stirling_step)  # Wang et al. 2022, eq. 12
         # remainder over the interval hull (Alamo 2005; Wang et al. 2022, sec. 4.1: the baselines
         # bound the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
-        E, bounded = C.prediction_remainder(  # not finite: flagged, never NaN
-            self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin
+        E, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
+            self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin,
+            events=True,
         )
         FG = linalg.traced_matmul(F, G)
         Zp = C.zonotope_prediction(self, fn(c), FG, E)  # W's own generators (Alamo 2005)
-        return state.replace(set=self._fit(Zp)).and_bounded(bounded)
+        return state.replace(set=self._fit(Zp)).flag(ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Strips (Wang et al. 2022, eq. 23-29) intersected with Alamo 2005 Property 2, then
         reduced."""
         Z = state.set
-        new, ok = C.stirling_strip_update(
+        new, ok, ev = C.stirling_strip_update(
             self, Z, Z.interval_hull(), y,
             lambda S, st: S.intersect_strip(st, method=self.strip_method),
         )
         new = where(ok, self._fit(new), Z)  # inconsistent: keep the predicted set exactly
-        return state.replace(set=new, consistent=ok)
+        return state.replace(set=new, consistent=ok).flag(ev, unbounded=False)
 
 
 def _stable_partition(keep: Tensor, count: Tensor) -> Tensor:

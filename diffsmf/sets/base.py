@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.utils import is_int, tracing
+from diffsmf.utils import checking, is_int, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
@@ -52,7 +52,7 @@ def as_tensor(name: str, value: Any, *, like: Tensor | None = None, min_dim: int
         t = t.to(dtype=like.dtype, device=like.device)
     if t.dim() < min_dim:
         raise ValueError(f"{name}: expected at least {min_dim} dims, got shape {tuple(t.shape)}")
-    if not tracing() and torch.isnan(t.detach()).any():
+    if checking() and torch.isnan(t.detach()).any():
         raise ValueError(f"{name}: contains NaN")
     return t
 
@@ -80,7 +80,7 @@ def check_count(name: str, k: Any) -> int:
 
 def check_finite(name: str, t: Tensor) -> Tensor:
     """Raise ``ValueError`` naming ``name`` if ``t`` has NaN or inf; return ``t``."""
-    if not tracing() and not torch.isfinite(t.detach()).all():
+    if checking() and not torch.isfinite(t.detach()).all():
         raise ValueError(f"{name}: contains NaN or inf")
     return t
 

@@ -18,7 +18,7 @@ from torch import Tensor
 
 from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count, check_finite, where
-from diffsmf.utils import tracing
+from diffsmf.utils import checking, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
@@ -35,7 +35,7 @@ def _sym(S: Tensor) -> Tensor:
 def _chol(name: str, S: Tensor) -> Tensor:
     """Cholesky factor; ``ValueError`` naming ``name`` if not positive definite."""
     L, info = torch.linalg.cholesky_ex(S)
-    if not tracing() and bool((info != 0).any()):
+    if checking() and bool((info != 0).any()):
         raise ValueError(f"{name}: not symmetric positive definite")
     return L
 
@@ -69,7 +69,7 @@ class Ellipsoid(ConvexSet):
             raise ValueError(f"shape: expected [..., {n}, {n}], got {tuple(S.shape)}")
         Sd = S.detach()
         scale = Sd.abs().amax(dim=(-2, -1)).clamp(min=1e-300)
-        if not tracing() and ((Sd - Sd.mT).abs().amax(dim=(-2, -1)) > 1e-8 * scale).any():
+        if checking() and ((Sd - Sd.mT).abs().amax(dim=(-2, -1)) > 1e-8 * scale).any():
             raise ValueError("shape: not symmetric")
         try:
             batch = torch.broadcast_shapes(c.shape[:-1], S.shape[:-2])
@@ -268,7 +268,7 @@ class Ellipsoid(ConvexSet):
         _, info = torch.linalg.cholesky_ex(Sg.detach())
         ok = info == 0
         if method == "generators":
-            if not tracing() and not bool(ok.all()):
+            if checking() and not bool(ok.all()):
                 raise ValueError("Z: generators are not of full row rank; use method='hull'")
             return Ellipsoid._make(Z.center, Sg)
         eye = torch.eye(Z.dim, dtype=Sg.dtype, device=Sg.device)
@@ -302,7 +302,7 @@ class Ellipsoid(ConvexSet):
             p = minkowski_weight(S1, S2, method)
         else:
             p = as_tensor("p", p, like=S1)
-            if not tracing() and (p.detach() <= 0).any():
+            if checking() and (p.detach() <= 0).any():
                 raise ValueError("p: must be > 0")
         pp = p[..., None, None]
         S = _sym((1.0 + 1.0 / pp) * S1 + (1.0 + pp) * S2) * (1.0 + INFLATE)
@@ -414,7 +414,7 @@ class Ellipsoid(ConvexSet):
     def _pick_rho(self, fam: _MeasFamily, method: str, rho: Any, H: Tensor, R: Tensor) -> Tensor:
         if rho is not None:
             r = as_tensor("rho", rho, like=self.center_)
-            if not tracing() and ((r.detach() < 0) | (r.detach() >= 1)).any():
+            if checking() and ((r.detach() < 0) | (r.detach() >= 1)).any():
                 raise ValueError("rho: must be in [0, 1)")
             return r.expand(fam.batch)
         if method == "fixed":

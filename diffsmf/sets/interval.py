@@ -31,7 +31,7 @@ from torch import Tensor
 
 from diffsmf.interval.rounding import down, eps, nan_to_zero, subnormal, tiny, up
 from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count
-from diffsmf.utils import tracing
+from diffsmf.utils import checking, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -79,7 +79,7 @@ class Interval(ConvexSet):
             raise ValueError(
                 f"upper: shape {tuple(hi.shape)} does not broadcast with lower {tuple(lo.shape)}"
             ) from exc
-        if not tracing() and (lo.detach() > hi.detach()).any():
+        if checking() and (lo.detach() > hi.detach()).any():
             raise ValueError("lower: must be <= upper elementwise")
         self._set(lower=lo, upper=hi)
 
@@ -96,7 +96,7 @@ class Interval(ConvexSet):
         """Box ``[c - r, c + r]`` (bounds rounded outward); ``radius >= 0`` elementwise."""
         c = as_tensor("center", center)
         r = as_tensor("radius", radius, like=c)
-        if not tracing() and (r.detach() < 0).any():
+        if checking() and (r.detach() < 0).any():
             raise ValueError("radius: must be >= 0")
         return cls._make(_down(c - r), _up(c + r))
 
@@ -303,7 +303,7 @@ class Interval(ConvexSet):
         return _monotone(self, torch.nn.functional.softplus, 2, clamp_min=0.0)
 
     def log1p(self) -> Interval:
-        if not tracing() and bool((self.lower.detach() < -1).any()):  # traced: NaN, flagged
+        if checking() and bool((self.lower.detach() < -1).any()):  # else NaN, flagged
             low = float(self.lower.detach().min())
             raise ValueError(f"x: log1p needs lower >= -1, its argument reaches {low:.6g} "
                              "(interval leaves the domain)")
@@ -513,11 +513,14 @@ def _add(a: Interval, b: Interval) -> Interval:
 
 def _mul(a: Interval, b: Interval) -> Interval:
     # Song et al. 2017, sec. 3: [a] * [b] = [min, max] of the four endpoint products (0 * inf := 0)
+    # a NaN operand (an enclosure outside its domain) stays NaN: only 0 * inf becomes 0
     al, au, bl, bu = torch.broadcast_tensors(a.lower, a.upper, b.lower, b.upper)
     p = torch.stack([al, au]).unsqueeze(1) * torch.stack([bl, bu]).unsqueeze(0)  # [2, 2, ...]
     p = torch.nan_to_num(p.flatten(0, 1), nan=0.0, posinf=math.inf, neginf=-math.inf)
     lo, hi = torch.aminmax(p, dim=0)
-    return Interval._make(_down(lo), _up(hi))
+    nan = torch.isnan(al) | torch.isnan(au) | torch.isnan(bl) | torch.isnan(bu)
+    return Interval._make(torch.where(nan, al + au + bl + bu, _down(lo)),
+                          torch.where(nan, al + au + bl + bu, _up(hi)))
 
 
 def _scale(a: Interval, s: float) -> Interval:
@@ -614,8 +617,8 @@ def _pow(x: Interval, p: Any) -> Interval:
 
 
 def _check_domain(x: Interval, name: str, strict: bool) -> None:
-    if tracing():  # no host sync: out of the domain, the bounds are NaN and the filters flag them
-        return
+    if not checking():  # traced or in a filter step: out of the domain the bounds are NaN
+        return  # (no host sync), and the filters flag those elements (FilterEvent.DOMAIN)
     bad = (x.lower <= 0) if strict else (x.lower < 0)
     if bool(bad.detach().any()):
         rel = ">" if strict else ">="

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
-from diffsmf.utils import tracing
+from diffsmf.utils import checking
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -61,7 +61,7 @@ class Parallelotope(ConvexSet):
                 f"T: batch shape {tuple(T.shape[:-2])} does not broadcast with center batch "
                 f"shape {tuple(c.shape[:-1])}"
             ) from exc
-        if T.numel() > 0 and not tracing():
+        if T.numel() > 0 and checking():
             sv = torch.linalg.svdvals(T.detach())
             if (sv[..., -1] <= 1e-13 * sv[..., 0]).any() or (sv[..., 0] == 0).any():
                 raise ValueError("T: singular (parallelotope must be full-dimensional)")

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_tensor, as_vector
-from diffsmf.utils import tracing
+from diffsmf.utils import checking
 
 __all__ = ["Strip"]
 
@@ -40,7 +40,7 @@ class Strip(ConvexSet):
         a = as_tensor("normal", normal, min_dim=1)
         o = as_tensor("offset", offset, like=a)
         h = as_tensor("halfwidth", halfwidth, like=a)
-        if not tracing():
+        if checking():
             if (h.detach() < 0).any():
                 raise ValueError("halfwidth: must be >= 0")
             if not torch.isfinite(a.detach()).all():
