@@ -20,7 +20,7 @@ from diffsmf.sets import Ellipsoid, Interval
 from diffsmf.systems import register
 from diffsmf.systems.system import System
 
-__all__ = ["bilinear", "fermenter", "mismatch_quadratic", "spring_damper", "vdp"]
+__all__ = ["bilinear", "cstr", "fermenter", "mismatch_quadratic", "spring_damper", "vdp"]
 
 _F64 = torch.float64
 
@@ -253,4 +253,72 @@ def vdp(dt: float = 0.05, w: float = 1e-3, v: float = 1e-2, horizon: int = 400) 
         inputs=lambda k: _vec(math.sin(k * dt)), name="vdp",
     )
     s.horizon, s.paper_x0 = horizon, _vec(1.2, 0.5)
+    return s
+
+
+# A textbook exothermic CSTR (first-order A -> B, Seborg et al. parameters) with a cooling jacket
+_CSTR = dict(q_V=1.0, Caf=1.0, Tf=350.0, k0=7.2e10, E_R=8750.0, dH_rcp=-5e4 / 239.0,
+             UA_Vrcp=5e4 / (100.0 * 239.0))
+
+
+@register("cstr")
+def cstr(
+    dt: float = 0.1,
+    substeps: int = 4,
+    Tcin: float = 287.0,
+    jacket_tau: float = 2.0,
+    jacket_gain: float = 0.2,
+    w: tuple[float, float, float] = (1e-3, 0.05, 0.05),
+    v: float = 0.1,
+    x0_radius: tuple[float, float, float] = (0.1, 5.0, 5.0),
+    horizon: int = 1000,
+) -> System:
+    """Continuous stirred-tank reactor with a cooling jacket: a stable, observable plant whose
+    states have very different scales (``Ca`` in mol/L, ``T`` and ``Tc`` in K).
+
+    State ``[Ca, T, Tc]``, temperature measured (``y = T + v``). Exothermic first-order
+    reaction ``A -> B`` with the rate ``r = k0 exp(-E/(R T)) Ca`` (the classic parameters:
+    ``q/V = 1 /min``, ``Caf = 1 mol/L``, ``Tf = 350 K``, ``k0 = 7.2e10 /min``,
+    ``E/R = 8750 K``, ``-dH/(rho Cp) = 5e4/239 K L/mol``, ``UA/(V rho Cp) = 5e4/23900 /min``)::
+
+        dCa/dt = q/V (Caf - Ca) - r
+        dT/dt  = q/V (Tf - T) - dH/(rho Cp) r + UA/(V rho Cp) (Tc - T)
+        dTc/dt = (Tcin - Tc) / jacket_tau + jacket_gain (T - Tc)
+
+    Discrete time: one sampling step ``dt`` (min) is ``substeps`` explicit Euler steps inside
+    ``f``. With ``Tcin = 287 K`` the steady state is ``Ca = 0.918 mol/L``, ``T = 319.1 K``,
+    ``Tc = 296.2 K``, stable (eigenvalues -1.82, -1.19, -0.40 /min). Bounded noise
+    ``|w| <= (1e-3, 0.05, 0.05)`` per step and ``|v| <= 0.1 K``; initial set the box
+    ``[0.9, 320, 295] +- (0.1, 5, 5)``; horizon 1,000 steps (100 min). Not from the seed papers:
+    a first-day plant whose state scales differ by two orders of magnitude, used to check that
+    the filters do not depend on the units of the states.
+    """
+    dt = _positive("dt", dt)
+    if not isinstance(substeps, int) or substeps < 1:
+        raise ValueError(f"substeps: must be an integer >= 1, got {substeps!r}")
+    p = _CSTR
+    hs = dt / substeps
+
+    def rhs(Ca: Tensor, T: Tensor, Tc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        r = p["k0"] * torch.exp(-p["E_R"] / T) * Ca
+        dCa = p["q_V"] * (p["Caf"] - Ca) - r
+        dT = p["q_V"] * (p["Tf"] - T) - p["dH_rcp"] * r + p["UA_Vrcp"] * (Tc - T)
+        dTc = (Tcin - Tc) / jacket_tau + jacket_gain * (T - Tc)
+        return dCa, dT, dTc
+
+    def f(x: Tensor, u: Tensor | None = None, theta: Tensor | None = None) -> Tensor:
+        Ca, T, Tc = x[..., 0], x[..., 1], x[..., 2]
+        for _ in range(substeps):
+            dCa, dT, dTc = rhs(Ca, T, Tc)
+            Ca, T, Tc = Ca + hs * dCa, T + hs * dT, Tc + hs * dTc
+        return torch.stack([Ca, T, Tc], -1)
+
+    def h(x: Tensor) -> Tensor:
+        return x[..., 1:2]
+
+    s = System(
+        f, h, _box(_vec(0.9, 320.0, 295.0), _vec(*x0_radius)),
+        _box(torch.zeros(3, dtype=_F64), _vec(*w)), _sym_box(1, v, "v"), name="cstr",
+    )
+    s.horizon, s.paper_x0 = horizon, None
     return s
