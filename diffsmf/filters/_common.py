@@ -235,7 +235,7 @@ def stirling_strip_update(
     from diffsmf.linearize import stirling_jacobian
 
     c = S.center
-    H = stirling_jacobian(filt.system.h, c, filt.stirling_step)  # eq. 13
+    H = stirling_jacobian(filt.system.h, c, stirling_steps(filt, c, region.interval_hull().radius))
     a, d, w = measurement_strips(
         filt.system.h, filt.remainder_fn, region, c, H, y, filt.measurement_noise_box()
     )
@@ -327,14 +327,41 @@ def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:
     return S.expand(state_batch(batch))
 
 
-def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: int) -> None:
-    """Validate and register the learnable Stirling step ``h [n]`` (Wang et al. 2022, eq. 12-13)."""
+#: Default Stirling step of the linearising filters, relative to the set: ``h_j = 0.5 r_j`` with
+#: ``r`` the half-widths of the interval hull of the set being linearised (Wang et al. 2022
+#: give no value). Relative, so that a change of state units scales the step with the set
+#: (scale invariance, docs/which_filter.md); an absolute step (a number in state units, the
+#: earlier default 0.1) is still accepted.
+DEFAULT_STIRLING_FACTOR = 0.5
+
+
+def register_stirling_step(module: torch.nn.Module, value: float | Tensor | None, n: int) -> None:
+    """Validate and register the learnable Stirling step ``[n]`` (Wang et al. 2022, eq. 12-13).
+
+    ``value=None`` (the filters' default): relative mode, ``module.stirling_relative = True``,
+    the registered ``stirling_step`` is the factor (default :data:`DEFAULT_STIRLING_FACTOR`)
+    and the step used is ``stirling_step * r`` with ``r`` the set's hull half-widths
+    (:func:`stirling_steps`). A number or tensor: an absolute step in state units, as given.
+    """
     from diffsmf.utils import register_positive
 
-    h = torch.as_tensor(value, dtype=torch.float64)
+    module.stirling_relative = value is None
+    h = torch.as_tensor(DEFAULT_STIRLING_FACTOR if value is None else value, dtype=torch.float64)
     if (h <= 0).any() or h.dim() > 1:
         raise ValueError("stirling_step: must be a positive scalar or [n] tensor")
     register_positive(module, "stirling_step", h.expand(n).clone())
+
+
+def stirling_steps(filt: torch.nn.Module, c: Tensor, radius: Tensor) -> Tensor:
+    """The Stirling step ``h [..., n]`` that ``filt`` uses about ``c [..., n]`` on a set with
+    hull half-widths ``radius [..., n]``: ``filt.stirling_step`` itself (absolute mode) or
+    ``filt.stirling_step * max(radius, 1e-8 |c|)`` (relative mode; a flat direction falls
+    back to a step relative to the centre, and to 1e-150 at 0). Both relative choices scale
+    with the state's units, so the slopes of the scaled system are the scaled slopes."""
+    if not getattr(filt, "stirling_relative", False):
+        return filt.stirling_step
+    r = torch.maximum(radius.detach(), 1e-8 * c.detach().abs()).clamp(min=1e-150)
+    return filt.stirling_step * r
 
 
 def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
@@ -430,6 +457,8 @@ __all__ = [
     "sequential_strip_update",
     "spent_initial_box",
     "step_function",
+    "stirling_steps",
     "stirling_strip_update",
+    "DEFAULT_STIRLING_FACTOR",
     "widen",
 ]
