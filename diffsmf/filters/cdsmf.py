@@ -43,7 +43,10 @@ class CDSMF(C.EllipsoidalSetFilter):
             to the set, ``0.5`` times its hull half-widths (scale-invariant), or an absolute
             step in state units (scalar or ``[n]``); see
             :func:`~diffsmf.filters._common.stirling_steps`.
-        sum_method: ``Ellipsoid.minkowski_sum`` method (``"trace"`` | ``"volume"``).
+        sum_method: ``Ellipsoid.minkowski_sum`` method: ``"scaled-trace"`` (default: the
+            trace rule in coordinates normalised by the operands' widths, independent of the
+            units of the states), ``"trace"`` (the rule in state units, the earlier default)
+            or ``"volume"``.
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
@@ -81,7 +84,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         remainder_margin: float | Tensor = 0.0,
         remainder: str = "auto",
         minkowski_scale: float | Tensor = 1.0,
-        sum_method: str = "trace",
+        sum_method: str = "scaled-trace",
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:

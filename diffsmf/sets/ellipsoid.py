@@ -538,7 +538,11 @@ def _vol_condition(p: Tensor, lam: Tensor) -> Tensor:
 def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     """Weight ``p`` of ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` (Jiang et al. 2016, eq. 34-36, erratum).
 
-    ``"trace"``: ``p = sqrt(tr S1 / tr S2)``. ``"volume"``: unique positive root of
+    ``"trace"``: ``p = sqrt(tr S1 / tr S2)``. ``"scaled-trace"``: the trace rule in the
+    coordinates normalised by ``N = diag(S1 + S2)^-1/2``, ``p = sqrt(tr(N S1 N) / tr(N S2 N))``
+    (the sum of squared semi-axes relative to the operands' widths, instead of in the states'
+    units: invariant under a diagonal change of units, the default of the filters' state-space
+    sums). ``"volume"``: unique positive root of
     ``sum_i 1/(lambda_i + 1/p) = n p^2/(p + 1)`` (equivalently ``F(p) = 0`` with ``F``
     increasing), bracketed in ``[1/sqrt(lambda_max), 1/sqrt(lambda_min)]`` and solved by
     bisection in log p, then one differentiable Newton step (implicit function theorem).
@@ -547,8 +551,14 @@ def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
         t1 = torch.diagonal(S1, dim1=-2, dim2=-1).sum(-1)
         t2 = torch.diagonal(S2, dim1=-2, dim2=-1).sum(-1)
         return torch.sqrt(t1 / t2)
+    if method == "scaled-trace":
+        d1 = torch.diagonal(S1, dim1=-2, dim2=-1)
+        d2 = torch.diagonal(S2, dim1=-2, dim2=-1)
+        tot = (d1 + d2).detach()
+        inv = torch.where(tot > 0, 1.0 / tot, torch.ones_like(tot))
+        return torch.sqrt((d1 * inv).sum(-1) / (d2 * inv).sum(-1))
     if method != "volume":
-        raise ValueError(f"method: expected 'trace' or 'volume', got {method!r}")
+        raise ValueError(f"method: expected 'trace', 'scaled-trace' or 'volume', got {method!r}")
     lam = _lambdas(S1, S2)
     ld = lam.detach().clamp(min=1e-300)
     lo = torch.log(1.0 / ld[..., -1].sqrt())
@@ -833,22 +843,23 @@ def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
 
     ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` times ``1 + INFLATE`` (this module's rounding margin),
     with p from :func:`minkowski_weight`
-    (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"volume"``: the erratum's root, differentiable).
+    (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"scaled-trace"``: the same in the coordinates
+    normalised by ``diag(S1 + S2)``; ``"volume"``: the erratum's root, differentiable).
     Unlike ``Ellipsoid.minkowski_sum`` the operands may be positive *semi*definite (degenerate
     or zero ellipsoids, e.g. ``Gamma D Gamma'`` or a collapsed mean set): ``S2 = 0`` gives
     ``S1`` exactly (``S1 = 0`` gives ``S2``), and where the volume rule is undefined (``S1``
     singular) the trace weight is used. Any ``p > 0`` gives an outer bound (eq. 25-33), so the
     guarantee never depends on the weight.
     """
-    if method not in ("trace", "volume"):
-        raise ValueError(f"weight: expected 'trace' or 'volume', got {method!r}")
+    if method not in ("trace", "scaled-trace", "volume"):
+        raise ValueError(f"weight: expected 'trace', 'scaled-trace' or 'volume', got {method!r}")
     t1 = torch.diagonal(S1, dim1=-2, dim2=-1).sum(-1)
     t2 = torch.diagonal(S2, dim1=-2, dim2=-1).sum(-1)
     zero1, zero2 = (t1 <= 0).unsqueeze(-1).unsqueeze(-1), (t2 <= 0).unsqueeze(-1).unsqueeze(-1)
     eye = torch.eye(S1.shape[-1], dtype=S1.dtype, device=S1.device)
     S1s = torch.where(zero1, eye, S1)  # placeholders keep the unused branches finite
     S2s = torch.where(zero2, eye, S2)  # (also their gradients: no 0/0 in sqrt's backward)
-    p = minkowski_weight(S1s, S2s, "trace")
+    p = minkowski_weight(S1s, S2s, "scaled-trace" if method == "scaled-trace" else "trace")
     if method == "volume":
         pd = torch.linalg.cholesky_ex(S1s.detach())[1] == 0
         pd_m = pd.unsqueeze(-1).unsqueeze(-1)
