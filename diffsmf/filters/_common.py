@@ -10,6 +10,7 @@ consistency flag.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -168,6 +169,7 @@ def measurement_strips(
     H: Tensor,
     y: Tensor,
     vbox: Interval,
+    system: System | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Strips of Wang et al. 2022, Theorem 3 (eq. 23-29), one per measurement component.
 
@@ -175,18 +177,47 @@ def measurement_strips(
     ``[e_min, e_max]`` the remainder of ``h`` about ``c`` over ``S``. Written un-normalised
     (eq. 24-25 divide both sides by the half-width, the same set).
 
+    Angle outputs (``system.angle_outputs``): ``y_i - h_i(c)`` is wrapped into ``[-pi, pi)``
+    (:meth:`System.innovation`), i.e. the strip is built for ``y'_i = h_i(c) + wrap(y_i -
+    h_i(c))``, the branch that the predicted measurement picks. That is the true branch
+    whenever ``|h_i(x) - h_i(c) + v_i| < pi`` for every x in S and v in V, which holds when
+    ``|H_i| |x - c| + |e|_max + |v|_max < pi`` over the hull (:func:`angle_ambiguous`);
+    where it does not, the strip is all of R^n (half-width inf: guaranteed, the measurement
+    just cannot shrink the set).
+
     Returns normal ``[B, m, n]``, offset ``[B, m]``, halfwidth ``[B, m]``.
     """
     hc = h(c)
     E, ok = sanitize_remainder(remainder(h, S, c, H))
     Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
-    offset = y - vbox.center - hc + Hc - E.center
+    nu = y - hc if system is None else system.innovation(y, hc)
+    offset = nu - vbox.center + Hc - E.center
     half = vbox.radius + E.radius
     half = half + rounding_margin(y, hc, Hc, E.center, half)
+    if system is not None and system.angle_outputs:
+        ok = ok.unsqueeze(-1) & ~angle_ambiguous(system, S, c, H, E, vbox)
     # unbounded remainder of h over S: the strip is all of R^n (half-width inf, skipped by
     # sequential_strip_update) -- guaranteed, the measurement just cannot shrink the set
-    half = torch.where(ok.unsqueeze(-1), half, torch.full_like(half, torch.inf))
+    ok = ok.unsqueeze(-1) if ok.dim() < half.dim() else ok
+    half = torch.where(ok, half, torch.full_like(half, torch.inf))
     return H, offset, half
+
+
+def angle_ambiguous(
+    system: System, S: ConvexSet, c: Tensor, H: Tensor, E: Interval, vbox: Interval
+) -> Tensor:
+    """``[B, m]`` True for an angle output whose wrapped residual may be on the wrong branch:
+    where ``|H_i| |x - c|_max + max|e_i| + max|v_i| >= pi`` over the hull of ``S`` (``e`` the
+    remainder box of ``h`` about ``c``, ``v`` in ``vbox``); False for the other outputs. The
+    filters then drop that measurement's strip (or update) for the element, which keeps the
+    set guaranteed."""
+    hull = S.interval_hull()
+    dmax = torch.maximum((hull.lower - c).abs(), (hull.upper - c).abs())
+    spread = (H.abs() * dmax.unsqueeze(-2)).sum(-1)
+    spread = spread + torch.maximum(E.lower.abs(), E.upper.abs())
+    spread = spread + torch.maximum(vbox.lower.abs(), vbox.upper.abs())
+    mask = system._angle_mask.to(device=spread.device)
+    return mask & ~(spread < math.pi)  # NaN spread: ambiguous
 
 
 def sequential_strip_update(
@@ -237,7 +268,8 @@ def stirling_strip_update(
     c = S.center
     H = stirling_jacobian(filt.system.h, c, stirling_steps(filt, c, region.interval_hull().radius))
     a, d, w = measurement_strips(
-        filt.system.h, filt.remainder_fn, region, c, H, y, filt.measurement_noise_box()
+        filt.system.h, filt.remainder_fn, region, c, H, y, filt.measurement_noise_box(),
+        filt.system,
     )
     return sequential_strip_update(S, a, d, w, intersect)
 
@@ -439,6 +471,7 @@ __all__ = [
     "X0_LOWER",
     "X0_UPPER",
     "add_remainder_margin",
+    "angle_ambiguous",
     "register_remainder",
     "register_remainder_margin",
     "register_stirling_step",

@@ -290,7 +290,7 @@ class CombinedFilter(SetFilter):
         h = self.system.h
         H = self._linearize(h, a, S, P)  # eq. 55
         R, E = self.measurement_covariance(), self.measurement_bound()
-        nu = y - h(a) - self.measurement_noise_center  # innovation of eq. 57
+        nu = self.system.innovation(y, h(a)) - self.measurement_noise_center  # eq. 57, wrapped
         G = P if self.gain == "kalman" else S
         W = R if self.gain == "kalman" else E
         mm = linalg.matmul

@@ -279,7 +279,8 @@ class CZSMF(SetFilter):
         p = 0.5 * (lo + hi)
         H = stirling_jacobian(self.system.h, p, C.stirling_steps(self, p, hull.radius))  # eq. 13
         a, d, w = C.measurement_strips(
-            self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box()
+            self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box(),
+            self.system,
         )  # eq. 23-29: |a_i x - d_i| <= w_i, [B, m, n], [B, m], [B, m]
         # projection of the predicted hull on each normal: the strip that contains the set
         pm = (a * p.unsqueeze(-2)).sum(-1)

@@ -174,10 +174,14 @@ class ESMF(C.EllipsoidalSetFilter):
         H = jacobian(h, c)
         hc = h(c)
         # unbounded remainder of h: the measurement cannot shrink the set (update skipped)
-        Rh, ok_h = C.sanitize_remainder(self.remainder_fn(h, E.interval_hull(), c, H))
+        hull = E.interval_hull()
+        Rh, ok_h = C.sanitize_remainder(self.remainder_fn(h, hull, c, H))
+        if self.system.angle_outputs:  # a residual that may be on the wrong branch: skipped
+            amb = C.angle_ambiguous(self.system, hull, c, H, Rh, self.measurement_noise_box())
+            ok_h = ok_h & ~amb.any(-1)
         noise = self._observation_noise(y, hc, Rh)
         Rhat = noise.shape
-        nu = y - hc - noise.center  # innovation
+        nu = self.system.innovation(y, hc) - noise.center  # innovation (angles wrapped)
         HPH = _sym(H @ P @ H.mT)
         ylin = nu + (H @ c.unsqueeze(-1)).squeeze(-1)  # y' = H x + v', v' in E(0, Rhat)
         if self.rho_rule == "volume":

@@ -20,7 +20,9 @@ from diffsmf.sets import Ellipsoid, Interval
 from diffsmf.systems import register
 from diffsmf.systems.system import System
 
-__all__ = ["bilinear", "cstr", "fermenter", "mismatch_quadratic", "spring_damper", "vdp"]
+__all__ = [
+    "bilinear", "cstr", "fermenter", "mismatch_quadratic", "spring_damper", "unicycle_rb", "vdp",
+]
 
 _F64 = torch.float64
 
@@ -319,6 +321,60 @@ def cstr(
     s = System(
         f, h, _box(_vec(0.9, 320.0, 295.0), _vec(*x0_radius)),
         _box(torch.zeros(3, dtype=_F64), _vec(*w)), _sym_box(1, v, "v"), name="cstr",
+    )
+    s.horizon, s.paper_x0 = horizon, None
+    return s
+
+
+@register("unicycle_rb")
+def unicycle_rb(
+    dt: float = 0.1,
+    speed: float = 1.0,
+    turn_rate: float = 0.2,
+    landmark: tuple[float, float] = (20.0, 0.0),
+    w: tuple[float, float, float] = (2e-3, 2e-3, 1e-3),
+    v: tuple[float, float] = (0.02, 0.005),
+    x0_radius: tuple[float, float, float] = (0.2, 0.2, 0.05),
+    horizon: int = 1000,
+) -> System:
+    """Unicycle measured by range and bearing to a landmark (a textbook navigation model).
+
+    State ``[px, py, heading]`` (m, m, rad), inputs ``u = [speed, turn_rate]`` (schedule:
+    constant, a circle of radius ``speed / turn_rate = 5 m`` about ``(0, 5)``), explicit Euler
+    with step ``dt``::
+
+        px+ = px + dt u1 cos(heading),  py+ = py + dt u1 sin(heading),  heading+ = heading + dt u2
+
+    Outputs ``y = [range, bearing]`` to the landmark ``(lx, ly)``: ``range = |l - p|`` and the
+    bearing in the body frame ``atan2(ly - py, lx - px) - heading``, an angle output
+    (``angle_outputs=[1]``: simulated bearings are wrapped into ``[-pi, pi)``, the filters
+    wrap the residual about the predicted bearing). The heading is not wrapped (it grows by
+    ``2 pi`` per lap), so the body-frame bearing crosses ``+-pi`` every lap; the landmark
+    (default 20 m east of the circle's centre) keeps the direction ``l - p`` in the right half
+    plane, away from atan2's cut. Noise ``|w| <= (2e-3, 2e-3, 1e-3)``, ``|v| <= (0.02 m,
+    0.005 rad)``; initial set ``[0, 0, 0] +- (0.2, 0.2, 0.05)``; horizon 1,000 steps (100 s,
+    3.2 laps). Not from the seed papers.
+    """
+    dt = _positive("dt", dt)
+    lx, ly = landmark
+
+    def f(x: Tensor, u: Tensor | None, theta: Tensor | None = None) -> Tensor:
+        px, py, th = x[..., 0], x[..., 1], x[..., 2]
+        sp = speed if u is None else u[..., 0]
+        om = turn_rate if u is None else u[..., 1]
+        return torch.stack(
+            [px + dt * sp * torch.cos(th), py + dt * sp * torch.sin(th), th + dt * om], -1
+        )
+
+    def h(x: Tensor) -> Tensor:
+        dx, dy = lx - x[..., 0], ly - x[..., 1]
+        rng = torch.sqrt(dx * dx + dy * dy)
+        return torch.stack([rng, torch.atan2(dy, dx) - x[..., 2]], -1)
+
+    s = System(
+        f, h, _box(torch.zeros(3, dtype=_F64), _vec(*x0_radius)),
+        _box(torch.zeros(3, dtype=_F64), _vec(*w)), _box(torch.zeros(2, dtype=_F64), _vec(*v)),
+        inputs=lambda k: _vec(speed, turn_rate), name="unicycle_rb", angle_outputs=[1],
     )
     s.horizon, s.paper_x0 = horizon, None
     return s

@@ -116,6 +116,9 @@ class System(nn.Module):
         _check_state_dims(f, x0_set, process_noise)
         self.m = _output_dim(h, x0_set.center)
         self.angle_outputs = _check_angle_outputs(angle_outputs, self.m)
+        # [m] bool mask of the angle outputs (a plain tensor, not a buffer: state_dicts unchanged)
+        self._angle_mask = torch.zeros(self.m, dtype=torch.bool, device=x0_set.device)
+        self._angle_mask[list(self.angle_outputs)] = True
         for label, s, d in (
             ("process_noise", process_noise, self.n),
             ("measurement_noise", measurement_noise, self.m),
@@ -186,6 +189,17 @@ class System(nn.Module):
                 f"{self.n}] it returned {got}"
             )
         _check_model_call("f", lambda z: self.f(z, u, th), x, out)
+
+    def innovation(self, y: Tensor, y_pred: Tensor) -> Tensor:
+        """``y - y_pred [..., m]`` with the angle outputs' components wrapped into
+        ``[-pi, pi)`` (:func:`wrap_angle`): the residual on the branch that the prediction
+        picks, ``y' - y_pred`` for ``y' = y_pred + wrap(y - y_pred)``. Without angle outputs it
+        is ``y - y_pred`` itself. Branch-free (no host sync)."""
+        d = y - y_pred
+        if not self.angle_outputs:
+            return d
+        mask = self._angle_mask.to(device=d.device)
+        return torch.where(mask, wrap_angle(d), d)
 
     @property
     def theta_nominal(self) -> Tensor | None:
@@ -344,6 +358,8 @@ class System(nn.Module):
 
         Returns:
             :class:`Trajectory` with ``x [B, T+1, n]``, ``y [B, T, m]``, ``u``, ``theta``.
+            The angle outputs (``angle_outputs``) of ``y`` are wrapped into ``[-pi, pi)``,
+            as a sensor reports them.
 
         Raises:
             ValueError: a simulated state or measurement is NaN or inf (the model left its
@@ -392,6 +408,8 @@ class System(nn.Module):
             x = self.f(x, u, th) + w
             v = draw(self.measurement_noise, self.m) + gauss(self.measurement_cov, self.m)
             y = self.h(x) + v
+            if self.angle_outputs:  # reported as a sensor does: wrapped into [-pi, pi)
+                y = torch.where(self._angle_mask, wrap_angle(y), y)
             xs.append(x)
             ys.append(y)
             us.append(u)
