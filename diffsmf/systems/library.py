@@ -271,7 +271,7 @@ def cstr(
     jacket_tau: float = 2.0,
     jacket_gain: float = 0.2,
     w: tuple[float, float, float] = (1e-3, 0.05, 0.05),
-    v: float = 0.5,
+    v: float = 0.4,
     x0_radius: tuple[float, float, float] = (0.1, 5.0, 5.0),
     horizon: int = 1000,
 ) -> System:
@@ -290,7 +290,7 @@ def cstr(
     Discrete time: one sampling step ``dt`` (min) is ``substeps`` explicit Euler steps inside
     ``f``. With ``Tcin = 287 K`` the steady state is ``Ca = 0.918 mol/L``, ``T = 319.1 K``,
     ``Tc = 296.2 K``, stable (eigenvalues -1.82, -1.19, -0.40 /min). Bounded noise
-    ``|w| <= (1e-3, 0.05, 0.05)`` per step and ``|v| <= 0.5 K``; initial set the box
+    ``|w| <= (1e-3, 0.05, 0.05)`` per step and ``|v| <= 0.4 K``; initial set the box
     ``[0.9, 320, 295] +- (0.1, 5, 5)``; horizon 1,000 steps (100 min). Not from the seed papers:
     a first-day plant whose state scales differ by two orders of magnitude, used to check that
     the filters do not depend on the units of the states.
