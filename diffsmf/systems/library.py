@@ -335,6 +335,7 @@ def unicycle_rb(
     w: tuple[float, float, float] = (2e-3, 2e-3, 1e-3),
     v: tuple[float, float] = (0.02, 0.005),
     x0_radius: tuple[float, float, float] = (0.2, 0.2, 0.05),
+    heading0: float = 0.0,
     horizon: int = 1000,
 ) -> System:
     """Unicycle measured by range and bearing to a landmark (a textbook navigation model).
@@ -352,7 +353,7 @@ def unicycle_rb(
     ``2 pi`` per lap), so the body-frame bearing crosses ``+-pi`` every lap; the landmark
     (default 20 m east of the circle's centre) keeps the direction ``l - p`` in the right half
     plane, away from atan2's cut. Noise ``|w| <= (2e-3, 2e-3, 1e-3)``, ``|v| <= (0.02 m,
-    0.005 rad)``; initial set ``[0, 0, 0] +- (0.2, 0.2, 0.05)``; horizon 1,000 steps (100 s,
+    0.005 rad)``; initial set ``[0, 0, heading0] +- (0.2, 0.2, 0.05)``; horizon 1,000 steps (100 s,
     3.2 laps). Not from the seed papers.
     """
     dt = _positive("dt", dt)
@@ -372,7 +373,7 @@ def unicycle_rb(
         return torch.stack([rng, torch.atan2(dy, dx) - x[..., 2]], -1)
 
     s = System(
-        f, h, _box(torch.zeros(3, dtype=_F64), _vec(*x0_radius)),
+        f, h, _box(_vec(0.0, 0.0, heading0), _vec(*x0_radius)),
         _box(torch.zeros(3, dtype=_F64), _vec(*w)), _box(torch.zeros(2, dtype=_F64), _vec(*v)),
         inputs=lambda k: _vec(speed, turn_rate), name="unicycle_rb", angle_outputs=[1],
     )
