@@ -82,10 +82,7 @@ def test_cstr_in_other_units(filter_name):
     d = torch.tensor([1e3, 1e-2, 1.0], dtype=torch.float64)
     with torch.no_grad():
         res_d = filters.by_name(filter_name)(sys_.rescaled(d))(traj.y)
-    # 1e-4: the ellipsoids' shape matrices are ill-conditioned here (state scales 1e3 apart
-    # before, 1e-2 after), and their update's rounding grows to 2e-5 of the widths in 15
-    # steps (measured; 1e-8 for either factor alone); a unit-dependent rule differs by percent
-    _assert_scaled(res, res_d, d, rtol=1e-4)
+    _assert_scaled(res, res_d, d)
 
 
 def test_rescaled_system_maps_sets_and_model():

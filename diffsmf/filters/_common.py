@@ -392,7 +392,7 @@ def stirling_steps(filt: torch.nn.Module, c: Tensor, radius: Tensor) -> Tensor:
     with the state's units, so the slopes of the scaled system are the scaled slopes."""
     if not getattr(filt, "stirling_relative", False):
         return filt.stirling_step
-    r = torch.maximum(radius.detach(), 1e-8 * c.detach().abs()).clamp(min=1e-150)
+    r = torch.maximum(radius, 1e-8 * c.abs()).clamp(min=1e-150)
     return filt.stirling_step * r
 
 

@@ -292,7 +292,7 @@ def _convexifying_weights(Hpm: Interval, box: Interval) -> Tensor:
     Validity: ``M~ + 2 diag(w~) >= 0`` implies ``M + 2 diag(w~ / s^2) >= 0`` (congruence).
     """
     s = box.radius
-    s = torch.where(s > _MIN_SCALE, s, torch.ones_like(s)).detach()  # [..., n]
+    s = torch.where(s > _MIN_SCALE, s, torch.ones_like(s))  # [..., n]
     ss = (s.unsqueeze(-1) * s.unsqueeze(-2)).unsqueeze(-3)  # [..., 1, n, n]
     Hs = Interval._make(Hpm.lower * ss, Hpm.upper * ss)
     inv = (1.0 / (s * s)).unsqueeze(-2)  # [..., 1, n]

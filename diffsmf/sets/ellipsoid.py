@@ -554,7 +554,7 @@ def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     if method == "scaled-trace":
         d1 = torch.diagonal(S1, dim1=-2, dim2=-1)
         d2 = torch.diagonal(S2, dim1=-2, dim2=-1)
-        tot = (d1 + d2).detach()
+        tot = d1 + d2
         inv = torch.where(tot > 0, 1.0 / tot, torch.ones_like(tot))
         return torch.sqrt((d1 * inv).sum(-1) / (d2 * inv).sum(-1))
     if method != "volume":
@@ -714,14 +714,19 @@ class _MeasFamily:
         W = linalg.cholesky_solve(PHt, L)  # D^-1 H P
         KHP = rr * self.PH @ W
         core = self.P - KHP
-        # guarantee floor (added by the filters engineer): as rho -> 1 with H P H' >> R the
-        # difference cancels (e.g. 6e4 - 6e4 -> 3e-8); its absolute rounding error is below
-        # 16 (n + m) eps (||P||_F + ||K H P||_F), so that much is added on the diagonal.
+        # guarantee floor: as rho -> 1 with H P H' >> R the difference cancels (e.g. 6e4 -
+        # 6e4 -> 3e-8); its rounding error in entry (i, j) is below 16 (n + m) eps a_i a_j with
+        # a_i = sqrt(P_ii) + sqrt(|KHP_ii|) (|M_ij| <= sqrt(M_ii M_jj) for these PSD terms), a
+        # matrix that n eps' diag(a^2) dominates (Gershgorin after scaling by a). Per
+        # coordinate, so that it does not depend on the units of the states (a multiple of I
+        # sized by ||P||_F added a state's variance to every other one).
         eps = torch.finfo(core.dtype).eps
-        err = 16 * (self.P.shape[-1] + self.H.shape[-2]) * eps
-        err = err * (torch.linalg.matrix_norm(self.P) + torch.linalg.matrix_norm(KHP)).detach()
-        eye = torch.eye(core.shape[-1], dtype=core.dtype, device=core.device)
-        core = core + err[..., None, None] * eye
+        n = self.P.shape[-1]
+        err = 16 * (n + self.H.shape[-2]) * eps * n
+        dP = torch.diagonal(self.P, dim1=-2, dim2=-1).clamp(min=0)
+        dK = torch.diagonal(KHP, dim1=-2, dim2=-1).abs()
+        a = (dP.sqrt() + dK.sqrt()).detach()
+        core = core + torch.diag_embed(err * a * a)
         P2 = (xi / (1 - rho))[..., None, None] * core
         return c2, _sym(P2)
 
