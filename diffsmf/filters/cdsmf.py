@@ -52,11 +52,10 @@ class CDSMF(C.EllipsoidalSetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             :func:`~diffsmf.filters._common.register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
-        14-18,
-            2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
-            (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
-            n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al.
+            2022, eq. 14-18, 2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free),
+            ``"mean-value"`` (interval Jacobian, cheapest) or ``"auto"`` (default:
+            ``"dc-vertices"`` up to n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
             :func:`~diffsmf.linearize.resolve_remainder`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of the prediction's
             Minkowski sum (Song et al. 2017, eq. 14-17; Jiang et al. 2016, eq. 34-36): ``p = s *

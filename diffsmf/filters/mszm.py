@@ -70,11 +70,10 @@ class MSZM(SetFilter):
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
             (default) is the filter without it (see
             :func:`~diffsmf.filters._common.register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al. 2022, eq.
-        14-18,
-            2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free), ``"mean-value"``
-            (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
-            n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
+        remainder: guaranteed remainder bound by name: ``"dc-vertices"`` (Wang et al.
+            2022, eq. 14-18, 2^n vertices), ``"lagrange"`` (interval Hessian, vertex-free),
+            ``"mean-value"`` (interval Jacobian, cheapest) or ``"auto"`` (default:
+            ``"dc-vertices"`` up to n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
             :func:`~diffsmf.linearize.resolve_remainder`).
 
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
