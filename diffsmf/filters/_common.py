@@ -199,6 +199,14 @@ def measurement_strips(
     # unbounded remainder of h over S: the strip is all of R^n (half-width inf, skipped by
     # sequential_strip_update) -- guaranteed, the measurement just cannot shrink the set
     ok = ok.unsqueeze(-1) if ok.dim() < half.dim() else ok
+    # a slope row that is 0 or not finite (a set so large that the model saturates or
+    # overflows at the Stirling points) gives no strip: all of R^n, with a placeholder normal
+    flat = ~(H.abs().sum(-1) > 0) | ~torch.isfinite(H).all(-1)  # [B, m]
+    ok = ok & ~flat
+    e0 = torch.zeros_like(H)
+    e0[..., 0] = 1.0
+    H = torch.where(flat.unsqueeze(-1), e0, H)
+    offset = torch.where(flat, torch.zeros_like(offset), offset)
     half = torch.where(ok, half, torch.full_like(half, torch.inf))
     return H, offset, half
 
