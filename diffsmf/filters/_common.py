@@ -397,10 +397,14 @@ def stirling_steps(filt: torch.nn.Module, c: Tensor, radius: Tensor) -> Tensor:
     hull half-widths ``radius [..., n]``: ``filt.stirling_step`` itself (absolute mode) or
     ``filt.stirling_step * max(radius, 1e-8 |c|)`` (relative mode; a flat direction falls
     back to a step relative to the centre, and to 1e-150 at 0). Both relative choices scale
-    with the state's units, so the slopes of the scaled system are the scaled slopes."""
+    with the state's units, so the slopes of the scaled system are the scaled slopes. The
+    radius enters without gradient (a choice of expansion, like the discrete choices of the
+    sets; the factor ``stirling_step`` keeps its gradient), so a diverged element's infinite
+    radius cannot reach the gradients of the others."""
     if not getattr(filt, "stirling_relative", False):
         return filt.stirling_step
-    r = torch.maximum(radius, 1e-8 * c.abs()).clamp(min=1e-150)
+    r = torch.maximum(radius.detach(), 1e-8 * c.detach().abs()).clamp(min=1e-150)
+    r = torch.where(torch.isfinite(r), r, torch.ones_like(r))  # a diverged element
     return filt.stirling_step * r
 
 

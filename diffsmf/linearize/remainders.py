@@ -292,14 +292,25 @@ def _convexifying_weights(Hpm: Interval, box: Interval) -> Tensor:
     Validity: ``M~ + 2 diag(w~) >= 0`` implies ``M + 2 diag(w~ / s^2) >= 0`` (congruence).
     """
     s = box.radius
-    s = torch.where(s > _MIN_SCALE, s, torch.ones_like(s))  # [..., n]
+    # a flat or non-finite width (a diverged element) normalises by 1: no inf reaches the
+    # weights or, through them, the gradients of the other elements
+    s = torch.where((s > _MIN_SCALE) & torch.isfinite(s), s, torch.ones_like(s))  # [..., n]
     ss = (s.unsqueeze(-1) * s.unsqueeze(-2)).unsqueeze(-3)  # [..., 1, n, n]
-    Hs = Interval._make(Hpm.lower * ss, Hpm.upper * ss)
+    hfin = torch.isfinite(Hpm.lower) & torch.isfinite(Hpm.upper)  # [2, ..., k, n, n]
+    unbounded = ~hfin.all(-1).all(-1)  # [2, ..., k]: no convexification
+    z = torch.zeros_like(Hpm.lower)
+    Hs = Interval._make(torch.where(hfin, Hpm.lower, z) * ss, torch.where(hfin, Hpm.upper, z) * ss)
     inv = (1.0 / (s * s)).unsqueeze(-2)  # [..., 1, n]
     ball = (-hessian_eig_lower_bound(Hs)).clamp(min=0) * 0.5  # [2, ..., k]: alpha~, beta~
-    diag = diagonal_shift(Hs) * inv  # [2, ..., k, n]
-    ball = ball.unsqueeze(-1) * inv
-    return torch.stack([ball[0], diag[0], ball[1], diag[1]])
+    diag = diagonal_shift(Hs)  # [2, ..., k, n]
+    ball = ball.unsqueeze(-1).expand_as(diag)
+    W = torch.stack([ball[0], diag[0], ball[1], diag[1]])  # [4, ..., k, n], scaled
+    # inf (an unbounded Hessian: no convexification) stays inf; only finite weights are
+    # mapped back, so no inf * 0 reaches the gradients
+    bad = torch.stack([unbounded[0], unbounded[0], unbounded[1], unbounded[1]]).unsqueeze(-1)
+    fin = torch.isfinite(W) & ~bad
+    Wb = torch.where(fin, W, torch.zeros_like(W)) * inv
+    return torch.where(fin, Wb, torch.full_like(W, torch.inf))
 
 
 def _dc_upper(rv: Tensor, qv: Tensor) -> Tensor:

@@ -555,7 +555,8 @@ def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
         d1 = torch.diagonal(S1, dim1=-2, dim2=-1)
         d2 = torch.diagonal(S2, dim1=-2, dim2=-1)
         tot = d1 + d2
-        inv = torch.where(tot > 0, 1.0 / tot, torch.ones_like(tot))
+        ok = (tot > 0) & torch.isfinite(tot)
+        inv = 1.0 / torch.where(ok, tot, torch.ones_like(tot))
         return torch.sqrt((d1 * inv).sum(-1) / (d2 * inv).sum(-1))
     if method != "volume":
         raise ValueError(f"method: expected 'trace', 'scaled-trace' or 'volume', got {method!r}")
