@@ -60,8 +60,12 @@ def row(sname: str, fname: str, trials: int, steps: int, seed: int) -> str:
     tr = sys_.simulate(steps, batch=trials, seed=seed, noise="vertex")
     filt = filters.by_name(fname)(sys_)
     t0 = time.perf_counter()
-    with torch.no_grad():
-        res = filt(tr.y, u=tr.u)
+    try:
+        with torch.no_grad():
+            res = filt(tr.y, u=tr.u)
+    except Exception as exc:  # a numerical event that stops the batch: say so in the row
+        msg = f"{type(exc).__name__}: {exc}".replace("|", "/")
+        return f"| {sname} | {type(filt).__name__} | {trials} x {steps} | raised: {msg} | | | | |"
     wall = time.perf_counter() - t0
     b = res.bounded
     all_b = b.all(1)
