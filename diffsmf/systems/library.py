@@ -351,7 +351,7 @@ def unicycle_rb(
     (``angle_outputs=[1]``: simulated bearings are wrapped into ``[-pi, pi)``, the filters
     wrap the residual about the predicted bearing). The heading is not wrapped (it grows by
     ``2 pi`` per lap), so the body-frame bearing crosses ``+-pi`` every lap; the landmark
-    (default 20 m east of the circle's centre) keeps the direction ``l - p`` in the right half
+    (default (20, 0), east of the circle) keeps the direction ``l - p`` in the right half
     plane, away from atan2's cut while the set's box stays west of it. Noise ``|w| <= (1e-3,
     1e-3, 1e-4)``, ``|v| <= (0.02 m, 0.005 rad)`` (with 2e-3 m and 1e-3 rad per step of
     process noise, HSNSMF's box reached the landmark after about 980 steps and ESMF's after
