@@ -119,7 +119,7 @@ class _Problem:
             uj = None if self.u is None else self.u[j]
             tj = th[j] if th is not None else self.system.theta_nominal
             x = self.system.f(x, uj, tj) + w[j]
-            res.append(self.y[j] - self.system.h(x) - self.vc)
+            res.append(self.system.innovation(self.y[j], self.system.h(x)) - self.vc)
         return x, torch.stack(res)
 
     def constraints(self, z: Tensor) -> Tensor:

@@ -125,11 +125,14 @@ def test_linear_remainders_are_zero():
 
 
 def _girard(G: np.ndarray, order: int) -> np.ndarray:
-    """Girard 2005 reduction written independently (numpy)."""
+    """Girard 2005 reduction written independently (numpy), with the scores of the generators
+    normalised by the interval hull's half-widths (unit-free, as ``Zonotope.reduce``)."""
     n, m = G.shape
     if m <= order * n:
         return G
-    score = np.abs(G).sum(0) - np.abs(G).max(0)
+    r = np.abs(G).sum(1)
+    Gs = G / np.where(r > 0, r, 1.0)[:, None]
+    score = np.abs(Gs).sum(0) - np.abs(Gs).max(0)
     idx = np.argsort(-score, kind="stable")
     keep = G[:, idx[: order * n - n]]
     rest = G[:, idx[order * n - n :]]

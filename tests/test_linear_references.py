@@ -15,7 +15,8 @@ states, two outputs (the strips are intersected one by one, output 0 first).
   (``order=60`` leaves room for every generator). The F-radius rule is checked in
   ``tests/test_noise_sets.py``.
 * CDSMF = the ellipsoidal filter: ``E+ = A E (+) cover(box W)`` with the cover
-  ``diag(n W_i^2)`` and the trace rule ``p = sqrt(tr S1 / tr S2)`` in
+  ``diag(n W_i^2)`` and the trace rule ``p = sqrt(tr S1 / tr S2)`` (default: the same after
+  normalising by ``diag(S1 + S2)``, ``"scaled-trace"``) in
   ``S = (1 + 1/p) S1 + (1 + p) S2``; strip update by the minimal-volume member (Fogel-Huang) of
   ``(1 - rho) (x-c)' P^-1 (x-c) + rho (a x - o)^2 / h^2 <= 1`` after tightening the strip to
   E's extent along ``a``. The reference builds the combined quadratic directly (explicit
@@ -326,7 +327,7 @@ def _ell_strip(c, P, a, o, h):
     return c2, P2
 
 
-def _cdsmf_numpy(y: np.ndarray) -> np.ndarray:
+def _cdsmf_numpy(y: np.ndarray, rule: str = "scaled-trace") -> np.ndarray:
     n = 2
     c, P = X0_C.copy(), np.diag(n * X0_R**2)
     out = []
@@ -338,7 +339,11 @@ def _cdsmf_numpy(y: np.ndarray) -> np.ndarray:
     rec()
     for k in range(y.shape[0]):
         S1, S2 = A @ P @ A.T, np.diag(n * W**2)  # cover of the box W
-        p = np.sqrt(np.trace(S1) / np.trace(S2))  # trace rule
+        if rule == "trace":
+            p = np.sqrt(np.trace(S1) / np.trace(S2))  # trace rule
+        else:  # the trace rule in coordinates normalised by diag(S1 + S2)
+            d = np.diag(S1) + np.diag(S2)
+            p = np.sqrt((np.diag(S1) / d).sum() / (np.diag(S2) / d).sum())
         c, P = A @ c, ((1 + 1 / p) * S1 + (1 + p) * S2) * (1 + INFLATE) * (1 + SHAPE_MARGIN)
         for j in range(C.shape[0]):
             c, P = _ell_strip(c, P, C[j], y[k, j], SIGMA[j])
@@ -346,10 +351,11 @@ def _cdsmf_numpy(y: np.ndarray) -> np.ndarray:
     return np.stack(out)
 
 
-def test_cdsmf_equals_ellipsoidal_filter(data):
+@pytest.mark.parametrize("rule", ["scaled-trace", "trace"])
+def test_cdsmf_equals_ellipsoidal_filter(data, rule):
     s, tr = data
     with torch.no_grad():
-        res = ds.filters.CDSMF(s)(tr.y)
+        res = ds.filters.CDSMF(s, sum_method=rule)(tr.y)
     assert res.consistent.all()
-    refs = [_cdsmf_numpy(tr.y[b].numpy()) for b in range(BATCH)]
+    refs = [_cdsmf_numpy(tr.y[b].numpy(), rule) for b in range(BATCH)]
     _compare(res, refs)

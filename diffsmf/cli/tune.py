@@ -32,7 +32,7 @@ __all__ = ["add_arguments", "build", "main"]
 
 # ---------------------------------------------------------------------------- command line
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``diffsmf tune`` (defaults: :class:`TuneConfig`)."""
+    """Options of ``diffsmf tune`` (defaults: `TuneConfig`)."""
     d = TuneConfig()
     a = parser.add_argument
     a("--config", default=None, help="TOML file of options (command-line values win)")

@@ -10,6 +10,7 @@ consistency flag.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -191,6 +192,7 @@ def measurement_strips(
     H: Tensor,
     y: Tensor,
     vbox: Interval,
+    system: System | None = None,
     events: bool = False,
 ) -> tuple[Tensor, ...]:
     """Strips of Wang et al. 2022, Theorem 3 (eq. 23-29), one per measurement component.
@@ -198,6 +200,14 @@ def measurement_strips(
     ``{x : |H_i x - (y_i - v_c,i - h_i(c) + H_i c - e_mid,i)| <= eps_v,i + e_rad,i}`` with
     ``[e_min, e_max]`` the remainder of ``h`` about ``c`` over ``S``. Written un-normalised
     (eq. 24-25 divide both sides by the half-width, the same set).
+
+    Angle outputs (``system.angle_outputs``): ``y_i - h_i(c)`` is wrapped into ``[-pi, pi)``
+    (`System.innovation`), i.e. the strip is built for ``y'_i = h_i(c) + wrap(y_i -
+    h_i(c))``, the branch that the predicted measurement picks. That is the true branch
+    whenever ``|h_i(x) - h_i(c) + v_i| < pi`` for every x in S and v in V, which holds when
+    ``|H_i| |x - c| + |e|_max + |v|_max < pi`` over the hull (`angle_ambiguous`);
+    where it does not, the strip is all of R^n (half-width inf: guaranteed, the measurement
+    just cannot shrink the set).
 
     Returns normal ``[B, m, n]``, offset ``[B, m]``, halfwidth ``[B, m]`` and, with
     ``events=True``, the `FilterEvent` codes ``[B]`` of the remainder of ``h`` (``DOMAIN`` /
@@ -208,13 +218,42 @@ def measurement_strips(
     E, ev = checked_remainder(remainder(h, S, c, H))
     ok = ev == 0
     Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
-    offset = y - vbox.center - hc + Hc - E.center
+    nu = y - hc if system is None else system.innovation(y, hc)
+    offset = nu - vbox.center + Hc - E.center
     half = vbox.radius + E.radius
     half = half + rounding_margin(y, hc, Hc, E.center, half)
+    if system is not None and system.angle_outputs:
+        ok = ok.unsqueeze(-1) & ~angle_ambiguous(system, S, c, H, E, vbox)
     # unbounded remainder of h over S: the strip is all of R^n (half-width inf, skipped by
     # sequential_strip_update) -- guaranteed, the measurement just cannot shrink the set
-    half = torch.where(ok.unsqueeze(-1), half, torch.full_like(half, torch.inf))
+    ok = ok.unsqueeze(-1) if ok.dim() < half.dim() else ok
+    # a slope row that is 0 or not finite (a set so large that the model saturates or
+    # overflows at the Stirling points) gives no strip: all of R^n, with a placeholder normal
+    flat = ~(H.abs().sum(-1) > 0) | ~torch.isfinite(H).all(-1)  # [B, m]
+    ok = ok & ~flat
+    e0 = torch.zeros_like(H)
+    e0[..., 0] = 1.0
+    H = torch.where(flat.unsqueeze(-1), e0, H)
+    offset = torch.where(flat, torch.zeros_like(offset), offset)
+    half = torch.where(ok, half, torch.full_like(half, torch.inf))
     return (H, offset, half, ev) if events else (H, offset, half)
+
+
+def angle_ambiguous(
+    system: System, S: ConvexSet, c: Tensor, H: Tensor, E: Interval, vbox: Interval
+) -> Tensor:
+    """``[B, m]`` True for an angle output whose wrapped residual may be on the wrong branch:
+    where ``|H_i| |x - c|_max + max|e_i| + max|v_i| >= pi`` over the hull of ``S`` (``e`` the
+    remainder box of ``h`` about ``c``, ``v`` in ``vbox``); False for the other outputs. The
+    filters then drop that measurement's strip (or update) for the element, which keeps the
+    set guaranteed."""
+    hull = S.interval_hull()
+    dmax = torch.maximum((hull.lower - c).abs(), (hull.upper - c).abs())
+    spread = (H.abs() * dmax.unsqueeze(-2)).sum(-1)
+    spread = spread + torch.maximum(E.lower.abs(), E.upper.abs())
+    spread = spread + torch.maximum(vbox.lower.abs(), vbox.upper.abs())
+    mask = system._angle_mask.to(device=spread.device)
+    return mask & ~(spread < math.pi)  # NaN spread: ambiguous
 
 
 def sequential_strip_update(
@@ -279,10 +318,10 @@ def stirling_strip_update(
     from diffsmf.linearize import stirling_jacobian
 
     c = S.center
-    H = stirling_jacobian(filt.system.h, c, filt.stirling_step)  # eq. 13
+    H = stirling_jacobian(filt.system.h, c, stirling_steps(filt, c, region.interval_hull().radius))
     a, d, w, ev_h = measurement_strips(
         filt.system.h, filt.remainder_fn, region, c, H, y, filt.measurement_noise_box(),
-        events=True,
+        filt.system, events=True,
     )
     new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
     return new, ok, ev | ev_h
@@ -373,14 +412,45 @@ def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:
     return S.expand(state_batch(batch))
 
 
-def register_stirling_step(module: torch.nn.Module, value: float | Tensor, n: int) -> None:
-    """Validate and register the learnable Stirling step ``h [n]`` (Wang et al. 2022, eq. 12-13)."""
+#: Default Stirling step of the linearising filters, relative to the set: ``h_j = 0.5 r_j`` with
+#: ``r`` the half-widths of the interval hull of the set being linearised (Wang et al. 2022
+#: give no value). Relative, so that a change of state units scales the step with the set
+#: (scale invariance, docs/which_filter.md); an absolute step (a number in state units, the
+#: earlier default 0.1) is still accepted.
+DEFAULT_STIRLING_FACTOR = 0.5
+
+
+def register_stirling_step(module: torch.nn.Module, value: float | Tensor | None, n: int) -> None:
+    """Validate and register the learnable Stirling step ``[n]`` (Wang et al. 2022, eq. 12-13).
+
+    ``value=None`` (the filters' default): relative mode, ``module.stirling_relative = True``,
+    the registered ``stirling_step`` is the factor (default `DEFAULT_STIRLING_FACTOR`)
+    and the step used is ``stirling_step * r`` with ``r`` the set's hull half-widths
+    (`stirling_steps`). A number or tensor: an absolute step in state units, as given.
+    """
     from diffsmf.utils import register_positive
 
-    h = torch.as_tensor(value, dtype=torch.float64)
+    module.stirling_relative = value is None
+    h = torch.as_tensor(DEFAULT_STIRLING_FACTOR if value is None else value, dtype=torch.float64)
     if (h <= 0).any() or h.dim() > 1:
         raise ValueError("stirling_step: must be a positive scalar or [n] tensor")
     register_positive(module, "stirling_step", h.expand(n).clone())
+
+
+def stirling_steps(filt: torch.nn.Module, c: Tensor, radius: Tensor) -> Tensor:
+    """The Stirling step ``h [..., n]`` that ``filt`` uses about ``c [..., n]`` on a set with
+    hull half-widths ``radius [..., n]``: ``filt.stirling_step`` itself (absolute mode) or
+    ``filt.stirling_step * max(radius, 1e-8 |c|)`` (relative mode; a flat direction falls
+    back to a step relative to the centre, and to 1e-150 at 0). Both relative choices scale
+    with the state's units, so the slopes of the scaled system are the scaled slopes. The
+    radius enters without gradient (a choice of expansion, like the discrete choices of the
+    sets; the factor ``stirling_step`` keeps its gradient), so a diverged element's infinite
+    radius cannot reach the gradients of the others."""
+    if not getattr(filt, "stirling_relative", False):
+        return filt.stirling_step
+    r = torch.maximum(radius.detach(), 1e-8 * c.detach().abs()).clamp(min=1e-150)
+    r = torch.where(torch.isfinite(r), r, torch.ones_like(r))  # a diverged element
+    return filt.stirling_step * r
 
 
 def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
@@ -460,6 +530,7 @@ __all__ = [
     "add_remainder_margin",
     "checked_remainder",
     "remainder_events",
+    "angle_ambiguous",
     "register_remainder",
     "register_remainder_margin",
     "register_stirling_step",
@@ -478,6 +549,8 @@ __all__ = [
     "sequential_strip_update",
     "spent_initial_box",
     "step_function",
+    "stirling_steps",
     "stirling_strip_update",
+    "DEFAULT_STIRLING_FACTOR",
     "widen",
 ]

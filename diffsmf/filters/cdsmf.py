@@ -24,7 +24,6 @@ from diffsmf.filters.base import (
     register_minkowski_scale,
     scaled_minkowski_sum,
 )
-from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -40,8 +39,14 @@ class CDSMF(C.EllipsoidalSetFilter):
 
     Args:
         system: the system to filter.
-        stirling_step: Stirling step h (learnable).
-        sum_method: ``Ellipsoid.minkowski_sum`` method (``"trace"`` | ``"volume"``).
+        stirling_step: Stirling step h (learnable): ``None`` (default) for the step relative
+            to the set, ``0.5`` times its hull half-widths (scale-invariant), or an absolute
+            step in state units (scalar or ``[n]``); see
+            `stirling_steps`.
+        sum_method: ``Ellipsoid.minkowski_sum`` method: ``"scaled-trace"`` (default: the
+            trace rule in coordinates normalised by the operands' widths, independent of the
+            units of the states), ``"trace"`` (the rule in state units, the earlier default)
+            or ``"volume"``.
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
@@ -77,11 +82,11 @@ class CDSMF(C.EllipsoidalSetFilter):
         self,
         system: System,
         *,
-        stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
+        stirling_step: float | Tensor | None = None,
         remainder_margin: float | Tensor = 0.0,
         remainder: str = "auto",
         minkowski_scale: float | Tensor = 1.0,
-        sum_method: str = "trace",
+        sum_method: str = "scaled-trace",
         initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
@@ -100,8 +105,8 @@ class CDSMF(C.EllipsoidalSetFilter):
         E = state.set
         c = E.center
         fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, c, self.stirling_step)  # Wang et al. 2022, eq. 12
         box = C.remainder_box(E, state.extras)
+        F = stirling_jacobian(fn, c, C.stirling_steps(self, c, box.radius))  # eq. 12
         R, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
             self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin, events=True
         )

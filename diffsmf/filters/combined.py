@@ -44,7 +44,7 @@ from diffsmf.utils import Positive, register_positive
 
 __all__ = ["CombinedFilter", "CombinedResult", "outer_sum_shape"]
 
-_WEIGHTS = ("trace", "volume")
+_WEIGHTS = ("scaled-trace", "trace", "volume")
 # Statistical linearisation is done over F(a, S + LIN_P_WEIGHT * P): the paper's F(a, S) up to a
 # relative 1e-6 whenever the mean set is full-dimensional, and still well defined when the mean
 # set degenerates (no bounded noise: it collapses to the Kalman estimate, and the fit becomes a
@@ -123,8 +123,11 @@ class CombinedFilter(SetFilter):
             distribution on the initial ellipsoid, ``S_0 / (n + 2)`` (the analogue of the EKF's
             ``r^2 / 3`` for a box), so that ``by_name("combined")(system)`` works; pass it to
             separate the Gaussian initial spread from the initial mean set.
-        weight: Minkowski weights p, q by ``"trace"`` (minimal trace, the paper's choice) or
-            ``"volume"`` (minimal volume), Jiang et al. 2016, eq. 34-36 (erratum).
+        weight: Minkowski weights p, q of the state-space sums by ``"scaled-trace"`` (default:
+            the paper's minimal-trace rule in the coordinates normalised by the operands'
+            widths, so that the sets do not depend on the units of the states), ``"trace"``
+            (the paper's rule in state units) or ``"volume"`` (minimal volume), Jiang et al.
+            2016, eq. 34-36 (erratum).
         gain: ``"kalman"`` (eq. 44, ``K = P H' (H P H' + R)^-1``, needs R positive definite),
             ``"set"`` (``K = S H' (H S H' + E)^-1``, a pure ellipsoidal set-membership filter
             that ignores P), or ``"auto"`` (``"kalman"`` when R is positive definite, else
@@ -157,7 +160,7 @@ class CombinedFilter(SetFilter):
         system: System,
         *,
         initial_cov: Tensor | None = None,
-        weight: str = "trace",
+        weight: str = "scaled-trace",
         gain: str = "auto",
         levels: Sequence[float] = (0.5, 1.0),
         point_weights: Tensor | Sequence[float] | None = None,
@@ -293,7 +296,7 @@ class CombinedFilter(SetFilter):
         h = self.system.h
         H = self._linearize(h, a, S, P)  # eq. 55
         R, E = self.measurement_covariance(), self.measurement_bound()
-        nu = y - h(a) - self.measurement_noise_center  # innovation of eq. 57
+        nu = self.system.innovation(y, h(a)) - self.measurement_noise_center  # eq. 57, wrapped
         G = P if self.gain == "kalman" else S
         W = R if self.gain == "kalman" else E
         mm = linalg.matmul

@@ -47,7 +47,6 @@ from diffsmf.filters.base import (
     bounded_result,
 )
 from diffsmf.filters.events import LOSES_BOUND, FilterEvent
-from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet, check_count, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.interval import Interval
@@ -79,7 +78,10 @@ class CZSMF(SetFilter):
             (`resolve_remainder`): ``"dc-vertices"`` (alias ``"dc"``,
             Wang et al. 2022, eq. 14-18 at the hull corners), ``"lagrange"`` (Song et al. 2017, eq.
             26-28), ``"mean-value"``, or ``"auto"`` (default, as the other filters).
-        stirling_step: Stirling step h (scalar or ``[n]``), learnable.
+        stirling_step: Stirling step h (learnable): ``None`` (default) for the step relative
+            to the set, ``0.5`` times its hull half-widths (scale-invariant), or an absolute
+            step in state units (scalar or ``[n]``); see
+            `stirling_steps`.
         remainder_margin: learnable inflation ``m >= 0`` of the prediction remainder box
             (`register_remainder_margin`).
         rescale: apply the exact propagation rescaling (Scott 2016 Appendix A) before each
@@ -110,7 +112,7 @@ class CZSMF(SetFilter):
         max_constraints: int | str | None = "auto",
         reduce_method: str = "girard",
         remainder: str = "auto",
-        stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
+        stirling_step: float | Tensor | None = None,
         remainder_margin: float | Tensor = 0.0,
         rescale: bool = True,
         lp_iters: int = 15,
@@ -245,7 +247,7 @@ class CZSMF(SetFilter):
         hull = Interval._make(lo, hi)
         p = 0.5 * (lo + hi)  # expansion point: the hull midpoint
         fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, p, self.stirling_step)  # Wang et al. 2022, eq. 12
+        F = stirling_jacobian(fn, p, C.stirling_steps(self, p, hull.radius))  # eq. 12
         E, ev = C.prediction_remainder(  # not finite: flagged unbounded (placeholder set)
             self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin,
             events=True,
@@ -281,10 +283,10 @@ class CZSMF(SetFilter):
         lo, hi = state.extras["lower"], state.extras["upper"]
         hull = Interval._make(lo, hi)
         p = 0.5 * (lo + hi)
-        H = stirling_jacobian(self.system.h, p, self.stirling_step)  # Wang et al. 2022, eq. 13
+        H = stirling_jacobian(self.system.h, p, C.stirling_steps(self, p, hull.radius))  # eq. 13
         a, d, w, ev = C.measurement_strips(
             self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box(),
-            events=True,
+            self.system, events=True,
         )  # eq. 23-29: |a_i x - d_i| <= w_i, [B, m, n], [B, m], [B, m]
         # a degenerate strip (non-finite normal or offset: an overflow) skips the update
         degen = (~torch.isfinite(a).all(-1) | ~torch.isfinite(d)).any(-1)

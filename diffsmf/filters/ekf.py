@@ -93,7 +93,7 @@ class EKF(SetFilter):
         h = self.system.h
         H = jacobian(h, x)
         R = self.measurement_covariance()
-        nu = y - h(x) - self.measurement_noise_center
+        nu = self.system.innovation(y, h(x)) - self.measurement_noise_center  # angles wrapped
         mm = linalg.matmul  # multiply-and-sum for small matrices (fused when compiled)
         HP = mm(H, P)
         S = _sym(mm(HP, H.mT) + R)

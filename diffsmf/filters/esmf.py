@@ -75,15 +75,17 @@ class ESMF(C.EllipsoidalSetFilter):
             `register_remainder_margin`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of every Minkowski
             sum of the prediction (eq. 14-17 used in eq. 29-31, eq. 32 and eq. 34-35):
-            ``p = s * p_trace`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_trace =
-            sqrt(tr S1 / tr S2)`` the paper's rule. Every ``p > 0`` gives an outer bound, so
-            tuning ``s`` never breaks the guarantee; 1 (default) reproduces the rule bit for
-            bit. One factor is shared by the (up to) three sums of a step: it keeps the
-            parameter a single scalar like CDSMF's, and the sums play the same role
-            (how much of the bound goes to which operand); the sum that dominates the prior
-            is the last one (eq. 34-35, prior ``A P A'`` + virtual noise). Softplus-scaled
-            (``scale * softplus(raw)``). Raises ``ValueError`` for 0, negative, NaN or
-            infinite values.
+            ``p = s * p_trace`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_trace`` the
+            paper's trace rule ``sqrt(tr S1 / tr S2)`` taken in the coordinates normalised
+            by ``diag(S1 + S2)`` (``minkowski_weight(..., "scaled-trace")``; deviation: the
+            rule in state units depends on the units of the states). Every ``p > 0`` gives
+            an outer bound, so tuning ``s`` never breaks the guarantee; 1 (default)
+            reproduces the rule bit for bit. One factor is shared by the (up to) three sums
+            of a step: it keeps the parameter a single scalar like CDSMF's, and the sums
+            play the same role (how much of the bound goes to which operand); the sum that
+            dominates the prior is the last one (eq. 34-35, prior ``A P A'`` + virtual
+            noise). Softplus-scaled (``scale * softplus(raw)``). Raises ``ValueError`` for 0,
+            negative, NaN or infinite values.
         remainder: guaranteed remainder bound by name (default ``"lagrange"``, Song et al. 2017, eq.
             26-28; also ``"dc-vertices"``, ``"mean-value"``, ``"auto"``; see
             `resolve_remainder`).
@@ -132,16 +134,16 @@ class ESMF(C.EllipsoidalSetFilter):
         s = self.minkowski_scale  # p = s * trace rule in every sum (s = 1: the paper)
         Well = C.noise_ellipsoid(self)  # an ellipsoidal / zonotope W as given
         Wq = self.process_noise_box().to_ellipsoid() if Well is None else Well
-        Qhat = scaled_minkowski_sum(R.to_ellipsoid(), Wq, "trace", s)  # eq. 29-31
+        Qhat = scaled_minkowski_sum(R.to_ellipsoid(), Wq, "scaled-trace", s)  # eq. 29-31
         if self.system.parameters is not None:  # eq. 18-23, 30, 32
             D = parameter_deviation(
                 self.system.f, box, self.system.parameters, self.system.theta_nominal, u
             )
             D, ev_d = C.checked_remainder(D)
             ev = ev | ev_d
-            Qhat = scaled_minkowski_sum(Qhat, D.to_ellipsoid(), "trace", s)
+            Qhat = scaled_minkowski_sum(Qhat, D.to_ellipsoid(), "scaled-trace", s)
         lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
-        new = scaled_minkowski_sum(lin, Qhat, "trace", s)  # eq. 34-35
+        new = scaled_minkowski_sum(lin, Qhat, "scaled-trace", s)  # eq. 34-35
         new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
         return state.replace(set=new, extras=C.spent_initial_box(state.extras)).flag(ev)
 
@@ -174,11 +176,15 @@ class ESMF(C.EllipsoidalSetFilter):
         H = jacobian(h, c)
         hc = h(c)
         # unbounded remainder of h: the measurement cannot shrink the set (update skipped)
-        Rh, ev_h = C.checked_remainder(self.remainder_fn(h, E.interval_hull(), c, H))
+        hull = E.interval_hull()
+        Rh, ev_h = C.checked_remainder(self.remainder_fn(h, hull, c, H))
         ok_h = ev_h == 0
+        if self.system.angle_outputs:  # a residual that may be on the wrong branch: skipped
+            amb = C.angle_ambiguous(self.system, hull, c, H, Rh, self.measurement_noise_box())
+            ok_h = ok_h & ~amb.any(-1)
         noise = self._observation_noise(y, hc, Rh)
         Rhat = noise.shape
-        nu = y - hc - noise.center  # innovation
+        nu = self.system.innovation(y, hc) - noise.center  # innovation (angles wrapped)
         HPH = _sym(H @ P @ H.mT)
         ylin = nu + (H @ c.unsqueeze(-1)).squeeze(-1)  # y' = H x + v', v' in E(0, Rhat)
         if self.rho_rule == "volume":

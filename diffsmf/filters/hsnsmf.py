@@ -24,7 +24,10 @@ from diffsmf.utils import Positive
 
 __all__ = ["HSNSMF"]
 
-DEFAULT_STIRLING_STEP = 0.1  # Wang et al. 2022 gives no value for the Stirling step h
+#: The absolute Stirling step (state units) that was the default before the relative one
+#: (``stirling_step=None``: ``0.5`` times the set's hull half-widths, scale-invariant); pass it
+#: as ``stirling_step=DEFAULT_STIRLING_STEP`` for the earlier filter.
+DEFAULT_STIRLING_STEP = 0.1
 
 
 class HSNSMF(SetFilter):
@@ -32,7 +35,10 @@ class HSNSMF(SetFilter):
 
     Args:
         system: the system to filter.
-        stirling_step: Stirling central-difference step h (scalar or ``[n]``), learnable.
+        stirling_step: Stirling central-difference step h, learnable: ``None`` (default) for
+            the step relative to the set, ``0.5`` times its hull half-widths (scale-invariant;
+            the registered ``stirling_step`` is then the factor), or an absolute step in state
+            units (scalar or ``[n]``); see `stirling_steps`.
         initial_set: override of ``system.x0_set`` (converted to an outer parallelotope).
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
@@ -59,7 +65,7 @@ class HSNSMF(SetFilter):
         self,
         system: System,
         *,
-        stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
+        stirling_step: float | Tensor | None = None,
         remainder_margin: float | Tensor = 0.0,
         remainder: str = "auto",
         initial_set: ConvexSet | None = None,
@@ -83,7 +89,7 @@ class HSNSMF(SetFilter):
         P = state.set
         c, T = P.center, P.T
         fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, c, self.stirling_step)  # eq. 12
+        F = stirling_jacobian(fn, c, C.stirling_steps(self, c, P.interval_hull().radius))  # eq. 12
         E, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin, events=True
         )  # eq. 14-18 (+ margin)

@@ -45,7 +45,6 @@ from torch import Tensor
 from diffsmf import linalg
 from diffsmf.filters import _common as C
 from diffsmf.filters.base import FilterState, SetFilter
-from diffsmf.filters.hsnsmf import DEFAULT_STIRLING_STEP
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive, is_int
@@ -62,7 +61,10 @@ class MSZM(SetFilter):
             default 12 (measured table in the module docstring).
         reduce_method: ``Zonotope.reduce`` method (``"girard"``, ``"combastel"``, ...).
         strip_method: ``Zonotope.intersect_strip`` method (``"fradius"`` | ``"volume"``).
-        stirling_step: Stirling step h (learnable).
+        stirling_step: Stirling step h (learnable): ``None`` (default) for the step relative
+            to the set, ``0.5`` times its hull half-widths (scale-invariant), or an absolute
+            step in state units (scalar or ``[n]``); see
+            `stirling_steps`.
         initial_set: override of ``system.x0_set`` (converted to a zonotope).
         remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
             prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
@@ -90,7 +92,7 @@ class MSZM(SetFilter):
         order: int = 12,
         reduce_method: str = "girard",
         strip_method: str = "fradius",
-        stirling_step: float | Tensor = DEFAULT_STIRLING_STEP,
+        stirling_step: float | Tensor | None = None,
         remainder_margin: float | Tensor = 0.0,
         remainder: str = "auto",
         initial_set: ConvexSet | None = None,
@@ -145,11 +147,12 @@ class MSZM(SetFilter):
         Z = state.set
         c, G = Z.center, Z.generators
         fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, c, self.stirling_step)  # Wang et al. 2022, eq. 12
+        hull = Z.interval_hull()
+        F = stirling_jacobian(fn, c, C.stirling_steps(self, c, hull.radius))  # Wang 2022, eq. 12
         # remainder over the interval hull (Alamo 2005; Wang et al. 2022, sec. 4.1: the baselines
         # bound the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
         E, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
-            self.system, self.remainder_fn, fn, Z.interval_hull(), c, F, u, self.remainder_margin,
+            self.system, self.remainder_fn, fn, hull, c, F, u, self.remainder_margin,
             events=True,
         )
         FG = linalg.traced_matmul(F, G)

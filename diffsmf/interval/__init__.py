@@ -1,12 +1,12 @@
 """The guarantee engine: interval arithmetic and derivative enclosures of any torch model.
 
-* :mod:`~diffsmf.interval.rounding`: outward rounding, the guarantee of every operation;
-* :mod:`~diffsmf.interval.jet`: interval jets (value, gradient and Hessian enclosures);
-* :mod:`~diffsmf.interval.rules`: one inclusion rule per ATen op, in a registry;
-* :mod:`~diffsmf.interval.capture`: a model captured once as an ATen graph, evaluated by rules;
-* :mod:`~diffsmf.interval.engine`: the entry point, :func:`enclose`.
+* `rounding`: outward rounding, the guarantee of every operation;
+* `jet`: interval jets (value, gradient and Hessian enclosures);
+* `rules`: one inclusion rule per ATen op, in a registry;
+* `capture`: a model captured once as an ATen graph, evaluated by rules;
+* `engine`: the entry point, `enclose`.
 
-The box set and the interval array class live in :mod:`diffsmf.sets` (``Interval``).
+The box set and the interval array class live in `diffsmf.sets` (``Interval``).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ _LAZY = {
 
 
 def __getattr__(name: str) -> Any:
-    """Lazy imports: the engine needs :mod:`diffsmf.sets`, which needs the rounding module."""
+    """Lazy imports: the engine needs `diffsmf.sets`, which needs the rounding module."""
     mod = _LAZY.get(name)
     if mod is None:
         raise AttributeError(f"module 'diffsmf.interval' has no attribute {name!r}")

@@ -1,17 +1,17 @@
 """Capture a torch model once as an ATen graph, then evaluate it in interval-jet arithmetic.
 
-:func:`capture` traces a model function with torch's own graph capture (``make_fx`` with
+`capture` traces a model function with torch's own graph capture (``make_fx`` with
 functionalisation and the core-ATen decompositions, so in-place ops, views and composite ops
 such as ``einsum``, ``roll`` or ``nn.Linear`` reach the engine as a handful of core ops). The
 graph is captured on inputs with one batch row (``x [1, n]``) and evaluated on any batch: a
-:class:`Program` maps every node to its rule in :mod:`diffsmf.interval.rules` and runs the
+`Program` maps every node to its rule in `diffsmf.interval.rules` and runs the
 rules on enclosures whose extra leading dims (batch, tangents) the graph never sees. Nodes that
 depend on constants only are evaluated once, at capture.
 
 The capture reports, naming the model, what the engine cannot enclose: a Python branch on the
 state (``if x > 0``), a cast of the state to another dtype, ``.detach()``, ``.item()`` or an
 op without a rule. A model that needs an op the engine lacks, or a function the user can
-enclose better by hand, registers an inclusion rule (:func:`inclusion`), or, for an
+enclose better by hand, registers an inclusion rule (`inclusion`), or, for an
 ``nn.Module``, defines ``interval_enclosure(lo, hi) -> (value_lo, value_hi, jac_lo, jac_hi)``.
 """
 
@@ -238,7 +238,7 @@ def _decompositions() -> dict[Any, Callable]:
 
 
 def capture(fn: Callable[..., Tensor], example: Sequence[Tensor], name: str) -> Program:
-    """Capture ``fn(*example)`` (one batch row each, e.g. ``x [1, n]``) as a :class:`Program`.
+    """Capture ``fn(*example)`` (one batch row each, e.g. ``x [1, n]``) as a `Program`.
 
     Raises:
         EngineError: naming ``name``, the op and what to do, when the model branches on the
@@ -277,7 +277,7 @@ class _Slot:
 
 
 def _template(a: Any, slot: dict) -> Any:
-    """Node arguments with every fx Node replaced by its :class:`_Slot` (so that evaluation
+    """Node arguments with every fx Node replaced by its `_Slot` (so that evaluation
     touches no fx object: it traces under torch.compile)."""
     if isinstance(a, torch.fx.Node):
         return _Slot(slot[a])

@@ -1,9 +1,9 @@
 """Enclosures of a model over a box: the engine's entry points.
 
-:func:`enclose` evaluates a model ``fn(x [..., n]) -> [..., k]`` over a box ``[..., n]`` and
+`enclose` evaluates a model ``fn(x [..., n]) -> [..., k]`` over a box ``[..., n]`` and
 returns guaranteed enclosures of its value ``[..., k]``, Jacobian ``[..., k, n]`` and Hessians
 ``[..., k, n, n]``. The model is captured once (per function object) and evaluated by the
-per-op rules. The filters pass a :class:`StepModel` (the system's ``f`` with this step's input
+per-op rules. The filters pass a `StepModel` (the system's ``f`` with this step's input
 and parameter), whose program is captured once per system.
 """
 
@@ -146,11 +146,11 @@ def program_for(owner: Any, fn: Callable[..., Tensor], example: list[Tensor], na
 
 def enclose(fn: Callable[..., Tensor], box: Interval, order: int = 2,
             name: str = "fn") -> Enclosure:
-    """Enclosures of ``fn`` over ``box [..., n]`` -> :class:`Enclosure` (``[..., k]`` value,
+    """Enclosures of ``fn`` over ``box [..., n]`` -> `Enclosure` (``[..., k]`` value,
     ``[..., k, n]`` Jacobian, ``[..., k, n, n]`` Hessians, as ``order`` asks).
 
     ``fn`` maps ``x [..., n]`` to ``[..., k]`` with torch ops (leading dims are batch dims).
-    Raises :class:`EngineError` naming ``name`` for a model the engine cannot enclose.
+    Raises `EngineError` naming ``name`` for a model the engine cannot enclose.
     """
     if not isinstance(box, Interval) or box.lower.dim() < 1:
         raise ValueError("box: expected an Interval of shape [..., n]")

@@ -1,8 +1,8 @@
 """Derivative enclosures: interval jets with the tangent dimensions in front.
 
-A :class:`Jet` encloses, over every ``x`` in an input box, a tensor-valued intermediate quantity
+A `Jet` encloses, over every ``x`` in an input box, a tensor-valued intermediate quantity
 ``q(x)`` of a model program: its value ``val [*E, *s]``, its gradient ``grad [n, *E, *s]`` and
-its Hessian ``hess [n, n, *E, *s]``, each an :class:`~diffsmf.sets.Interval` array (``*E`` are
+its Hessian ``hess [n, n, *E, *s]``, each an `Interval` array (``*E`` are
 the caller's batch dims, ``*s`` the quantity's own shape as captured, ``n`` the number of
 differentiation variables). With the tangent dimensions *leading*, every operation that only
 moves values, and every linear one, applies to the value, the gradient and the Hessian

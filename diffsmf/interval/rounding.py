@@ -2,7 +2,7 @@
 
 After an operation whose exact real result lies within ``k`` units in the last place of the
 computed float (``k = 1`` for the correctly rounded IEEE ``+ - * / sqrt``, ``k = 2`` for library
-transcendental functions), :func:`down` / :func:`up` move a lower / upper bound outward by the
+transcendental functions), `down` / `up` move a lower / upper bound outward by the
 relative offset ``2 k eps |x|`` (``ulp(x) <= eps |x|`` for normal ``x``; the factor 2 absorbs the
 rounding of the offset's own addition), plus the smallest subnormal when ``absolute`` (results
 in the subnormal range or underflowed to 0). A few elementwise ops, cheaper than

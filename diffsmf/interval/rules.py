@@ -1,9 +1,9 @@
 """Inclusion rules, one per ATen operation, and the registry that maps ops to rules.
 
 A rule receives the evaluated arguments of one node of a captured model program and returns
-its enclosure. A tensor argument is a :class:`~diffsmf.interval.jet.Jet` (it depends on the
+its enclosure. A tensor argument is a `Jet` (it depends on the
 inputs enclosed), a plain ``Tensor`` (a constant of the program, or a point input such as
-``u``) or a :class:`BoolBox` (a comparison of enclosed values). Every argument carries extra
+``u``) or a `BoolBox` (a comparison of enclosed values). Every argument carries extra
 *leading* dims that the captured graph does not know about (the caller's batch dims, and the
 tangent dims of gradients and Hessians); a rule applies the op's shape and dim arguments to
 the *trailing* dims only, so one rule serves values, gradients and Hessians alike. ``ctx`` gives
@@ -16,7 +16,7 @@ value of ``log`` at 0 is then ``-inf`` (the filters flag the trajectory's set as
 Where no such bound exists (a box across a pole of ``tan``) the enclosure of that element is
 NaN, which the filters flag as a domain event for that trajectory.
 
-Register a rule for a further op with :func:`register` (see the "Writing models" docs page).
+Register a rule for a further op with `register` (see the "Writing models" docs page).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Guaranteed Jacobian and Hessian enclosures over a box (the remainders' view of the engine).
 
-Thin entry points over :mod:`diffsmf.interval`: the model is captured once as an ATen graph and
+Thin entry points over `diffsmf.interval`: the model is captured once as an ATen graph and
 evaluated in interval-jet arithmetic (Song et al. 2017, sec. 3 interval extensions, used for the
 interval Hessian of Song et al. 2017, eq. 26-28 and for the DC parameter of Wang et al. 2022,
 eq. 15-16, erratum). Every op of the "Writing models" docs page is supported, non-smooth ones
@@ -25,7 +25,7 @@ JetError = EngineError
 
 
 def jet_eval(fn: Callable[[Any], Any], box: Interval, order: int = 2) -> Enclosure:
-    """Enclose ``fn`` over the box ``[..., n]`` -> :class:`Enclosure` of shape ``[..., k]``.
+    """Enclose ``fn`` over the box ``[..., n]`` -> `Enclosure` of shape ``[..., k]``.
 
     ``out.val`` encloses ``fn`` over the box, ``out.grad`` its Jacobian ``[..., k, n]`` and
     (order 2) ``out.hess`` the Hessians ``[..., k, n, n]``.

@@ -309,6 +309,47 @@ def diagonal_shift(H: Interval) -> Tensor:
     return torch.where(torch.isnan(w), torch.full_like(w, torch.inf), w)
 
 
+#: Half-widths below this are not used to normalise the DC split (a flat direction of the box,
+#: where every vertex has ``x_j = c_j`` and the weight of that coordinate does not matter).
+_MIN_SCALE = 1e-150
+
+
+def _convexifying_weights(Hpm: Interval, box: Interval) -> Tensor:
+    """Weights ``W [4, ..., k, n]`` of the four quadratics ``q = sum_j W_j (x_j - c_j)^2`` of
+    the DC split: ball and diagonal shift for ``r`` and for ``-r`` (``Hpm [2, ..., k, n, n]``
+    holds the interval Hessians of ``r`` and ``-r``).
+
+    Scale-covariant: both forms are computed for the Hessian in the coordinates normalised by
+    the box's half-widths ``s`` (``x~ = x / s``, Hessian ``diag(s) M diag(s)``) and mapped
+    back, ``W_j = w~_j / s_j^2``. The ball is then ``alpha~ |diag(s)^-1 (x - c)|^2``, the
+    ellipsoid of the box's proportions, rather than Wang et al. 2022's Euclidean
+    ``alpha |x - c|^2``, whose single curvature couples states of different units (a state
+    in kelvin inflated the remainder of one in mol/L); for a cube the two are the same. A
+    change of units ``x' = D x`` (D diagonal) gives the same quadratics, so the same bounds.
+    Validity: ``M~ + 2 diag(w~) >= 0`` implies ``M + 2 diag(w~ / s^2) >= 0`` (congruence).
+    """
+    s = box.radius
+    # a flat or non-finite width (a diverged element) normalises by 1: no inf reaches the
+    # weights or, through them, the gradients of the other elements
+    s = torch.where((s > _MIN_SCALE) & torch.isfinite(s), s, torch.ones_like(s))  # [..., n]
+    ss = (s.unsqueeze(-1) * s.unsqueeze(-2)).unsqueeze(-3)  # [..., 1, n, n]
+    hfin = torch.isfinite(Hpm.lower) & torch.isfinite(Hpm.upper)  # [2, ..., k, n, n]
+    unbounded = ~hfin.all(-1).all(-1)  # [2, ..., k]: no convexification
+    z = torch.zeros_like(Hpm.lower)
+    Hs = Interval._make(torch.where(hfin, Hpm.lower, z) * ss, torch.where(hfin, Hpm.upper, z) * ss)
+    inv = (1.0 / (s * s)).unsqueeze(-2)  # [..., 1, n]
+    ball = (-hessian_eig_lower_bound(Hs)).clamp(min=0) * 0.5  # [2, ..., k]: alpha~, beta~
+    diag = diagonal_shift(Hs)  # [2, ..., k, n]
+    ball = ball.unsqueeze(-1).expand_as(diag)
+    W = torch.stack([ball[0], diag[0], ball[1], diag[1]])  # [4, ..., k, n], scaled
+    # inf (an unbounded Hessian: no convexification) stays inf; only finite weights are
+    # mapped back, so no inf * 0 reaches the gradients
+    bad = torch.stack([unbounded[0], unbounded[0], unbounded[1], unbounded[1]]).unsqueeze(-1)
+    fin = torch.isfinite(W) & ~bad
+    Wb = torch.where(fin, W, torch.zeros_like(W)) * inv
+    return torch.where(fin, Wb, torch.full_like(W, torch.inf))
+
+
 def _dc_upper(rv: Tensor, qv: Tensor) -> Tensor:
     """Wang et al. 2022, eq. 15: r + q convex, tangent of q at c is 0 -> r <= max_v (r(v) +
     q(v))."""
@@ -357,7 +398,10 @@ def dc_remainder(
     guaranteed lower bound of the smallest eigenvalue of the interval Hessian of ``fn_i`` over
     the hull of ``S`` and ``c`` (`hessian_eig_lower_bound`); a second, diagonal
     ``q = sum_j w_ij (x_j - c_j)^2`` (`diagonal_shift`, tighter when the curvature lies
-    along few axes) is also used and the tighter bound kept. Then
+    along few axes) is also used and the tighter bound kept. Deviation (scale invariance):
+    both are computed in the coordinates normalised by the hull's half-widths, so the ball is
+    ``alpha_i |diag(s)^-1 (x - c)|^2`` (`_convexifying_weights`; the paper's ball for a
+    cube) and the bound does not depend on the units of the states. Then
 
     * upper (eq. 15, tangent of g2 at c is 0): ``r <= g1 <= max_v g1(v)`` over the vertices;
     * lower (eq. 16): for a tangent point p (``c`` and, for few vertices, every vertex)
@@ -389,10 +433,7 @@ def dc_remainder(
     # the four convexifications at once (leading dim 4): r + q convex with q the ball
     # (alpha |x - c|^2) or the diagonal shift, and -r + q convex with the same two forms
     Hpm = Interval._make(torch.stack([H.lower, -H.upper]), torch.stack([H.upper, -H.lower]))
-    ball = (-hessian_eig_lower_bound(Hpm)).clamp(min=0) * 0.5  # [2, ..., k]: alpha, beta
-    diag = diagonal_shift(Hpm)  # [2, ..., k, n]
-    ball = ball.unsqueeze(-1).expand_as(diag)
-    W = torch.stack([ball[0], diag[0], ball[1], diag[1]])  # [4, ..., k, n]
+    W = _convexifying_weights(Hpm, box)  # [4, ..., k, n]
     finite = torch.isfinite(W)
     Wf = materialize(torch.where(finite, W, torch.zeros_like(W)))
     Vf = _front(V)  # [N, ..., n]

@@ -538,7 +538,11 @@ def _vol_condition(p: Tensor, lam: Tensor) -> Tensor:
 def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
     """Weight ``p`` of ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` (Jiang et al. 2016, eq. 34-36, erratum).
 
-    ``"trace"``: ``p = sqrt(tr S1 / tr S2)``. ``"volume"``: unique positive root of
+    ``"trace"``: ``p = sqrt(tr S1 / tr S2)``. ``"scaled-trace"``: the trace rule in the
+    coordinates normalised by ``N = diag(S1 + S2)^-1/2``, ``p = sqrt(tr(N S1 N) / tr(N S2 N))``
+    (the sum of squared semi-axes relative to the operands' widths, instead of in the states'
+    units: invariant under a diagonal change of units, the default of the filters' state-space
+    sums). ``"volume"``: unique positive root of
     ``sum_i 1/(lambda_i + 1/p) = n p^2/(p + 1)`` (equivalently ``F(p) = 0`` with ``F``
     increasing), bracketed in ``[1/sqrt(lambda_max), 1/sqrt(lambda_min)]`` and solved by
     bisection in log p, then one differentiable Newton step (implicit function theorem).
@@ -547,8 +551,15 @@ def minkowski_weight(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
         t1 = torch.diagonal(S1, dim1=-2, dim2=-1).sum(-1)
         t2 = torch.diagonal(S2, dim1=-2, dim2=-1).sum(-1)
         return torch.sqrt(t1 / t2)
+    if method == "scaled-trace":
+        d1 = torch.diagonal(S1, dim1=-2, dim2=-1)
+        d2 = torch.diagonal(S2, dim1=-2, dim2=-1)
+        tot = d1 + d2
+        ok = (tot > 0) & torch.isfinite(tot)
+        inv = 1.0 / torch.where(ok, tot, torch.ones_like(tot))
+        return torch.sqrt((d1 * inv).sum(-1) / (d2 * inv).sum(-1))
     if method != "volume":
-        raise ValueError(f"method: expected 'trace' or 'volume', got {method!r}")
+        raise ValueError(f"method: expected 'trace', 'scaled-trace' or 'volume', got {method!r}")
     lam = _lambdas(S1, S2)
     ld = lam.detach().clamp(min=1e-300)
     lo = torch.log(1.0 / ld[..., -1].sqrt())
@@ -704,14 +715,19 @@ class _MeasFamily:
         W = linalg.cholesky_solve(PHt, L)  # D^-1 H P
         KHP = rr * self.PH @ W
         core = self.P - KHP
-        # guarantee floor: as rho -> 1 with H P H' >> R the
-        # difference cancels (e.g. 6e4 - 6e4 -> 3e-8); its absolute rounding error is below
-        # 16 (n + m) eps (||P||_F + ||K H P||_F), so that much is added on the diagonal.
+        # guarantee floor: as rho -> 1 with H P H' >> R the difference cancels (e.g. 6e4 -
+        # 6e4 -> 3e-8); its rounding error in entry (i, j) is below 16 (n + m) eps a_i a_j with
+        # a_i = sqrt(P_ii) + sqrt(|KHP_ii|) (|M_ij| <= sqrt(M_ii M_jj) for these PSD terms), a
+        # matrix that n eps' diag(a^2) dominates (Gershgorin after scaling by a). Per
+        # coordinate, so that it does not depend on the units of the states (a multiple of I
+        # sized by ||P||_F added a state's variance to every other one).
         eps = torch.finfo(core.dtype).eps
-        err = 16 * (self.P.shape[-1] + self.H.shape[-2]) * eps
-        err = err * (torch.linalg.matrix_norm(self.P) + torch.linalg.matrix_norm(KHP)).detach()
-        eye = torch.eye(core.shape[-1], dtype=core.dtype, device=core.device)
-        core = core + err[..., None, None] * eye
+        n = self.P.shape[-1]
+        err = 16 * (n + self.H.shape[-2]) * eps * n
+        dP = torch.diagonal(self.P, dim1=-2, dim2=-1).clamp(min=0)
+        dK = torch.diagonal(KHP, dim1=-2, dim2=-1).abs()
+        a = (dP.sqrt() + dK.sqrt()).detach()
+        core = core + torch.diag_embed(err * a * a)
         P2 = (xi / (1 - rho))[..., None, None] * core
         return c2, _sym(P2)
 
@@ -833,22 +849,23 @@ def outer_sum_shape(S1: Tensor, S2: Tensor, method: str = "trace") -> Tensor:
 
     ``S(p) = (1 + 1/p) S1 + (1 + p) S2`` times ``1 + INFLATE`` (this module's rounding margin),
     with p from `minkowski_weight`
-    (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"volume"``: the erratum's root, differentiable).
+    (``"trace"``: ``sqrt(tr S1 / tr S2)``; ``"scaled-trace"``: the same in the coordinates
+    normalised by ``diag(S1 + S2)``; ``"volume"``: the erratum's root, differentiable).
     Unlike ``Ellipsoid.minkowski_sum`` the operands may be positive *semi*definite (degenerate
     or zero ellipsoids, e.g. ``Gamma D Gamma'`` or a collapsed mean set): ``S2 = 0`` gives
     ``S1`` exactly (``S1 = 0`` gives ``S2``), and where the volume rule is undefined (``S1``
     singular) the trace weight is used. Any ``p > 0`` gives an outer bound (eq. 25-33), so the
     guarantee never depends on the weight.
     """
-    if method not in ("trace", "volume"):
-        raise ValueError(f"weight: expected 'trace' or 'volume', got {method!r}")
+    if method not in ("trace", "scaled-trace", "volume"):
+        raise ValueError(f"weight: expected 'trace', 'scaled-trace' or 'volume', got {method!r}")
     t1 = torch.diagonal(S1, dim1=-2, dim2=-1).sum(-1)
     t2 = torch.diagonal(S2, dim1=-2, dim2=-1).sum(-1)
     zero1, zero2 = (t1 <= 0).unsqueeze(-1).unsqueeze(-1), (t2 <= 0).unsqueeze(-1).unsqueeze(-1)
     eye = torch.eye(S1.shape[-1], dtype=S1.dtype, device=S1.device)
     S1s = torch.where(zero1, eye, S1)  # placeholders keep the unused branches finite
     S2s = torch.where(zero2, eye, S2)  # (also their gradients: no 0/0 in sqrt's backward)
-    p = minkowski_weight(S1s, S2s, "trace")
+    p = minkowski_weight(S1s, S2s, "scaled-trace" if method == "scaled-trace" else "trace")
     if method == "volume":
         pd = torch.linalg.cholesky_ex(S1s.detach())[1] == 0
         pd_m = pd.unsqueeze(-1).unsqueeze(-1)

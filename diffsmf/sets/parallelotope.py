@@ -229,8 +229,9 @@ class Parallelotope(ConvexSet):
         a. *tied*: the candidates whose volume is within ``TIE_RTOL`` relative of the least,
            ``p_bar t_bar_j (1 + TIE_RTOL) >= max(1, max_i p_bar t_bar_i)`` (keeping P_bar has
            value 1);
-        b. among them, the least interval hull (sum of its half-widths, ``sum |T|``) within
-           ``TIE_RTOL`` relative;
+        b. among them, the least interval hull within ``TIE_RTOL`` relative, measured as the
+           sum of its half-widths each divided by P_bar's (``sum_i hull_i / hull_i(P_bar)``:
+           the same choice whatever the units of the states);
         c. then P_bar (no replacement) before a replacement, then the lowest index j.
 
         So the choice never depends on float rounding of values equal up to a few ulps (the
@@ -295,9 +296,14 @@ class Parallelotope(ConvexSet):
             # summed hull half-widths of each candidate i (eq. 41; its column i is t_i / pbt_i,
             # the others' column i cancels exactly); a loop over the static n, O(n^2) memory
             ps = torch.where(pbt > 0, pbt, torch.ones_like(pbt))
+            # rows weighted by 1 / (P_bar's hull half-width): the widths relative to P_bar's,
+            # so that the choice does not depend on the units of the states
+            rw = T_bar.abs().sum(-1)
+            rw = torch.where(rw > 0, 1.0 / rw, torch.ones_like(rw)).unsqueeze(-1)  # [..., n, 1]
             hull = torch.stack([
-                (T_bar - T_bar[..., i : i + 1] * (pbt / ps[..., i : i + 1]).unsqueeze(-2))
-                .abs().sum((-1, -2)) + T_bar[..., i].abs().sum(-1) / ps[..., i]
+                ((T_bar - T_bar[..., i : i + 1] * (pbt / ps[..., i : i + 1]).unsqueeze(-2))
+                 .abs() * rw).sum((-1, -2)) + (T_bar[..., i].abs() * rw[..., 0]).sum(-1)
+                / ps[..., i]
                 for i in range(n)
             ], -1)  # [..., n]
             hull = torch.where(tied, hull, torch.full_like(hull, torch.inf))
@@ -305,7 +311,7 @@ class Parallelotope(ConvexSet):
             best = tied & (hull <= hmin.unsqueeze(-1) * (1 + TIE_RTOL))
             idx = torch.arange(n, device=pbt.device).expand_as(pbt)
             istar = torch.where(best, idx, n).amin(-1).clamp_max(n - 1)  # lowest such index
-            keep_hull = T_bar.abs().sum((-1, -2))
+            keep_hull = (T_bar.abs() * rw).sum((-1, -2))
             replace = (~keep_tied | (hmin * (1 + TIE_RTOL) < keep_hull)) & ~empty
         # eq. 41: replace strip i* by the measurement strip
         t_star = torch.gather(T_bar, -1, istar.reshape(*batch, 1, 1).expand(*batch, n, 1))

@@ -412,7 +412,9 @@ class Zonotope(ConvexSet):
     def reduce(self, order: float, method: str = "girard") -> Zonotope:
         """Outer order reduction to at most ``floor(order * n)`` generators.
 
-        Methods (the generators to remove are chosen on detached scores):
+        Methods (the generators to remove are chosen on detached scores, computed for the
+        generators normalised by the interval hull's half-widths, ``diag(r)^-1 G``: the same
+        choice whatever the units of the states):
           * ``"girard"`` (Girard 2005): keep the ``N - n`` generators with largest
             ``||g||_1 - ||g||_inf``, box the rest (``diag(sum |g|)``).
           * ``"combastel"`` (Combastel 2003): same with score ``||g||_2``.
@@ -432,10 +434,13 @@ class Zonotope(ConvexSet):
             return self
         G = self.generators
         with torch.no_grad():
+            # scores of the generators in the coordinates normalised by the interval hull's
+            # half-widths, so that the choice does not depend on the units of the states
+            Gs = G * _hull_weights(G).unsqueeze(-1)
             if method == "combastel":
-                score = G.norm(dim=-2)
+                score = Gs.norm(dim=-2)
             else:
-                score = G.abs().sum(-2) - G.abs().amax(-2)
+                score = Gs.abs().sum(-2) - Gs.abs().amax(-2)
             perm = score.argsort(-1, descending=True)
         keep_k = target - n
         Gp = torch.gather(G, -1, perm.unsqueeze(-2).expand_as(G))
@@ -444,9 +449,12 @@ class Zonotope(ConvexSet):
         marg = 1 + 4 * (m + n) * _EPS
         if method in ("girard", "combastel"):
             box = torch.diag_embed(rest.abs().sum(-1) * marg)
-        elif method == "pca":
-            U = torch.linalg.svd(rest.detach(), full_matrices=False)[0]  # [..., n, n]
-            box = U * ((U.transpose(-1, -2) @ rest).abs().sum(-1) * marg).unsqueeze(-2)
+        elif method == "pca":  # principal axes of the normalised rest, mapped back
+            w = _hull_weights(G).unsqueeze(-1)  # [..., n, 1]
+            Uo = torch.linalg.svd((rest * w).detach(), full_matrices=False)[0]  # [..., n, n]
+            U = Uo / w  # the frame in the original coordinates, diag(r) Uo
+            Ui = Uo.transpose(-1, -2) * w.transpose(-1, -2)  # its inverse, Uo' diag(1 / r)
+            box = U * ((Ui @ rest).abs().sum(-1) * marg).unsqueeze(-2)
         else:
             box = _outer_parallelotope(rest)
         return Zonotope._make(self._c, torch.cat([kept, box], -1))
@@ -501,6 +509,13 @@ class Zonotope(ConvexSet):
 
 
 # ---------------------------------------------------------------------- helpers
+def _hull_weights(G: Tensor) -> Tensor:
+    """``1 / r [..., n]`` for the interval hull half-widths ``r = sum_j |G_ij|`` (1 where
+    ``r = 0``), detached: the row weights that make generator scores unit-free."""
+    r = G.detach().abs().sum(-1)
+    return torch.where(r > 0, 1.0 / r, torch.ones_like(r))
+
+
 def _uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | None) -> Tensor:
     u = torch.rand(shape, dtype=like.dtype, device=like.device, generator=generator)
     return 2 * u - 1

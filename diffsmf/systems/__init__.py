@@ -5,9 +5,12 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable
 
-from diffsmf.systems.system import System, Trajectory, check_system
+from diffsmf.systems.system import System, Trajectory, check_system, scale_set, wrap_angle
 
-__all__ = ["System", "Trajectory", "check_name", "check_system", "get", "names", "register"]
+__all__ = [
+    "System", "Trajectory", "check_name", "check_system", "get", "names", "register", "scale_set",
+    "wrap_angle",
+]
 
 _REGISTRY: dict[str, Callable[..., System]] = {}
 

@@ -20,7 +20,9 @@ from diffsmf.sets import Ellipsoid, Interval
 from diffsmf.systems import register
 from diffsmf.systems.system import System
 
-__all__ = ["bilinear", "fermenter", "mismatch_quadratic", "spring_damper", "vdp"]
+__all__ = [
+    "bilinear", "cstr", "fermenter", "mismatch_quadratic", "spring_damper", "unicycle_rb", "vdp",
+]
 
 _F64 = torch.float64
 
@@ -253,4 +255,130 @@ def vdp(dt: float = 0.05, w: float = 1e-3, v: float = 1e-2, horizon: int = 400) 
         inputs=lambda k: _vec(math.sin(k * dt)), name="vdp",
     )
     s.horizon, s.paper_x0 = horizon, _vec(1.2, 0.5)
+    return s
+
+
+# A textbook exothermic CSTR (first-order A -> B, Seborg et al. parameters) with a cooling jacket
+_CSTR = dict(q_V=1.0, Caf=1.0, Tf=350.0, k0=7.2e10, E_R=8750.0, dH_rcp=-5e4 / 239.0,
+             UA_Vrcp=5e4 / (100.0 * 239.0))
+
+
+@register("cstr")
+def cstr(
+    dt: float = 0.1,
+    substeps: int = 4,
+    Tcin: float = 287.0,
+    jacket_tau: float = 2.0,
+    jacket_gain: float = 0.2,
+    w: tuple[float, float, float] = (1e-3, 0.05, 0.05),
+    v: float = 0.4,
+    x0_radius: tuple[float, float, float] = (0.1, 5.0, 5.0),
+    horizon: int = 1000,
+) -> System:
+    """Continuous stirred-tank reactor with a cooling jacket: a stable, observable plant whose
+    states have very different scales (``Ca`` in mol/L, ``T`` and ``Tc`` in K).
+
+    State ``[Ca, T, Tc]``, temperature measured (``y = T + v``). Exothermic first-order
+    reaction ``A -> B`` with the rate ``r = k0 exp(-E/(R T)) Ca`` (the classic parameters:
+    ``q/V = 1 /min``, ``Caf = 1 mol/L``, ``Tf = 350 K``, ``k0 = 7.2e10 /min``,
+    ``E/R = 8750 K``, ``-dH/(rho Cp) = 5e4/239 K L/mol``, ``UA/(V rho Cp) = 5e4/23900 /min``)::
+
+        dCa/dt = q/V (Caf - Ca) - r
+        dT/dt  = q/V (Tf - T) - dH/(rho Cp) r + UA/(V rho Cp) (Tc - T)
+        dTc/dt = (Tcin - Tc) / jacket_tau + jacket_gain (T - Tc)
+
+    Discrete time: one sampling step ``dt`` (min) is ``substeps`` explicit Euler steps inside
+    ``f``. With ``Tcin = 287 K`` the steady state is ``Ca = 0.918 mol/L``, ``T = 319.1 K``,
+    ``Tc = 296.2 K``, stable (eigenvalues -1.82, -1.19, -0.40 /min). Bounded noise
+    ``|w| <= (1e-3, 0.05, 0.05)`` per step and ``|v| <= 0.4 K``; initial set the box
+    ``[0.9, 320, 295] +- (0.1, 5, 5)``; horizon 1,000 steps (100 min). Not from the seed papers:
+    a first-day plant whose state scales differ by two orders of magnitude, used to check that
+    the filters do not depend on the units of the states.
+    """
+    dt = _positive("dt", dt)
+    if not isinstance(substeps, int) or substeps < 1:
+        raise ValueError(f"substeps: must be an integer >= 1, got {substeps!r}")
+    p = _CSTR
+    hs = dt / substeps
+
+    def rhs(Ca: Tensor, T: Tensor, Tc: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        r = p["k0"] * torch.exp(-p["E_R"] / T) * Ca
+        dCa = p["q_V"] * (p["Caf"] - Ca) - r
+        dT = p["q_V"] * (p["Tf"] - T) - p["dH_rcp"] * r + p["UA_Vrcp"] * (Tc - T)
+        dTc = (Tcin - Tc) / jacket_tau + jacket_gain * (T - Tc)
+        return dCa, dT, dTc
+
+    def f(x: Tensor, u: Tensor | None = None, theta: Tensor | None = None) -> Tensor:
+        Ca, T, Tc = x[..., 0], x[..., 1], x[..., 2]
+        for _ in range(substeps):
+            dCa, dT, dTc = rhs(Ca, T, Tc)
+            Ca, T, Tc = Ca + hs * dCa, T + hs * dT, Tc + hs * dTc
+        return torch.stack([Ca, T, Tc], -1)
+
+    def h(x: Tensor) -> Tensor:
+        return x[..., 1:2]
+
+    s = System(
+        f, h, _box(_vec(0.9, 320.0, 295.0), _vec(*x0_radius)),
+        _box(torch.zeros(3, dtype=_F64), _vec(*w)), _sym_box(1, v, "v"), name="cstr",
+    )
+    s.horizon, s.paper_x0 = horizon, None
+    return s
+
+
+@register("unicycle_rb")
+def unicycle_rb(
+    dt: float = 0.1,
+    speed: float = 1.0,
+    turn_rate: float = 0.2,
+    landmark: tuple[float, float] = (20.0, 0.0),
+    w: tuple[float, float, float] = (1e-3, 1e-3, 1e-4),
+    v: tuple[float, float] = (0.02, 0.005),
+    x0_radius: tuple[float, float, float] = (0.2, 0.2, 0.05),
+    heading0: float = 0.0,
+    horizon: int = 1000,
+) -> System:
+    """Unicycle measured by range and bearing to a landmark (a textbook navigation model).
+
+    State ``[px, py, heading]`` (m, m, rad), inputs ``u = [speed, turn_rate]`` (schedule:
+    constant, a circle of radius ``speed / turn_rate = 5 m`` about ``(0, 5)``), explicit Euler
+    with step ``dt``::
+
+        px+ = px + dt u1 cos(heading),  py+ = py + dt u1 sin(heading),  heading+ = heading + dt u2
+
+    Outputs ``y = [range, bearing]`` to the landmark ``(lx, ly)``: ``range = |l - p|`` and the
+    bearing in the body frame ``atan2(ly - py, lx - px) - heading``, an angle output
+    (``angle_outputs=[1]``: simulated bearings are wrapped into ``[-pi, pi)``, the filters
+    wrap the residual about the predicted bearing). The heading is not wrapped (it grows by
+    ``2 pi`` per lap), so the body-frame bearing crosses ``+-pi`` every lap; the landmark
+    (default (20, 0), east of the circle) keeps the direction ``l - p`` in the right half
+    plane, away from atan2's cut while the set's box stays west of it. Noise ``|w| <= (1e-3,
+    1e-3, 1e-4)``, ``|v| <= (0.02 m, 0.005 rad)`` (with 2e-3 m and 1e-3 rad per step of
+    process noise, HSNSMF's box reached the landmark after about 980 steps and ESMF's after
+    370: one landmark observes position and heading only weakly); initial set ``[0, 0,
+    heading0] +- (0.2, 0.2, 0.05)``; horizon 1,000 steps (100 s,
+    3.2 laps). Not from the seed papers.
+    """
+    dt = _positive("dt", dt)
+    lx, ly = landmark
+
+    def f(x: Tensor, u: Tensor | None, theta: Tensor | None = None) -> Tensor:
+        px, py, th = x[..., 0], x[..., 1], x[..., 2]
+        sp = speed if u is None else u[..., 0]
+        om = turn_rate if u is None else u[..., 1]
+        return torch.stack(
+            [px + dt * sp * torch.cos(th), py + dt * sp * torch.sin(th), th + dt * om], -1
+        )
+
+    def h(x: Tensor) -> Tensor:
+        dx, dy = lx - x[..., 0], ly - x[..., 1]
+        rng = torch.sqrt(dx * dx + dy * dy)
+        return torch.stack([rng, torch.atan2(dy, dx) - x[..., 2]], -1)
+
+    s = System(
+        f, h, _box(_vec(0.0, 0.0, heading0), _vec(*x0_radius)),
+        _box(torch.zeros(3, dtype=_F64), _vec(*w)), _box(torch.zeros(2, dtype=_F64), _vec(*v)),
+        inputs=lambda k: _vec(speed, turn_rate), name="unicycle_rb", angle_outputs=[1],
+    )
+    s.horizon, s.paper_x0 = horizon, None
     return s

@@ -2,8 +2,8 @@
 
 The filters call the dynamics as ``f(x, u, theta)`` and the measurement as ``h(x)``. A user may
 write ``f(x)``, ``f(x, u)`` or ``f(x, u, theta)``, as a function or as an ``nn.Module``
-(``forward(x)``, ...); :func:`as_dynamics` adapts them once, when the ``System`` is built, and
-:func:`check_captured` captures both with the guarantee engine so that what the engine cannot
+(``forward(x)``, ...); `as_dynamics` adapts them once, when the ``System`` is built, and
+`check_captured` captures both with the guarantee engine so that what the engine cannot
 enclose is reported then, naming ``f`` or ``h``.
 """
 

@@ -17,6 +17,7 @@ from an ``inputs`` schedule (built-ins such as ``"bilinear"``, ``"vdp"``) or fro
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -28,7 +29,7 @@ from diffsmf.sets.base import ConvexSet, check_nonempty
 from diffsmf.systems.model import Dynamics, as_dynamics, check_dtype, check_module_dtype
 from diffsmf.utils import is_int
 
-__all__ = ["System", "Trajectory", "check_system"]
+__all__ = ["System", "Trajectory", "check_system", "scale_set", "wrap_angle"]
 
 
 class Trajectory(NamedTuple):
@@ -77,6 +78,12 @@ class System(nn.Module):
         process_cov: optional Gaussian process covariance Q ``[n, n]``.
         measurement_cov: optional Gaussian measurement covariance R ``[m, m]``.
         name: a label for tables and figures.
+        angle_outputs: indices of the outputs that are angles in radians (bearings,
+            headings), e.g. ``[1]`` for ``y = [range, bearing]``. Their measurements are
+            compared with the prediction modulo ``2 pi``: every filter builds the strip (or
+            the innovation) on the branch that the predicted measurement ``h(c)`` picks,
+            ``y' = h(c) + wrap(y - h(c))`` with ``wrap`` into ``[-pi, pi)``
+            (`wrap_angle`). Default: none.
     """
 
     def __init__(
@@ -94,6 +101,7 @@ class System(nn.Module):
         process_cov: Tensor | None = None,
         measurement_cov: Tensor | None = None,
         name: str = "system",
+        angle_outputs: list[int] | tuple[int, ...] | None = None,
     ) -> None:
         super().__init__()
         if not callable(f) or not callable(h):
@@ -109,7 +117,12 @@ class System(nn.Module):
         self.h = h
         self.x0_set = x0_set
         self.n = x0_set.dim
+        _check_state_dims(f, x0_set, process_noise)
         self.m = _output_dim(h, x0_set.center)
+        self.angle_outputs = _check_angle_outputs(angle_outputs, self.m)
+        # [m] bool mask of the angle outputs (a plain tensor, not a buffer: state_dicts unchanged)
+        self._angle_mask = torch.zeros(self.m, dtype=torch.bool, device=x0_set.device)
+        self._angle_mask[list(self.angle_outputs)] = True
         for label, s, d in (
             ("process_noise", process_noise, self.n),
             ("measurement_noise", measurement_noise, self.m),
@@ -139,6 +152,25 @@ class System(nn.Module):
         self.process_cov = _check_cov("process_cov", process_cov, self.n)
         self.measurement_cov = _check_cov("measurement_cov", measurement_cov, self.m)
         self.name = name
+
+    def extra_repr(self) -> str:
+        """``name, n, m, p`` and the sets, shown by ``print(system)``."""
+
+        def kind(s: ConvexSet | None) -> str:
+            return "None" if s is None else f"{type(s).__name__}(dim={s.dim})"
+
+        parts = [
+            f"name={self.name!r}", f"n={self.n}", f"m={self.m}", f"n_inputs={self.n_inputs}",
+            f"x0_set={kind(self.x0_set)}", f"process_noise={kind(self.process_noise)}",
+            f"measurement_noise={kind(self.measurement_noise)}",
+        ]
+        if self.parameters is not None:
+            parts.append(f"parameters={kind(self.parameters)}")
+        if self.process_cov is not None or self.measurement_cov is not None:
+            parts.append("gaussian=True")
+        if self.angle_outputs:
+            parts.append(f"angle_outputs={list(self.angle_outputs)}")
+        return ", ".join(parts)
 
     # ------------------------------------------------------------------ helpers
     def _check_f(self) -> None:
@@ -180,6 +212,17 @@ class System(nn.Module):
         StepModel(self.f, u, th).program(x)
         register_row_model(self.h)
         enclose(self.h, Interval(x, x), 0, "h")
+
+    def innovation(self, y: Tensor, y_pred: Tensor) -> Tensor:
+        """``y - y_pred [..., m]`` with the angle outputs' components wrapped into
+        ``[-pi, pi)`` (`wrap_angle`): the residual on the branch that the prediction
+        picks, ``y' - y_pred`` for ``y' = y_pred + wrap(y - y_pred)``. Without angle outputs it
+        is ``y - y_pred`` itself. Branch-free (no host sync)."""
+        d = y - y_pred
+        if not self.angle_outputs:
+            return d
+        mask = self._angle_mask.to(device=d.device)
+        return torch.where(mask, wrap_angle(d), d)
 
     @property
     def theta_nominal(self) -> Tensor | None:
@@ -253,11 +296,65 @@ class System(nn.Module):
         th = torch.as_tensor(th, dtype=self.x0_set.dtype, device=self.x0_set.device)
         return th.expand(batch, th.shape[-1])
 
+    def _check_x0(self, x0: object, batch: int) -> Tensor:
+        """``x0`` of ``simulate`` as ``[batch, n]`` (``[n]`` or ``[1, n]`` broadcast)."""
+        try:
+            t = torch.as_tensor(x0, dtype=self.x0_set.dtype, device=self.x0_set.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ValueError(f"x0: cannot be read as a tensor of states ({exc})") from exc
+        if t.dim() == 0 or t.shape[-1] != self.n or t.dim() > 2 or (
+            t.dim() == 2 and t.shape[0] not in (1, batch)
+        ):
+            raise ValueError(f"x0: expected shape [{batch}, {self.n}] or [{self.n}], got "
+                             f"{tuple(t.shape)}")
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError("x0: contains NaN or inf")
+        return t.expand(batch, self.n)
+
     def forward(self, x: Tensor, u: Tensor | None = None, theta: Tensor | None = None) -> Tensor:
         """One noise-free step ``f(x, u, theta)``; ``theta`` defaults to the nominal value."""
         if theta is None:
             theta = self.theta_nominal
         return self.f(x, u, theta)
+
+    def rescaled(self, scale: Tensor | list[float], name: str | None = None) -> System:
+        """The same system in the state coordinates ``x' = D x``, ``D = diag(scale)``.
+
+        ``f'(x', u, theta) = D f(D^-1 x', u, theta)``, ``h'(x') = h(D^-1 x')``; ``x0_set`` and
+        the process noise set are mapped by ``D`` (`scale_set`, same set types), the
+        process covariance becomes ``D Q D``; the outputs, measurement noise, parameters and
+        inputs are unchanged. A change of units (e.g. mol/L to mmol/L is ``scale = 1000`` on
+        that state): a scale-invariant filter gives ``D`` times the sets of ``self`` on the
+        same measurements (docs/which_filter.md).
+
+        Args:
+            scale: ``[n]`` positive finite factors.
+            name: the new system's name (default ``self.name + "_rescaled"``).
+        """
+        d = torch.as_tensor(scale, dtype=self.x0_set.dtype, device=self.x0_set.device)
+        if d.shape != (self.n,) or not bool(torch.isfinite(d).all()) or bool((d <= 0).any()):
+            raise ValueError(f"scale: expected [{self.n}] positive finite factors, got {scale!r}")
+        f, h = self.f, self.h
+
+        def f2(x: Tensor, u: Tensor | None = None, theta: Tensor | None = None) -> Tensor:
+            return f(x / d, u, theta) * d
+
+        def h2(x: Tensor) -> Tensor:
+            return h(x / d)
+
+        W = None if self.process_noise is None else scale_set(self.process_noise, d)
+        Q = None if self.process_cov is None else self.process_cov * d.unsqueeze(-1) * d
+        out = System(
+            f2, h2, scale_set(self.x0_set, d), W, self.measurement_noise, self.parameters,
+            inputs=self.inputs, n_inputs=self.n_inputs, theta_schedule=self.theta_schedule,
+            process_cov=Q, measurement_cov=self.measurement_cov,
+            name=self.name + "_rescaled" if name is None else name,
+            angle_outputs=self.angle_outputs,
+        )
+        for attr in ("horizon",):
+            if hasattr(self, attr):
+                setattr(out, attr, getattr(self, attr))
+        return out
 
     # ------------------------------------------------------------------ simulation
     def simulate(
@@ -284,6 +381,14 @@ class System(nn.Module):
 
         Returns:
             `Trajectory` with ``x [B, T+1, n]``, ``y [B, T, m]``, ``u``, ``theta``.
+            The angle outputs (``angle_outputs``) of ``y`` are wrapped into ``[-pi, pi)``,
+            as a sensor reports them.
+
+        Raises:
+            ValueError: a simulated state or measurement is NaN or inf (the model left its
+                domain or diverged from this initial state); the message names the function
+                (``f`` or ``h``), the first step and the trajectories where it happened.
+                A trajectory is never returned with non-finite values.
         """
         if noise not in ("uniform", "vertex"):
             raise ValueError(f"noise: expected 'uniform' or 'vertex', got {noise!r}")
@@ -313,7 +418,7 @@ class System(nn.Module):
             return z @ root.mT
 
         schedule = _as_schedule("theta", theta) or self.theta_schedule
-        x = draw(self.x0_set, self.n) if x0 is None else torch.as_tensor(x0).expand(batch, self.n)
+        x = draw(self.x0_set, self.n) if x0 is None else self._check_x0(x0, batch)
         xs, ys, us, ths = [x], [], [], []
         for k in range(steps):
             u = self.input_at(k, batch) if u_given is None else u_given[:, k]
@@ -326,16 +431,115 @@ class System(nn.Module):
             x = self.f(x, u, th) + w
             v = draw(self.measurement_noise, self.m) + gauss(self.measurement_cov, self.m)
             y = self.h(x) + v
+            if self.angle_outputs:  # reported as a sensor does: wrapped into [-pi, pi)
+                y = torch.where(self._angle_mask, wrap_angle(y), y)
             xs.append(x)
             ys.append(y)
             us.append(u)
             ths.append(th)
+        X, Y = torch.stack(xs, 1), torch.stack(ys, 1)
+        _check_finite_trajectory(X, Y)
         return Trajectory(
-            x=torch.stack(xs, 1),
-            y=torch.stack(ys, 1),
+            x=X,
+            y=Y,
             u=None if self.n_inputs == 0 else torch.stack(us, 1),
             theta=None if self.parameters is None else torch.stack(ths, 1),
         )
+
+
+def scale_set(S: ConvexSet, d: Tensor) -> ConvexSet:
+    """``D S = {D x : x in S}`` for ``D = diag(d)``, ``d [n] > 0``, as the same set type.
+
+    Interval, Ellipsoid, Zonotope, Parallelotope and ConstrainedZonotope are mapped exactly
+    (bounds, shape ``D S D``, generators ``D G``); another set by ``S.linear_map(diag(d))``.
+    """
+    from diffsmf.sets import ConstrainedZonotope, Ellipsoid, Interval, Parallelotope, Zonotope
+
+    d = torch.as_tensor(d, dtype=S.dtype, device=S.device)
+    col = d.unsqueeze(-1)
+    if isinstance(S, Interval):
+        return Interval(S.lower * d, S.upper * d)
+    if isinstance(S, Ellipsoid):
+        return Ellipsoid(S.center * d, S.shape * col * d)
+    if isinstance(S, Parallelotope):
+        return Parallelotope(S.center * d, S.T * col)
+    if isinstance(S, ConstrainedZonotope):
+        return ConstrainedZonotope(S.center * d, S.generators * col, S.A, S.b)
+    if isinstance(S, Zonotope):
+        return Zonotope(S.center * d, S.generators * col)
+    return S.linear_map(torch.diag(d))
+
+
+def wrap_angle(a: Tensor) -> Tensor:
+    """``a`` wrapped into ``[-pi, pi)`` (elementwise, differentiable almost everywhere)."""
+    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+
+
+def _check_angle_outputs(idx: object, m: int) -> tuple[int, ...]:
+    """``angle_outputs`` as a sorted tuple of distinct output indices in ``[0, m)``."""
+    if idx is None:
+        return ()
+    try:
+        items = list(idx)  # type: ignore[call-overload]
+    except TypeError:
+        raise ValueError(
+            f"angle_outputs: expected a list of output indices, got {idx!r}"
+        ) from None
+    for i in items:
+        if not is_int(i) or not 0 <= int(i) < m:
+            raise ValueError(
+                f"angle_outputs: {i!r} is not an output index in [0, {m}) (h has m = {m} outputs)"
+            )
+    out = tuple(sorted(int(i) for i in items))
+    if len(set(out)) != len(out):
+        raise ValueError(f"angle_outputs: repeated index in {items}")
+    return out
+
+
+def _check_state_dims(f: Callable[..., Tensor], x0_set: ConvexSet, W: ConvexSet | None) -> None:
+    """``x0_set`` and ``process_noise`` must have the same dimension; when they differ, the
+    one that does not match ``f`` is named (``f`` is tried on a point of W's dimension)."""
+    if not isinstance(W, ConvexSet) or W.dim == x0_set.dim:
+        return
+    n, nw = x0_set.dim, W.dim
+    try:
+        with torch.no_grad():
+            out = f(torch.zeros(1, nw, dtype=x0_set.dtype), None, None)
+        f_fits_w = isinstance(out, Tensor) and tuple(out.shape) == (1, nw)
+    except Exception:  # f does not take the noise's dimension (or needs u / theta)
+        f_fits_w = False
+    if f_fits_w:
+        raise ValueError(
+            f"x0_set: has dim {n}, but process_noise has dim {nw} and f maps [1, {nw}] to "
+            f"[1, {nw}]; give an initial set of dim {nw}"
+        )
+    raise ValueError(
+        f"process_noise: must be a diffsmf set of dim {n} (the dim of x0_set), got dim {nw}"
+    )
+
+
+def _check_finite_trajectory(X: Tensor, Y: Tensor) -> None:
+    """Raise a ``ValueError`` naming ``f`` / ``h``, the first step and the trajectories where
+    the simulated states ``X [B, T+1, n]`` or measurements ``Y [B, T, m]`` are not finite."""
+    badx = ~torch.isfinite(X).all(-1)  # [B, T+1]
+    bady = ~torch.isfinite(Y).all(-1)  # [B, T]
+    if not bool(badx.any() or bady.any()):
+        return
+    kx = int(badx.any(0).nonzero()[0]) if bool(badx.any()) else X.shape[1]
+    ky = int(bady.any(0).nonzero()[0]) + 1 if bool(bady.any()) else X.shape[1]
+    if kx <= ky:
+        name, k, rows = "f", kx, badx[:, kx]
+        what = f"the state x_{k} (f(x_{k - 1}) + w)"
+    else:
+        name, k, rows = "h", ky, bady[:, ky - 1]
+        what = f"the measurement y_{k} (h(x_{k}) + v)"
+    traj = rows.nonzero().reshape(-1).tolist()
+    shown = ", ".join(map(str, traj[:10])) + (", ..." if len(traj) > 10 else "")
+    raise ValueError(
+        f"{name}: {what} is NaN or inf at step {k} in trajectory(ies) {shown} of {X.shape[0]}: "
+        "the model left its domain or diverged; simulate never returns non-finite values "
+        "(shrink x0_set or the noise bounds, or pass x0)"
+    )
 
 
 def _output_dim(h: Callable[[Tensor], Tensor], c: Tensor) -> int:
