@@ -1,4 +1,4 @@
-"""The tuning loop: gradient descent on set volume with held-out validation (issue 7).
+"""The tuning loop: gradient descent on set volume with held-out validation.
 
     report, filt = tune(filt, traj, epochs=200, batch_size=64, validation=0.25, seed=0)
 

@@ -1,4 +1,4 @@
-"""Training losses for tuning set-membership filters (issue 7).
+"""Training losses for tuning set-membership filters.
 
 Three terms, each a mean over trajectories and time steps so that weights do not depend on the
 batch size or horizon:
