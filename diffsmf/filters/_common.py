@@ -230,6 +230,7 @@ def measurement_strips(
     # a slope row that is 0 or not finite (a set so large that the model saturates or
     # overflows at the Stirling points) gives no strip: all of R^n, with a placeholder normal
     flat = ~(H.abs().sum(-1) > 0) | ~torch.isfinite(H).all(-1)  # [B, m]
+    ev = ev | torch.where(flat.any(-1), int(FilterEvent.DEGENERATE_STRIP), 0)
     ok = ok & ~flat
     e0 = torch.zeros_like(H)
     e0[..., 0] = 1.0

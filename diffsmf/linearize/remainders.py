@@ -223,7 +223,11 @@ def _lower_order(
     L = _linear_range(S, Jc, c)
     R0 = jet.val.__sub__(fc).__sub__(L)
     scale0 = _abs_max(jet.val) + fc.abs().detach() + _abs_max(L)
-    return R.intersect(_padded(R0.lower, R0.upper, scale0))
+    both = R.intersect(_padded(R0.lower, R0.upper, scale0))
+    # only the outputs without a finite first-order bound (the same result eager and traced)
+    use = ~rows
+    return Interval._make(torch.where(use, both.lower, R.lower),
+                          torch.where(use, both.upper, R.upper))
 
 
 def _abs_max(I: Interval) -> Tensor:
