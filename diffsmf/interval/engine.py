@@ -9,6 +9,7 @@ and parameter), whose program is captured once per system.
 
 from __future__ import annotations
 
+import types
 import weakref
 from collections.abc import Callable
 from typing import Any
@@ -139,9 +140,87 @@ def program_for(owner: Any, fn: Callable[..., Tensor], example: list[Tensor], na
     cache = _cache_of(owner)
     prog = cache.get(k)
     if prog is None:
-        prog = capture(fn, example, name)
+        fp = fingerprint(owner)
+        shared = None if fp is None else (fp, k, name)
+        prog = _SHARED.get(shared) if shared is not None else None
+        if prog is None:
+            prog = capture(fn, example, name)
+            if shared is not None:
+                if len(_SHARED) >= _SHARED_MAX:
+                    _SHARED.pop(next(iter(_SHARED)))
+                _SHARED[shared] = prog
         cache[k] = prog
     return prog
+
+
+#: Programs shared between model objects with the same fingerprint (a built-in system made
+#: twice: new closures, the same code and constants), oldest dropped first.
+_SHARED: dict = {}
+_SHARED_MAX = 256
+_SMALL = 4096  # tensors of at most this many elements are fingerprinted by value
+
+
+def fingerprint(fn: Any, depth: int = 4) -> Any:
+    """A hashable key that determines what ``fn`` computes, or None when unknown.
+
+    Functions: their code, defaults, closure values and the globals they name (numbers,
+    strings, small tensors by value, other functions recursively; modules by identity).
+    Anything else (nn.Modules, whose parameters may change, large tensors, other objects):
+    None, and ``fn``'s program is not shared.
+    """
+    if depth < 0:
+        return None
+    from diffsmf.systems.model import Dynamics
+
+    if isinstance(fn, Dynamics):
+        inner = fingerprint(fn.fn, depth - 1)
+        return None if inner is None else ("dynamics", fn.arity, inner)
+    if not isinstance(fn, types.FunctionType):
+        return None
+    parts: list[Any] = [fn.__code__]
+    for v in (fn.__defaults__ or ()):
+        parts.append(_value_print(v, depth - 1))
+    for c in fn.__closure__ or ():
+        try:
+            parts.append(_value_print(c.cell_contents, depth - 1))
+        except ValueError:  # an empty cell
+            parts.append(("empty",))
+    g = fn.__globals__
+    for name in fn.__code__.co_names:
+        if name in g:
+            v = g[name]
+            parts.append((name, id(v)) if isinstance(v, types.ModuleType) else
+                         (name, _value_print(v, depth - 1)))
+    if any(p is _UNKNOWN for p in parts) or any(
+            isinstance(p, tuple) and len(p) == 2 and p[1] is _UNKNOWN for p in parts):
+        return None
+    return tuple(parts)
+
+
+_UNKNOWN = object()
+
+
+def _value_print(v: Any, depth: int) -> Any:
+    if v is None or isinstance(v, (bool, int, float, complex, str, torch.dtype)):
+        return (type(v).__name__, v)
+    if isinstance(v, (tuple, list)):
+        items = tuple(_value_print(x, depth - 1) for x in v)
+        return _UNKNOWN if any(i is _UNKNOWN for i in items) else (type(v).__name__, items)
+    if isinstance(v, dict):
+        items = tuple((k, _value_print(x, depth - 1)) for k, x in sorted(v.items(), key=str))
+        return _UNKNOWN if any(i[1] is _UNKNOWN for i in items) else ("dict", items)
+    if isinstance(v, Tensor):
+        if v.requires_grad or v.numel() > _SMALL or v.is_sparse:
+            return _UNKNOWN
+        t = v.detach().cpu().contiguous()
+        return ("tensor", t.dtype, tuple(t.shape), str(v.device), t.numpy().tobytes()
+                if t.dtype != torch.bfloat16 else t.float().numpy().tobytes())
+    if isinstance(v, types.FunctionType) or type(v).__name__ == "Dynamics":
+        fp = fingerprint(v, depth)
+        return _UNKNOWN if fp is None else ("fn", fp)
+    if isinstance(v, types.ModuleType):
+        return ("module", id(v))
+    return _UNKNOWN
 
 
 def enclose(fn: Callable[..., Tensor], box: Interval, order: int = 2,
