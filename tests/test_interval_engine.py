@@ -187,3 +187,27 @@ def test_relu_mlp_dynamics_is_contained():
         res = ds.filters.HSNSMF(sys_)(traj.y)
     assert bool(res.bounded.all()) and bool(res.sets.contains(traj.x).all())
     assert float(res.volume[:, -1].max()) < 1.0 and math.isfinite(float(res.volume.sum()))
+
+
+def _coverage_ways():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parent.parent / "benchmarks" / "model_coverage.py"
+    spec = importlib.util.spec_from_file_location("model_coverage", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+_COVERAGE = _coverage_ways()
+
+
+@pytest.mark.parametrize("name", sorted(_COVERAGE.WAYS))
+def test_ordinary_ways_of_writing_a_model_run_and_are_contained(name):
+    """The 36 ways of benchmarks/model_coverage.py through HSNSMF (vertex noise, short)."""
+    s = _COVERAGE.system(_COVERAGE.WAYS[name])
+    tr = s.simulate(steps=3, batch=2, seed=0, noise="vertex")
+    with torch.no_grad():
+        res = ds.filters.HSNSMF(s)(tr.y)
+    assert bool(res.bounded.all()) and bool(res.sets.contains(tr.x.detach()).all())
