@@ -653,25 +653,18 @@ def _gelu_j(a: Jet, approximate: str = "none") -> Jet:
     return chain(a, v, d1, d2)
 
 
-register(aten.exp, category="elementwise")(_unary(_exp_j, torch.exp))
-register(aten.log, category="elementwise")(_unary(_log_j, torch.log))
-register(aten.log1p, category="elementwise")(_unary(_log1p_j, torch.log1p))
-register(aten.expm1, category="elementwise")(_unary(_expm1_j, torch.expm1))
-register(aten.sqrt, category="elementwise")(_unary(_sqrt_j, torch.sqrt))
-register(aten.rsqrt, category="elementwise")(_unary(_rsqrt_j, torch.rsqrt))
-register(aten.sin, category="elementwise")(_unary(_sin_j, torch.sin))
-register(aten.cos, category="elementwise")(_unary(_cos_j, torch.cos))
-register(aten.tan, category="elementwise")(_unary(_tan_j, torch.tan))
-register(aten.asin, category="elementwise")(
-    _unary(lambda a: _asin_like(a, torch.asin, 1.0), torch.asin))
-register(aten.acos, category="elementwise")(
-    _unary(lambda a: _asin_like(a, torch.acos, -1.0), torch.acos))
-register(aten.atan, category="elementwise")(_unary(_atan_j, torch.atan))
-register(aten.sinh, category="elementwise")(_unary(_sinh_j, torch.sinh))
-register(aten.cosh, category="elementwise")(_unary(_cosh_j, torch.cosh))
-register(aten.tanh, category="elementwise")(_unary(_tanh_j, torch.tanh))
-register(aten.sigmoid, category="elementwise")(_unary(_sigmoid_j, torch.sigmoid))
-register(aten.erf, category="elementwise")(_unary(_erf_j, torch.erf))
+for _op, _rule, _fn in (
+    (aten.exp, _exp_j, torch.exp), (aten.log, _log_j, torch.log),
+    (aten.log1p, _log1p_j, torch.log1p), (aten.expm1, _expm1_j, torch.expm1),
+    (aten.sqrt, _sqrt_j, torch.sqrt), (aten.rsqrt, _rsqrt_j, torch.rsqrt),
+    (aten.sin, _sin_j, torch.sin), (aten.cos, _cos_j, torch.cos), (aten.tan, _tan_j, torch.tan),
+    (aten.asin, lambda a: _asin_like(a, torch.asin, 1.0), torch.asin),
+    (aten.acos, lambda a: _asin_like(a, torch.acos, -1.0), torch.acos),
+    (aten.atan, _atan_j, torch.atan), (aten.sinh, _sinh_j, torch.sinh),
+    (aten.cosh, _cosh_j, torch.cosh), (aten.tanh, _tanh_j, torch.tanh),
+    (aten.sigmoid, _sigmoid_j, torch.sigmoid), (aten.erf, _erf_j, torch.erf),
+):
+    register(_op, category="elementwise")(_unary(_rule, _fn))
 register(aten.softplus, category="activation")(
     _unary(_softplus_j, torch.nn.functional.softplus))
 register(aten.gelu, category="activation")(
