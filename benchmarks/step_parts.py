@@ -29,7 +29,7 @@ import torch
 
 from diffsmf import filters, systems
 from diffsmf.filters import _common as C
-from diffsmf.filters.base import _compile_options
+from diffsmf.filters.runtime import compile_options
 from diffsmf.linearize import stirling_jacobian
 
 FILTERS = ("hsnsmf", "mszm")
@@ -76,7 +76,7 @@ def _parts(filt, state, u, y) -> dict[str, Callable[..., tuple]]:
 
 def _time(fn: Callable[..., tuple], args: tuple, repeats: int) -> float:
     """Median ms per call of ``fn`` compiled with the filters' options."""
-    cf = torch.compile(fn, fullgraph=True, dynamic=False, options=_compile_options())
+    cf = torch.compile(fn, fullgraph=True, dynamic=False, options=compile_options())
     cf(*args)
     cf(*args)
     ts = []

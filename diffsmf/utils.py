@@ -21,6 +21,7 @@ __all__ = [
     "is_int",
     "Positive",
     "StrictlyPositive",
+    "check_half_widths",
     "check_strictly_positive",
     "fix_dynamo_matmul",
     "inv_softplus",
@@ -171,7 +172,7 @@ def materialize(x: Tensor) -> Tensor:
 @contextlib.contextmanager
 def traced() -> Iterator[None]:
     """Make `tracing` true inside the block: for graph capture without Dynamo
-    (``make_fx`` in `diffsmf.filters._direct`), which must see the same branch-free
+    (``make_fx`` in `diffsmf.filters.streaming`), which must see the same branch-free
     code as ``torch.compile``."""
     global _TRACED
     old, _TRACED = _TRACED, True
@@ -254,6 +255,24 @@ class StrictlyPositive(Positive):
     def __set__(self, obj: Any, value: Any) -> None:
         check_strictly_positive(self.name, value)
         super().__set__(obj, value)
+
+
+def check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> Tensor:
+    """Half-widths (of a noise box, a margin) -> ``[dim]`` of ``dtype``; ``ValueError`` naming
+    ``name`` for a wrong length (a scalar or ``[1]`` broadcasts), NaN, inf, negative values or
+    non-numbers. The one validator of such values (pair it with `register_positive`)."""
+    try:
+        v = torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{name}: expected a number or a [{dim}] tensor, got {value!r}") from exc
+    if v.dim() > 1 or (v.dim() == 1 and v.shape[0] not in (1, dim)):
+        raise ValueError(
+            f"{name}: expected a scalar or a [{dim}] tensor (one half-width per component), "
+            f"got shape {tuple(v.shape)}"
+        )
+    if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
+        raise ValueError(f"{name}: half-widths must be finite and >= 0, got {v.tolist()}")
+    return v.expand(dim).clone()
 
 
 def check_strictly_positive(name: str, value: Any) -> Tensor:

@@ -96,7 +96,7 @@ class _IntervalFilter(SetFilter):
 
     A = torch.tensor([[0.9, 0.2], [0.0, 0.8]])
 
-    def predict(self, state, u=None):
+    def _predict(self, state, u=None):
         box = state.set.linear_map(self.A).interval_hull()
         box = ds.Interval(box.lower + u, box.upper + u).minkowski_sum(self.process_noise_box())
         return state.replace(set=box)

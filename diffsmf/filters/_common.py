@@ -514,7 +514,7 @@ class EllipsoidalSetFilter(SetFilter):
         self._x0 = as_ellipsoid(given)
         self._x0_box = given.interval_hull()
 
-    def initial_state(self, batch: int | None = None) -> FilterState:
+    def _initial_state(self, batch: int | None = None) -> FilterState:
         S = expand_state_set(self._x0, batch)
         ok = torch.ones(S.batch_shape, dtype=torch.bool)
         shape = (*S.batch_shape, self.system.n)

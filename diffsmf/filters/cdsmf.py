@@ -97,7 +97,7 @@ class CDSMF(C.EllipsoidalSetFilter):
         register_minkowski_scale(self, minkowski_scale)
         self.sum_method = sum_method
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (E - c) (+) cover(remainder box + W)``."""
         from diffsmf.linearize import stirling_jacobian
         from diffsmf.sets.ellipsoid import Ellipsoid

@@ -45,6 +45,7 @@ from diffsmf.filters.base import (
     FilterState,
     SetFilter,
     bounded_result,
+    carry,
 )
 from diffsmf.filters.events import LOSES_BOUND, FilterEvent
 from diffsmf.sets.base import ConvexSet, check_count, stack, where
@@ -207,7 +208,7 @@ class CZSMF(SetFilter):
         return self.max_generators is not None
 
     # ------------------------------------------------------------------ contract
-    def initial_state(self, batch: int | None = None) -> FilterState:
+    def _initial_state(self, batch: int | None = None) -> FilterState:
         Z = C.expand_state_set(self._x0, batch)
         if self.reduces:
             Z = self._cap(Z)
@@ -238,7 +239,7 @@ class CZSMF(SetFilter):
             return Z, None
         return (Z, duals) if box is None else (Z._append_box(box), None)
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``F Z + f(p) - F p + E + W`` (Scott 2016 eq. 11-12, Wang et al. 2022, eq. 12-21)."""
         from diffsmf.linearize import stirling_jacobian
 
@@ -267,13 +268,11 @@ class CZSMF(SetFilter):
         new = self._state(Zp, state.consistent).replace(bounded=state.bounded)
         return new.flag(ev)
 
-    def update(self, state: FilterState, y: Tensor) -> FilterState:
-        """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) leave the set
-        unchanged (replaced by strips that contain it, so the shapes stay equal)."""
-        bad = torch.isnan(y).any(-1)
-        if not tracing() and not self.skip_nan and bool(bad.any()):  # forward checked y
-            raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
-        return self._update(state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y), skip=bad)
+    def _guarded_update(self, state: FilterState, y: Tensor, bad: Tensor) -> FilterState:
+        """`update` on a validated ``y [B, m]`` (``bad [B]``: its NaN rows, which leave the set
+        unchanged: replaced by strips that contain it, so the shapes stay equal)."""
+        y = torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y)
+        return carry(state, self._update(state, y, skip=bad), update=True)
 
     def _update(self, state: FilterState, y: Tensor, skip: Tensor | None = None) -> FilterState:
         """Theorem 3 strips intersected exactly (Scott 2016 eq. 13), then eliminated to the cap."""
@@ -359,7 +358,7 @@ class CZSMF(SetFilter):
         every later step. While tracing, the LPs run their fixed iteration count
         (`box_lp`) and the fault path is taken branch-free.
         Eager steps do not count towards ``forward``'s guard skip: the first compiled calls at
-        the caps run Dynamo's full guard check (``base._GUARDED_STEPS``)."""
+        the caps run Dynamo's full guard check (`diffsmf.filters.runtime.GUARDED_STEPS`)."""
         S = state.set
         at_caps = self.reduces and (S.num_generators, S.num_constraints) == (
             self.max_generators, self.max_constraints

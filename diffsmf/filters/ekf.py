@@ -67,14 +67,14 @@ class EKF(SetFilter):
         R = torch.diag_embed(self.measurement_noise**2 / 3)
         return R if self.system.measurement_cov is None else R + self.system.measurement_cov
 
-    def initial_state(self, batch: int | None = None) -> FilterState:
+    def _initial_state(self, batch: int | None = None) -> FilterState:
         hull = self._x0.interval_hull()
         b = state_batch(batch)
         x = hull.center.expand(b, -1)
         P = torch.diag_embed(hull.radius**2 / 3).expand(b, -1, -1)
         return self._state(x, P, torch.ones(b, dtype=torch.bool))
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``x = f(x) + w_c``, ``P = A P A' + Q``."""
         from diffsmf.linearize import jacobian
 

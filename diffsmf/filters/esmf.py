@@ -117,7 +117,7 @@ class ESMF(C.EllipsoidalSetFilter):
             raise ValueError(f"rho_rule: expected 'eq13', 'eq40' or 'volume', got {rho_rule!r}")
         self.rho_rule = rho_rule
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Eq. 24-35: ``E(f(c) + a, A P A') (+) [(Qbar (+) Q) (+) Delta]``."""
         from diffsmf.linearize import jacobian, parameter_deviation
         from diffsmf.sets.ellipsoid import Ellipsoid

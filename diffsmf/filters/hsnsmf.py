@@ -78,11 +78,11 @@ class HSNSMF(SetFilter):
         C.register_remainder(self, remainder, system.n)
         self._x0 = C.as_parallelotope(initial_set if initial_set is not None else system.x0_set)
 
-    def initial_state(self, batch: int | None = None) -> FilterState:
+    def _initial_state(self, batch: int | None = None) -> FilterState:
         S = C.expand_state_set(self._x0, batch)
         return FilterState(set=S, consistent=torch.ones(S.batch_shape, dtype=torch.bool))
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Theorem 1-2 (eq. 20-22): zonotope ``[F T, T_e + T_w]`` -> outer parallelotope."""
         from diffsmf.linearize import stirling_jacobian
 

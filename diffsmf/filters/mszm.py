@@ -136,11 +136,11 @@ class MSZM(SetFilter):
         red = Zonotope(Z.center, Gc).reduce(self.order, method=self.reduce_method)
         return where(count > q, red.pad_generators(q), small)
 
-    def initial_state(self, batch: int | None = None) -> FilterState:
+    def _initial_state(self, batch: int | None = None) -> FilterState:
         S = self._fit(C.expand_state_set(self._x0, batch))
         return FilterState(set=S, consistent=torch.ones(S.batch_shape, dtype=torch.bool))
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (Z - c) (+) E (+) W`` then reduction (Alamo 2005 sec. 4)."""
         from diffsmf.linearize import stirling_jacobian
 
