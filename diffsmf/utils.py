@@ -198,9 +198,8 @@ def register_positive(module: nn.Module, name: str, value: Any, learnable: bool 
     magnitude, so bounds of 1e-3 and 1e3 train alike. Components equal to 0 stay exactly 0.
     Pair it with a `Positive` descriptor on the class to read and write ``module.name``.
     """
-    v = torch.as_tensor(value, dtype=torch.float64)
-    if torch.isnan(v).any() or (v < 0).any():
-        raise ValueError(f"{name}: must be non-negative and not NaN, got {v.tolist()}")
+    v = torch.as_tensor(value, dtype=torch.float64).detach()
+    v = check_half_widths(name, v.reshape(-1), v.numel(), v.dtype).reshape(v.shape)
     raw = torch.full_like(v, _SOFTPLUS_ONE)
     if learnable:
         module.register_parameter(f"raw_{name}", nn.Parameter(raw))
@@ -240,9 +239,7 @@ class Positive:
 
     def __set__(self, obj: Any, value: Any) -> None:
         scale = getattr(obj, f"{self.name}_scale")
-        v = torch.as_tensor(value, dtype=scale.dtype, device=scale.device)
-        if torch.isnan(v).any() or (v < 0).any():
-            raise ValueError(f"{self.name}: must be non-negative and not NaN")
+        v = check_half_widths(self.name, value, scale.numel(), scale.dtype).to(scale.device)
         with torch.no_grad():
             scale.copy_(v.expand_as(scale))
             getattr(obj, f"raw_{self.name}").fill_(_SOFTPLUS_ONE)
@@ -257,12 +254,15 @@ class StrictlyPositive(Positive):
         super().__set__(obj, value)
 
 
-def check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> Tensor:
-    """Half-widths (of a noise box, a margin) -> ``[dim]`` of ``dtype``; ``ValueError`` naming
-    ``name`` for a wrong length (a scalar or ``[1]`` broadcasts), NaN, inf, negative values or
-    non-numbers. The one validator of such values (pair it with `register_positive`)."""
+def check_half_widths(
+    name: str, value: Any, dim: int, dtype: torch.dtype = torch.float64, *, positive: bool = False
+) -> Tensor:
+    """Half-widths or steps (a noise box, a remainder margin, a Stirling step) -> ``[dim]`` of
+    ``dtype``; ``ValueError`` naming ``name`` for a wrong length (a scalar or ``[1]``
+    broadcasts), NaN, inf, negative values (with ``positive``: also 0) or non-numbers. The one
+    validator of such values (pair it with `register_positive`)."""
     try:
-        v = torch.as_tensor(value, dtype=dtype)
+        v = torch.as_tensor(value, dtype=dtype).detach()
     except (TypeError, ValueError, RuntimeError) as exc:
         raise ValueError(f"{name}: expected a number or a [{dim}] tensor, got {value!r}") from exc
     if v.dim() > 1 or (v.dim() == 1 and v.shape[0] not in (1, dim)):
@@ -270,8 +270,10 @@ def check_half_widths(name: str, value: Any, dim: int, dtype: torch.dtype) -> Te
             f"{name}: expected a scalar or a [{dim}] tensor (one half-width per component), "
             f"got shape {tuple(v.shape)}"
         )
-    if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
-        raise ValueError(f"{name}: half-widths must be finite and >= 0, got {v.tolist()}")
+    low = bool((v <= 0).any()) if positive else bool((v < 0).any())
+    if not bool(torch.isfinite(v).all()) or low:
+        bound = "> 0" if positive else ">= 0"
+        raise ValueError(f"{name}: must be finite and {bound}, got {v.tolist()}")
     return v.expand(dim).clone()
 
 

@@ -23,8 +23,14 @@ from diffsmf.filters import runtime
 from diffsmf.filters.events import FilterEvent, mark_unbounded
 from diffsmf.filters.params import register_minkowski_scale, scaled_minkowski_sum
 from diffsmf.filters.runtime import compiled_loop
-from diffsmf.filters.state import FilterResult, FilterState, flat_state, state_from_flat
-from diffsmf.sets.base import ConvexSet, align, check_count, stack, where
+from diffsmf.filters.state import (
+    FilterResult,
+    FilterState,
+    flat_state,
+    state_batch,
+    state_from_flat,
+)
+from diffsmf.sets.base import ConvexSet, align, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System, check_system
 from diffsmf.utils import (
@@ -48,6 +54,7 @@ __all__ = [
     "StrictlyPositive",
     "register_minkowski_scale",
     "scaled_minkowski_sum",
+    "state_batch",
     "state_from_flat",
 ]
 
@@ -90,12 +97,6 @@ def _with_events(state: FilterState) -> FilterState:
         return state
     ev = torch.zeros(state.consistent.shape, dtype=torch.int64, device=state.consistent.device)
     return state.replace(extras={**state.extras, "events": ev})
-
-
-def state_batch(batch: Any) -> int:
-    """The ``batch`` argument of ``initial_state``: ``None`` -> 1, else an ``int >= 0`` (not
-    a ``bool``); anything else raises ``ValueError`` naming ``batch``."""
-    return 1 if batch is None else check_count("batch", batch)
 
 
 def check_filter(name: str, filt: Any, system: System | None = None) -> Any:

@@ -15,15 +15,18 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.events import LOSES_BOUND, FilterEvent, mark_unbounded
-from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.base import ConvexSet, check_count, check_nonempty
 
 __all__ = [
     "FilterResult",
     "FilterState",
+    "check_initial_set",
+    "expand_state_set",
     "flat_args",
     "flat_state",
     "flat_step",
     "flat_steps",
+    "state_batch",
     "state_from_flat",
 ]
 
@@ -224,3 +227,22 @@ def flat_steps(
         flat = flat_step(filt, *flat, u, ys[:, j], set_type)
         out.append(flat)
     return tuple(out)
+
+
+def check_initial_set(name: str, S: ConvexSet | None, n: int) -> None:
+    """Validate an ``initial_set`` override (a non-empty set of dim ``n``, batch shape ``[]``)."""
+    if S is not None and (not isinstance(S, ConvexSet) or S.dim != n or S.batch_shape != ()):
+        raise ValueError(f"{name}: must be a diffsmf set of dim {n} with empty batch shape")
+    if S is not None:
+        check_nonempty(name, S)
+
+
+def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:
+    """``S`` (batch shape ``[]``) broadcast to ``[batch]`` (default 1)."""
+    return S.expand(state_batch(batch))
+
+
+def state_batch(batch: Any) -> int:
+    """The ``batch`` argument of ``initial_state``: ``None`` -> 1, else an ``int >= 0`` (not
+    a ``bool``); anything else raises ``ValueError`` naming ``batch``."""
+    return 1 if batch is None else check_count("batch", batch)
