@@ -36,7 +36,7 @@ from diffsmf.filters.base import (
     bounded_result,
     state_batch,
 )
-from diffsmf.linearize.statistical import _check_levels, statistical_linearization
+from diffsmf.linearize.statistical import check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
 from diffsmf.sets.ellipsoid import Ellipsoid, outer_sum_shape, unit_ball_volume
 from diffsmf.systems.system import System, check_system
@@ -212,7 +212,7 @@ class CombinedFilter(SetFilter):
         self.weight = weight
         if axes not in ("principal", "symmetric"):
             raise ValueError(f"axes: expected 'principal' or 'symmetric', got {axes!r}")
-        self.levels = _check_levels(levels)
+        self.levels = check_levels(levels)
         self.point_weights = point_weights
         self.axes = axes
         self._x0 = _initial_ellipsoid(system.x0_set)

@@ -25,6 +25,7 @@ from torch import Tensor
 from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.sets.czono_lp import certify_feasible
+from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.utils import HIGHS_OPTIONS, materialize, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -485,9 +486,9 @@ class Zonotope(ConvexSet):
         """
         if method not in ("fradius", "volume"):
             raise ValueError(f"method: unknown strip method {method!r}")
-        p, y, sig = _strip_fields(strip, self)
+        p, y, sig = strip_fields(strip, self)
         c, G = self._c, self.generators
-        batch = _strip_batch(self.batch_shape, p, y, sig)
+        batch = strip_batch(self.batch_shape, p, y, sig)
         c = c.expand(*batch, self.dim)
         G = G.expand(*batch, *G.shape[-2:])
         p, y, sig = p.expand(*batch, self.dim), y.expand(batch), sig.expand(batch)
@@ -540,29 +541,6 @@ def _as_zonotope_fields(other: Any, ref: Zonotope) -> tuple[Tensor, Tensor]:
         z = other.to_zonotope()
         return z.center, z.generators
     raise ValueError(f"other: cannot add a {type(other).__name__} to a Zonotope exactly")
-
-
-def _strip_fields(strip: Any, ref: ConvexSet) -> tuple[Tensor, Tensor, Tensor]:
-    """(normal [..., n], offset [...], halfwidth [...]) of a Strip, checked against ``ref``."""
-    try:
-        p, y, sig = strip.normal, strip.offset, strip.halfwidth
-    except AttributeError as exc:
-        raise ValueError("strip: expected a Strip (normal, offset, halfwidth)") from exc
-    p = p.to(ref.center.dtype)
-    if p.shape[-1] != ref.dim:
-        raise ValueError(f"strip: normal has dim {p.shape[-1]}, set has dim {ref.dim}")
-    return p, y.to(p.dtype), sig.to(p.dtype)
-
-
-def _strip_batch(batch: torch.Size, p: Tensor, y: Tensor, sig: Tensor) -> torch.Size:
-    """Common batch shape of a set and a strip; ``ValueError`` naming ``strip`` otherwise."""
-    try:
-        return torch.broadcast_shapes(batch, p.shape[:-1], y.shape, sig.shape)
-    except RuntimeError as exc:
-        raise ValueError(
-            f"strip: batch shape {tuple(y.shape)} does not broadcast with the set's "
-            f"batch shape {tuple(batch)}"
-        ) from exc
 
 
 def _outer_parallelotope(G: Tensor) -> Tensor:
