@@ -1,10 +1,16 @@
-"""Outer bounds of a set in another set family: `as_parallelotope`, `as_zonotope`,
-`as_ellipsoid` (the set itself when it is of that family).
+"""Conversions between the set families, registered in this one module.
+
+Every pair ``(From, To)`` is registered with `diffsmf.sets.base.register_conversion`, as
+``torch.distributions`` registers its KL pairs: the modules of the families do not import
+each other (the import order is base, strip, interval, ellipsoid, zonotope, parallelotope);
+a family lower in that order reaches a higher one through `diffsmf.sets.base.convert` and
+`diffsmf.sets.base.family`. The outer bounds `as_parallelotope`, `as_zonotope` and
+`as_ellipsoid` return the set itself when it is of that family.
 """
 
 from __future__ import annotations
 
-from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.base import ConvexSet, register_conversion
 from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval
 from diffsmf.sets.parallelotope import Parallelotope
@@ -15,6 +21,15 @@ __all__ = [
     "as_parallelotope",
     "as_zonotope",
 ]
+
+register_conversion(ConvexSet, Interval)(ConvexSet.interval_hull)
+register_conversion(Interval, Zonotope)(Interval.to_zonotope)
+register_conversion(Interval, Parallelotope)(Interval.to_parallelotope)
+register_conversion(Interval, Ellipsoid)(Interval.to_ellipsoid)
+register_conversion(Zonotope, Parallelotope)(Zonotope.to_parallelotope)
+register_conversion(Zonotope, Ellipsoid)(Zonotope.to_ellipsoid)
+register_conversion(Parallelotope, Zonotope)(Parallelotope.to_zonotope)
+register_conversion(Parallelotope, Ellipsoid)(Parallelotope.to_ellipsoid)
 
 
 def as_parallelotope(S: ConvexSet) -> ConvexSet:

@@ -23,7 +23,15 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
+from diffsmf.sets.base import (
+    ConvexSet,
+    as_offset,
+    as_tensor,
+    as_vector,
+    check_count,
+    check_finite,
+    family,
+)
 from diffsmf.sets.czono_lp import certify_feasible
 from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.utils import HIGHS_OPTIONS, materialize, tracing
@@ -31,7 +39,6 @@ from diffsmf.utils import HIGHS_OPTIONS, materialize, tracing
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
     from diffsmf.sets.interval import Interval
-    from diffsmf.sets.parallelotope import Parallelotope
     from diffsmf.sets.strip import Strip
 
 __all__ = ["Zonotope", "MAX_VOLUME_SUBSETS", "MAX_BASES"]
@@ -370,7 +377,7 @@ class Zonotope(ConvexSet):
             return _zonotope_contains(self._c.detach(), self.generators.detach(), x.detach(), atol)
 
     # ------------------------------------------------------------------ conversions
-    def to_parallelotope(self) -> Parallelotope:
+    def to_parallelotope(self) -> ConvexSet:
         """Minimal-volume outer parallelotope over generator bases (Chisci et al. 1996).
 
         Wang et al. 2022, eq. 22: for a basis B of n generators, ``T = B diag(sum_j |(B^-1 G)_ij|)``
@@ -382,10 +389,8 @@ class Zonotope(ConvexSet):
         appended first. The basis choice is made without gradient; T is differentiable.
         A relative outward margin covers the rounding of the solve.
         """
-        from diffsmf.sets.parallelotope import Parallelotope
-
         T = _outer_parallelotope(self.generators)
-        return Parallelotope._make(self._c, T)
+        return family("Parallelotope")._make(self._c, T)
 
     def to_ellipsoid(self) -> Ellipsoid:
         """Covering ellipsoid of the outer parallelotope ``c + T[-1,1]^n``
@@ -530,9 +535,8 @@ def _as_zonotope_fields(other: Any, ref: Zonotope) -> tuple[Tensor, Tensor]:
         c = as_tensor("other", other, like=ref.center, min_dim=1)
         return c, c.new_zeros(*c.shape, 0)
     from diffsmf.sets.interval import Interval
-    from diffsmf.sets.parallelotope import Parallelotope
 
-    if isinstance(other, Parallelotope):
+    if isinstance(other, family("Parallelotope")):
         return other.center, other.T
     if isinstance(other, Interval):
         lo, up = other.lower, other.upper
