@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from diffsmf.filters import runtime
 from diffsmf.filters.events import FilterEvent, mark_unbounded
 from diffsmf.filters.params import register_minkowski_scale, scaled_minkowski_sum
-from diffsmf.filters.runtime import compiled_loop
+from diffsmf.filters.runtime import COMPILE_OPTIONS, compiled_loop
 from diffsmf.filters.state import (
     FilterResult,
     FilterState,
@@ -43,6 +43,7 @@ from diffsmf.utils import (
 )
 
 __all__ = [
+    "COMPILE_OPTIONS",
     "MAX_SET_RADIUS",
     "FilterResult",
     "bounded_result",
