@@ -112,6 +112,24 @@ class _IntervalFilter(SetFilter):
         return FilterState(set=new, consistent=ok)
 
 
+def test_predict_hook_checks_u_and_an_overridden_predict_still_runs():
+    """``predict`` validates ``u`` before the subclass's ``_predict`` hook; a subclass that
+    overrides ``predict`` itself (without the hook) still filters, with the same sets."""
+    sys = linear_system()
+    tr = sys.simulate(steps=4, batch=3, seed=1, noise="vertex")
+    filt = _IntervalFilter(sys)
+    with pytest.raises(ValueError, match="u"):
+        filt.predict(filt.initial_state(batch=3), torch.zeros(3, 5))
+
+    class Overridden(_IntervalFilter):
+        def predict(self, state, u=None):
+            return self._predict(state, u)
+
+    ref, got = filt(tr.y, u=tr.u), Overridden(sys)(tr.y, u=tr.u)
+    torch.testing.assert_close(got.lower, ref.lower, rtol=0, atol=0)
+    torch.testing.assert_close(got.upper, ref.upper, rtol=0, atol=0)
+
+
 def test_filter_loop_contains_truth_and_handles_nan():
     sys = linear_system()
     tr = sys.simulate(steps=6, batch=64, seed=2, noise="vertex")

@@ -173,8 +173,8 @@ class SetFilter(nn.Module):
     when it does not start from the system's initial set. The public ``predict``, ``update``
     and ``initial_state`` call these hooks: they validate ``u`` / ``y``, keep the event bits
     and the ``bounded`` flags from step to step and end an update with `guard`. (A subclass
-    that overrides ``predict`` itself, as before these hooks, still runs, without those
-    checks of ``u``.)
+    that overrides ``predict`` or ``initial_state`` itself, as before these hooks, still runs,
+    without the check of ``u`` and the zero event bits of the first state.)
 
     Args:
         system: the `System` to filter.
