@@ -96,7 +96,7 @@ def angle_ambiguous(
     spread = (H.abs() * dmax.unsqueeze(-2)).sum(-1)
     spread = spread + torch.maximum(E.lower.abs(), E.upper.abs())
     spread = spread + torch.maximum(vbox.lower.abs(), vbox.upper.abs())
-    mask = system._angle_mask.to(device=spread.device)
+    mask = system.angle_mask.to(device=spread.device)
     return mask & ~(spread < math.pi)  # NaN spread: ambiguous
 
 
