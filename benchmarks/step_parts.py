@@ -28,8 +28,8 @@ from collections.abc import Callable
 import torch
 
 from diffsmf import filters, systems
-from diffsmf.filters import _common as C
-from diffsmf.filters.base import _compile_options
+from diffsmf.filters.prediction import prediction_remainder, step_function
+from diffsmf.filters.runtime import compile_options
 from diffsmf.linearize import stirling_jacobian
 
 FILTERS = ("hsnsmf", "mszm")
@@ -40,7 +40,7 @@ def _parts(filt, state, u, y) -> dict[str, Callable[..., tuple]]:
     None, measurement ``y [B, m]`` of the timed step)."""
     set_type = type(state.set)
     system = filt.system
-    fn = C.step_function(system, u)
+    fn = step_function(system, u)
 
     def rebuild(fields: tuple) -> object:
         return state.replace(set=set_type._from_tensors(fields))
@@ -56,7 +56,7 @@ def _parts(filt, state, u, y) -> dict[str, Callable[..., tuple]]:
         S = set_type._from_tensors(fields)
         region = S if isinstance(filt, filters.HSNSMF) else S.interval_hull()
         F = stirling_jacobian(fn, S.center, filt.stirling_step)
-        E, _ = C.prediction_remainder(
+        E, _ = prediction_remainder(
             system, filt.remainder_fn, fn, region, S.center, F, u, filt.remainder_margin
         )
         return E.lower, E.upper
@@ -76,7 +76,7 @@ def _parts(filt, state, u, y) -> dict[str, Callable[..., tuple]]:
 
 def _time(fn: Callable[..., tuple], args: tuple, repeats: int) -> float:
     """Median ms per call of ``fn`` compiled with the filters' options."""
-    cf = torch.compile(fn, fullgraph=True, dynamic=False, options=_compile_options())
+    cf = torch.compile(fn, fullgraph=True, dynamic=False, options=compile_options())
     cf(*args)
     cf(*args)
     ts = []

@@ -2,7 +2,7 @@
 
 Outside ``streaming()`` the compiled step runs through Dynamo (guards checked on the first
 calls of each ``forward``); inside it, in no-grad mode, ``forward`` calls the step captured
-with ``make_fx`` and compiled by Inductor, without Dynamo (``diffsmf/filters/_direct.py``).
+with ``make_fx`` and compiled by Inductor, without Dynamo (``diffsmf/filters/streaming.py``).
 Both paths are compiled once first (their compile + first-run times are printed), the final
 sets are compared, then ``--repeats`` interleaved runs of each are timed (A B A B) and the
 medians printed, on ``spring_damper`` with one torch thread.

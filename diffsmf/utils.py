@@ -21,6 +21,7 @@ __all__ = [
     "is_int",
     "Positive",
     "StrictlyPositive",
+    "check_half_widths",
     "check_strictly_positive",
     "fix_dynamo_matmul",
     "inv_softplus",
@@ -171,7 +172,7 @@ def materialize(x: Tensor) -> Tensor:
 @contextlib.contextmanager
 def traced() -> Iterator[None]:
     """Make `tracing` true inside the block: for graph capture without Dynamo
-    (``make_fx`` in `diffsmf.filters._direct`), which must see the same branch-free
+    (``make_fx`` in `diffsmf.filters.streaming`), which must see the same branch-free
     code as ``torch.compile``."""
     global _TRACED
     old, _TRACED = _TRACED, True
@@ -197,9 +198,8 @@ def register_positive(module: nn.Module, name: str, value: Any, learnable: bool 
     magnitude, so bounds of 1e-3 and 1e3 train alike. Components equal to 0 stay exactly 0.
     Pair it with a `Positive` descriptor on the class to read and write ``module.name``.
     """
-    v = torch.as_tensor(value, dtype=torch.float64)
-    if torch.isnan(v).any() or (v < 0).any():
-        raise ValueError(f"{name}: must be non-negative and not NaN, got {v.tolist()}")
+    v = torch.as_tensor(value, dtype=torch.float64).detach()
+    v = check_half_widths(name, v.reshape(-1), v.numel(), v.dtype).reshape(v.shape)
     raw = torch.full_like(v, _SOFTPLUS_ONE)
     if learnable:
         module.register_parameter(f"raw_{name}", nn.Parameter(raw))
@@ -239,9 +239,7 @@ class Positive:
 
     def __set__(self, obj: Any, value: Any) -> None:
         scale = getattr(obj, f"{self.name}_scale")
-        v = torch.as_tensor(value, dtype=scale.dtype, device=scale.device)
-        if torch.isnan(v).any() or (v < 0).any():
-            raise ValueError(f"{self.name}: must be non-negative and not NaN")
+        v = check_half_widths(self.name, value, scale.numel(), scale.dtype).to(scale.device)
         with torch.no_grad():
             scale.copy_(v.expand_as(scale))
             getattr(obj, f"raw_{self.name}").fill_(_SOFTPLUS_ONE)
@@ -254,6 +252,29 @@ class StrictlyPositive(Positive):
     def __set__(self, obj: Any, value: Any) -> None:
         check_strictly_positive(self.name, value)
         super().__set__(obj, value)
+
+
+def check_half_widths(
+    name: str, value: Any, dim: int, dtype: torch.dtype = torch.float64, *, positive: bool = False
+) -> Tensor:
+    """Half-widths or steps (a noise box, a remainder margin, a Stirling step) -> ``[dim]`` of
+    ``dtype``; ``ValueError`` naming ``name`` for a wrong length (a scalar or ``[1]``
+    broadcasts), NaN, inf, negative values (with ``positive``: also 0) or non-numbers. The one
+    validator of such values (pair it with `register_positive`)."""
+    try:
+        v = torch.as_tensor(value, dtype=dtype).detach()
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{name}: expected a number or a [{dim}] tensor, got {value!r}") from exc
+    if v.dim() > 1 or (v.dim() == 1 and v.shape[0] not in (1, dim)):
+        raise ValueError(
+            f"{name}: expected a scalar or a [{dim}] tensor (one half-width per component), "
+            f"got shape {tuple(v.shape)}"
+        )
+    low = bool((v <= 0).any()) if positive else bool((v < 0).any())
+    if not bool(torch.isfinite(v).all()) or low:
+        bound = "> 0" if positive else ">= 0"
+        raise ValueError(f"{name}: must be finite and {bound}, got {v.tolist()}")
+    return v.expand(dim).clone()
 
 
 def check_strictly_positive(name: str, value: Any) -> Tensor:

@@ -15,7 +15,7 @@ import torch
 
 import diffsmf as ds
 from diffsmf import filters, systems
-from diffsmf.filters import _common as C
+from diffsmf.filters.strips import angle_ambiguous
 from diffsmf.sets import Interval
 from diffsmf.systems import wrap_angle
 
@@ -107,8 +107,8 @@ def test_ambiguous_bearing_drops_the_strip():
     V = sys_.measurement_noise
     narrow = Interval(c - 0.1, c + 0.1)
     wide = Interval(c - torch.tensor([0.1, 0.1, 3.2], dtype=F64), c + 0.1)
-    assert not bool(C.angle_ambiguous(sys_, narrow, c, H, E, V).any())
-    amb = C.angle_ambiguous(sys_, wide, c, H, E, V)
+    assert not bool(angle_ambiguous(sys_, narrow, c, H, E, V).any())
+    amb = angle_ambiguous(sys_, wide, c, H, E, V)
     assert amb.tolist() == [[False, True]]
 
 

@@ -182,11 +182,11 @@ def test_streaming_skips_guards_only_for_a_known_structure(monkeypatch, hsnsmf_e
     """``with filt.streaming():`` skips Dynamo's guard checks after two guarded compiled calls
     with the same input structure, and checks fully again when the structure changes (batch
     size, grad mode): the sets stay those of the eager filter throughout."""
-    import diffsmf.filters.base as base
+    import diffsmf.filters.runtime as runtime
 
     skipped = []
-    real = base._skip_guards
-    monkeypatch.setattr(base, "_skip_guards", lambda: skipped.append(1) or real())
+    real = runtime.skip_guards
+    monkeypatch.setattr(runtime, "skip_guards", lambda: skipped.append(1) or real())
     s, comp = hsnsmf_eager_compiled
     eager = ds.filters.HSNSMF(s)
     with comp.streaming():
@@ -200,7 +200,7 @@ def test_streaming_skips_guards_only_for_a_known_structure(monkeypatch, hsnsmf_e
                 ref = eager(tr.y)
             # the initial state (an expanded set, no bounded flag) has a structure of its own;
             # from the second step on the structure repeats: 2 guarded calls, then skips
-            assert len(skipped) - n0 == 6 - 1 - base._GUARDED_STEPS
+            assert len(skipped) - n0 == 6 - 1 - runtime.GUARDED_STEPS
             hull = st.set.interval_hull()
             torch.testing.assert_close(hull.lower, ref.lower[:, -1], rtol=1e-10, atol=1e-13)
             torch.testing.assert_close(hull.upper, ref.upper[:, -1], rtol=1e-10, atol=1e-13)

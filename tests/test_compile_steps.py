@@ -129,7 +129,7 @@ def test_compile_options(monkeypatch):
     """``compile()`` passes `COMPILE_OPTIONS` (no SIMD kernels, C++ wrapper, planned
     buffers) to Inductor, lets the caller override them, leaves them out for another backend or
     a ``mode``, and drops an option that this torch's Inductor does not know."""
-    from diffsmf.filters import base
+    from diffsmf.filters import runtime
 
     seen = []
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: seen.append(kw) or fn)
@@ -152,7 +152,7 @@ def test_compile_options(monkeypatch):
         ds.filters.EKF(s).compile(options={"no_such": 1})
     with pytest.raises(ValueError, match="options: expected a dict"):
         ds.filters.EKF(s).compile(options=["cpp.vec_isa_ok"])
-    monkeypatch.setitem(base.COMPILE_OPTIONS, "cpp.no_such_option", 1)
-    assert base._compile_options() == {
+    monkeypatch.setitem(runtime.COMPILE_OPTIONS, "cpp.no_such_option", 1)
+    assert runtime.compile_options() == {
         "cpp.vec_isa_ok": False, "cpp_wrapper": True, "memory_planning": True
     }

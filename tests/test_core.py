@@ -96,7 +96,7 @@ class _IntervalFilter(SetFilter):
 
     A = torch.tensor([[0.9, 0.2], [0.0, 0.8]])
 
-    def predict(self, state, u=None):
+    def _predict(self, state, u=None):
         box = state.set.linear_map(self.A).interval_hull()
         box = ds.Interval(box.lower + u, box.upper + u).minkowski_sum(self.process_noise_box())
         return state.replace(set=box)
@@ -110,6 +110,24 @@ class _IntervalFilter(SetFilter):
         new = ds.Interval(torch.stack([lo, box.lower[..., 1]], -1),
                           torch.stack([hi, box.upper[..., 1]], -1))
         return FilterState(set=new, consistent=ok)
+
+
+def test_predict_hook_checks_u_and_an_overridden_predict_still_runs():
+    """``predict`` validates ``u`` before the subclass's ``_predict`` hook; a subclass that
+    overrides ``predict`` itself (without the hook) still filters, with the same sets."""
+    sys = linear_system()
+    tr = sys.simulate(steps=4, batch=3, seed=1, noise="vertex")
+    filt = _IntervalFilter(sys)
+    with pytest.raises(ValueError, match="u"):
+        filt.predict(filt.initial_state(batch=3), torch.zeros(3, 5))
+
+    class Overridden(_IntervalFilter):
+        def predict(self, state, u=None):
+            return self._predict(state, u)
+
+    ref, got = filt(tr.y, u=tr.u), Overridden(sys)(tr.y, u=tr.u)
+    torch.testing.assert_close(got.lower, ref.lower, rtol=0, atol=0)
+    torch.testing.assert_close(got.upper, ref.upper, rtol=0, atol=0)
 
 
 def test_filter_loop_contains_truth_and_handles_nan():

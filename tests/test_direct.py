@@ -1,4 +1,4 @@
-"""The Dynamo-free online step (``diffsmf.filters._direct``) inside ``filt.streaming()``.
+"""The Dynamo-free online step (``diffsmf.filters.streaming``) inside ``filt.streaming()``.
 
 After ``compile()`` with Inductor, ``step`` inside ``streaming()`` in no-grad mode captures the
 step with ``make_fx`` and calls Inductor's code directly. These tests compile real Inductor
@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import diffsmf as ds
-from diffsmf.filters import _direct
+from diffsmf.filters import streaming
 from diffsmf.utils import traced, tracing
 
 _GAIN = 0.9  # read by _f below as a global: a change must give a new compiled step
@@ -124,11 +124,11 @@ def test_a_changed_global_or_attribute_gives_a_new_compiled_step():
     finally:
         _GAIN = old
     assert len(comp._direct_cache) == 4
-    key = _direct.config_key(comp)
+    key = streaming.config_key(comp)
     comp.skip_nan = True
-    assert _direct.config_key(comp) != key
+    assert streaming.config_key(comp) != key
     comp.skip_nan = False
-    assert _direct.config_key(comp) == key
+    assert streaming.config_key(comp) == key
 
 
 def test_direct_step_validates_inputs_and_grad_mode_uses_dynamo(monkeypatch):
@@ -166,7 +166,7 @@ def test_a_step_that_cannot_be_captured_falls_back_to_dynamo(monkeypatch):
     def fail(*args, **kw):
         raise NotImplementedError("no fake implementation of some op")
 
-    monkeypatch.setattr(_direct.DirectSteps, "_build", fail)
+    monkeypatch.setattr(streaming.DirectSteps, "_build", fail)
     with torch.no_grad():
         with comp.streaming(), pytest.warns(RuntimeWarning, match="could not be captured"):
             _close(_run(comp, tr.y, 2), _run(eager, tr.y, 2))
@@ -197,8 +197,8 @@ def test_config_key_pins_every_object_it_keys_by_identity():
     stable."""
     filt = ds.filters.HSNSMF(_system())
     pins: list = []
-    key = _direct.config_key(filt, pins)
-    assert hash(key) == hash(_direct.config_key(filt))
+    key = streaming.config_key(filt, pins)
+    assert hash(key) == hash(streaming.config_key(filt))
     ids = set()
 
     def walk(k):

@@ -22,7 +22,9 @@ import torch
 import diffsmf as ds
 from diffsmf import filters, systems
 from diffsmf.audit import containment
-from diffsmf.filters import _common as C
+from diffsmf.filters import esmf, prediction
+from diffsmf.filters.prediction import prediction_remainder, step_function
+from diffsmf.filters.remainders import add_remainder_margin
 from diffsmf.tuning import simulate_finite
 
 NAMES = ["hsnsmf", "mszm", "cdsmf", "esmf"]
@@ -68,7 +70,8 @@ def test_zero_margin_is_bit_identical(filter_name, system_name, monkeypatch):
     with torch.no_grad():
         default = cls(sys_)(y, u=u)
         explicit = cls(sys_, remainder_margin=torch.zeros(sys_.n))(y, u=u)
-        monkeypatch.setattr(C, "add_remainder_margin", lambda R, m: R)  # no margin at all
+        for module in (prediction, esmf):  # the callers of add_remainder_margin
+            monkeypatch.setattr(module, "add_remainder_margin", lambda R, m: R)  # no margin
         without = cls(sys_)(y, u=u)
     for other in (explicit, without):
         assert type(other.sets) is type(default.sets)
@@ -82,16 +85,16 @@ def test_margin_enlarges_the_remainder_box_exactly():
     sys_ = systems.get("bilinear")
     box = sys_.x0_set.interval_hull().expand(3)
     c = box.center
-    fn = C.step_function(sys_, None)
+    fn = step_function(sys_, None)
     from diffsmf.linearize import dc_remainder, stirling_jacobian
 
     J = stirling_jacobian(fn, c, torch.full((sys_.n,), 0.1))
-    R0, ok0 = C.prediction_remainder(sys_, dc_remainder, fn, box, c, J, None)
+    R0, ok0 = prediction_remainder(sys_, dc_remainder, fn, box, c, J, None)
     m = torch.tensor([0.01, 0.3])
-    R1, ok1 = C.prediction_remainder(sys_, dc_remainder, fn, box, c, J, None, m)
+    R1, ok1 = prediction_remainder(sys_, dc_remainder, fn, box, c, J, None, m)
     assert ok0.all() and ok1.all()
     assert torch.equal(R1.lower, R0.lower - m) and torch.equal(R1.upper, R0.upper + m)
-    assert C.add_remainder_margin(R0, None) is R0
+    assert add_remainder_margin(R0, None) is R0
 
 
 def _support_dirs(n: int, k: int = 64) -> torch.Tensor:

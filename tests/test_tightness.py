@@ -34,7 +34,7 @@ class Exact1D(SetFilter):
         super().__init__(system)
         self.scale = scale
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         s, w = state.set, self.process_noise_box()
         return state.replace(
             set=Interval._make(A * s.lower + u + w.lower, A * s.upper + u + w.upper)

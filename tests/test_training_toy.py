@@ -39,7 +39,7 @@ def toy_system() -> System:
 class ToyIntervalFilter(SetFilter):
     """Exact box filter of `toy_system` (A >= 0 elementwise)."""
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         s = state.set
         w = self.process_noise_box()
         lo = s.lower @ A.T + w.lower

@@ -17,13 +17,22 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from diffsmf.filters import _common as C
 from diffsmf.filters.base import (
     FilterState,
     StrictlyPositive,
     register_minkowski_scale,
     scaled_minkowski_sum,
 )
+from diffsmf.filters.ellipsoidal import EllipsoidalSetFilter
+from diffsmf.filters.params import (
+    register_remainder,
+    register_remainder_margin,
+    register_stirling_step,
+    stirling_steps,
+)
+from diffsmf.filters.prediction import noise_ellipsoid, prediction_remainder, step_function
+from diffsmf.filters.remainders import remainder_box, rounding_margin, spent_initial_box
+from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
@@ -34,7 +43,7 @@ __all__ = ["CDSMF"]
 SHAPE_MARGIN = 1e-10  # relative outward margin on the shape matrix (float64 rounding)
 
 
-class CDSMF(C.EllipsoidalSetFilter):
+class CDSMF(EllipsoidalSetFilter):
     """Central-difference ellipsoidal filter (guaranteed).
 
     Args:
@@ -91,30 +100,30 @@ class CDSMF(C.EllipsoidalSetFilter):
         **kw,
     ) -> None:
         super().__init__(system, initial_set=initial_set, **kw)
-        C.register_stirling_step(self, stirling_step, system.n)
-        C.register_remainder_margin(self, remainder_margin, system.n)
-        C.register_remainder(self, remainder, system.n)
+        register_stirling_step(self, stirling_step, system.n)
+        register_remainder_margin(self, remainder_margin, system.n)
+        register_remainder(self, remainder, system.n)
         register_minkowski_scale(self, minkowski_scale)
         self.sum_method = sum_method
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (E - c) (+) cover(remainder box + W)``."""
         from diffsmf.linearize import stirling_jacobian
         from diffsmf.sets.ellipsoid import Ellipsoid
 
         E = state.set
         c = E.center
-        fn = C.step_function(self.system, u)
-        box = C.remainder_box(E, state.extras)
-        F = stirling_jacobian(fn, c, C.stirling_steps(self, c, box.radius))  # eq. 12
-        R, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
+        fn = step_function(self.system, u)
+        box = remainder_box(E, state.extras)
+        F = stirling_jacobian(fn, c, stirling_steps(self, c, box.radius))  # eq. 12
+        R, ev = prediction_remainder(  # not finite: flagged (events), never NaN
             self.system, self.remainder_fn, fn, box, c, F, u, self.remainder_margin, events=True
         )
-        Well = C.noise_ellipsoid(self)  # None: a box W, summed with the remainder box
+        Well = noise_ellipsoid(self)  # None: a box W, summed with the remainder box
         W = self.process_noise_box() if Well is None else None
         fc = fn(c)
         rad = R.radius + (W.radius if W is not None else 0.0)
-        rad = rad + C.rounding_margin(fc, R.center, rad)
+        rad = rad + rounding_margin(fc, R.center, rad)
         wc = W.center if W is not None else 0.0  # an ellipsoidal Well carries its own centre
         shift = fc - (F @ c.unsqueeze(-1)).squeeze(-1) + R.center + wc
         lin = E.linear_map(F, shift)
@@ -124,12 +133,12 @@ class CDSMF(C.EllipsoidalSetFilter):
         if Well is not None:  # an ellipsoidal / zonotope W as given, not its hull
             new = scaled_minkowski_sum(new, Well, self.sum_method, self.minkowski_scale)
         new = Ellipsoid(new.center, new.shape * (1 + SHAPE_MARGIN))
-        return state.replace(set=new, extras=C.spent_initial_box(state.extras)).flag(ev)
+        return state.replace(set=new, extras=spent_initial_box(state.extras)).flag(ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Wang et al. 2022, Theorem 3 strips intersected one by one with the ellipsoid."""
         E = state.set
-        new, ok, ev = C.stirling_strip_update(
+        new, ok, ev = stirling_strip_update(
             self, E, E.interval_hull(), y, lambda S, st: S.intersect_strip(st)
         )
         return state.replace(set=new, consistent=ok).flag(ev, unbounded=False)

@@ -36,7 +36,7 @@ from diffsmf.filters.base import (
     bounded_result,
     state_batch,
 )
-from diffsmf.linearize.statistical import _check_levels, statistical_linearization
+from diffsmf.linearize.statistical import check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
 from diffsmf.sets.ellipsoid import Ellipsoid, outer_sum_shape, unit_ball_volume
 from diffsmf.systems.system import System, check_system
@@ -212,7 +212,7 @@ class CombinedFilter(SetFilter):
         self.weight = weight
         if axes not in ("principal", "symmetric"):
             raise ValueError(f"axes: expected 'principal' or 'symmetric', got {axes!r}")
-        self.levels = _check_levels(levels)
+        self.levels = check_levels(levels)
         self.point_weights = point_weights
         self.axes = axes
         self._x0 = _initial_ellipsoid(system.x0_set)
@@ -247,7 +247,7 @@ class CombinedFilter(SetFilter):
         return _scaled(self.R0, self.measurement_std, _diag_sqrt(self.R0))
 
     # ------------------------------------------------------------------ contract
-    def initial_state(self, batch: int | None = None) -> FilterState:
+    def _initial_state(self, batch: int | None = None) -> FilterState:
         """``F(a_0, S_0) = x0_set`` and ``P_0 = initial_cov``, batch ``[batch]``."""
         b = state_batch(batch)
         n = self.system.n
@@ -270,7 +270,7 @@ class CombinedFilter(SetFilter):
         )
         return A
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Time update, Jiang et al. 2016, eq. 39-42 (linear) / eq. 54, 56 (nonlinear)."""
         a, S, P = state.set.center, state.set.shape, state.extras["covariance"]
         theta = self.system.theta_nominal

@@ -38,15 +38,25 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffsmf.filters import _common as C
 from diffsmf.filters.base import (
     MAX_SET_RADIUS,
     FilterResult,
     FilterState,
     SetFilter,
     bounded_result,
+    carry,
 )
 from diffsmf.filters.events import LOSES_BOUND, FilterEvent
+from diffsmf.filters.params import (
+    register_remainder,
+    register_remainder_margin,
+    register_stirling_step,
+    stirling_steps,
+)
+from diffsmf.filters.prediction import noise_generators, prediction_remainder, step_function
+from diffsmf.filters.remainders import rounding_margin
+from diffsmf.filters.state import check_initial_set, expand_state_set
+from diffsmf.filters.strips import measurement_strips
 from diffsmf.sets.base import ConvexSet, check_count, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.interval import Interval
@@ -122,7 +132,7 @@ class CZSMF(SetFilter):
     ) -> None:
         super().__init__(system, **kw)
         n, m = system.n, system.m
-        C.check_initial_set("initial_set", initial_set, n)
+        check_initial_set("initial_set", initial_set, n)
         if isinstance(max_constraints, str) and max_constraints == "auto":
             max_constraints = 4 + 6 * m
         if max_constraints is not None and (
@@ -146,12 +156,12 @@ class CZSMF(SetFilter):
         if reduce_method not in ("girard", "combastel"):
             raise ValueError(f"reduce_method: unknown {reduce_method!r} (girard | combastel)")
         check_count("lp_iters", lp_iters)
-        C.register_stirling_step(self, stirling_step, n)
-        C.register_remainder_margin(self, remainder_margin, n)
+        register_stirling_step(self, stirling_step, n)
+        register_remainder_margin(self, remainder_margin, n)
         self.max_generators = None if max_generators is None else int(max_generators)
         self.max_constraints = None if max_constraints is None else int(max_constraints)
         self.reduce_method = reduce_method
-        C.register_remainder(self, "dc-vertices" if remainder == "dc" else remainder, n)
+        register_remainder(self, "dc-vertices" if remainder == "dc" else remainder, n)
         self.rescale = rescale
         self.lp_iters = lp_iters
         if elimination not in ("hull", "lp", "propagation"):
@@ -189,7 +199,7 @@ class CZSMF(SetFilter):
             c = W.center
             W0 = ConstrainedZonotope.from_set(W).translate(-c)
             return c, torch.zeros_like(c), W0
-        wc, wr, Gw = C.noise_generators(self)
+        wc, wr, Gw = noise_generators(self)
         if Gw is None:
             return wc, wr, None
         return wc, wr, ConstrainedZonotope._from_generators(torch.zeros_like(wc), Gw)
@@ -207,8 +217,8 @@ class CZSMF(SetFilter):
         return self.max_generators is not None
 
     # ------------------------------------------------------------------ contract
-    def initial_state(self, batch: int | None = None) -> FilterState:
-        Z = C.expand_state_set(self._x0, batch)
+    def _initial_state(self, batch: int | None = None) -> FilterState:
+        Z = expand_state_set(self._x0, batch)
         if self.reduces:
             Z = self._cap(Z)
         ok = torch.ones(Z.batch_shape, dtype=torch.bool, device=Z.device)
@@ -238,7 +248,7 @@ class CZSMF(SetFilter):
             return Z, None
         return (Z, duals) if box is None else (Z._append_box(box), None)
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``F Z + f(p) - F p + E + W`` (Scott 2016 eq. 11-12, Wang et al. 2022, eq. 12-21)."""
         from diffsmf.linearize import stirling_jacobian
 
@@ -246,9 +256,9 @@ class CZSMF(SetFilter):
         lo, hi = state.extras["lower"], state.extras["upper"]
         hull = Interval._make(lo, hi)
         p = 0.5 * (lo + hi)  # expansion point: the hull midpoint
-        fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, p, C.stirling_steps(self, p, hull.radius))  # eq. 12
-        E, ev = C.prediction_remainder(  # not finite: flagged unbounded (placeholder set)
+        fn = step_function(self.system, u)
+        F = stirling_jacobian(fn, p, stirling_steps(self, p, hull.radius))  # eq. 12
+        E, ev = prediction_remainder(  # not finite: flagged unbounded (placeholder set)
             self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin,
             events=True,
         )  # remainder over the interval hull of Z (+ margin)
@@ -258,7 +268,7 @@ class CZSMF(SetFilter):
         FZ = Z.linear_map(F)
         shift = fp - Fp + E.center + wc
         rad = E.radius + wr
-        rad = rad + C.rounding_margin(fp, Fp, E.center, (F.abs() @ Z.generators.abs()).sum(-1), rad)
+        rad = rad + rounding_margin(fp, Fp, E.center, (F.abs() @ Z.generators.abs()).sum(-1), rad)
         Zp = FZ.translate(shift)
         if Wz is not None:  # a non-box W: its own generators (and constraints), exact
             Zp = Zp.minkowski_sum(Wz)
@@ -267,13 +277,11 @@ class CZSMF(SetFilter):
         new = self._state(Zp, state.consistent).replace(bounded=state.bounded)
         return new.flag(ev)
 
-    def update(self, state: FilterState, y: Tensor) -> FilterState:
-        """Measurement update with ``y [B, m]``; NaN rows raise or (``skip_nan``) leave the set
-        unchanged (replaced by strips that contain it, so the shapes stay equal)."""
-        bad = torch.isnan(y).any(-1)
-        if not tracing() and not self.skip_nan and bool(bad.any()):  # forward checked y
-            raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
-        return self._update(state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y), skip=bad)
+    def _guarded_update(self, state: FilterState, y: Tensor, bad: Tensor) -> FilterState:
+        """`update` on a validated ``y [B, m]`` (``bad [B]``: its NaN rows, which leave the set
+        unchanged: replaced by strips that contain it, so the shapes stay equal)."""
+        y = torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y)
+        return carry(state, self._update(state, y, skip=bad), update=True)
 
     def _update(self, state: FilterState, y: Tensor, skip: Tensor | None = None) -> FilterState:
         """Theorem 3 strips intersected exactly (Scott 2016 eq. 13), then eliminated to the cap."""
@@ -283,8 +291,8 @@ class CZSMF(SetFilter):
         lo, hi = state.extras["lower"], state.extras["upper"]
         hull = Interval._make(lo, hi)
         p = 0.5 * (lo + hi)
-        H = stirling_jacobian(self.system.h, p, C.stirling_steps(self, p, hull.radius))  # eq. 13
-        a, d, w, ev = C.measurement_strips(
+        H = stirling_jacobian(self.system.h, p, stirling_steps(self, p, hull.radius))  # eq. 13
+        a, d, w, ev = measurement_strips(
             self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box(),
             self.system, events=True,
         )  # eq. 23-29: |a_i x - d_i| <= w_i, [B, m, n], [B, m], [B, m]
@@ -297,8 +305,8 @@ class CZSMF(SetFilter):
         # projection of the predicted hull on each normal: the strip that contains the set
         pm = (a * p.unsqueeze(-2)).sum(-1)
         pr = (a.abs() * (0.5 * (hi - lo)).unsqueeze(-2)).sum(-1)
-        pr = pr + C.rounding_margin(pm, pr)
-        atol = C.rounding_margin(d, w).detach()
+        pr = pr + rounding_margin(pm, pr)
+        atol = rounding_margin(d, w).detach()
         miss = ((pm - d).abs() > pr + w + atol).any(-1)  # a strip misses the hull: empty
         miss = miss & torch.isfinite(w).all(-1)
         # a skipped measurement or an unbounded remainder of h (infinite half-width) does not
@@ -359,7 +367,7 @@ class CZSMF(SetFilter):
         every later step. While tracing, the LPs run their fixed iteration count
         (`box_lp`) and the fault path is taken branch-free.
         Eager steps do not count towards ``forward``'s guard skip: the first compiled calls at
-        the caps run Dynamo's full guard check (``base._GUARDED_STEPS``)."""
+        the caps run Dynamo's full guard check (`diffsmf.filters.runtime.GUARDED_STEPS`)."""
         S = state.set
         at_caps = self.reduces and (S.num_generators, S.num_constraints) == (
             self.max_generators, self.max_constraints

@@ -15,8 +15,9 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.filters import _common as C
-from diffsmf.filters.base import FilterState, SetFilter, state_batch
+from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.filters.prediction import step_function
+from diffsmf.filters.state import check_initial_set, state_batch
 from diffsmf.sets.base import ConvexSet
 from diffsmf.systems.system import System
 from diffsmf.utils import tracing
@@ -45,7 +46,7 @@ class EKF(SetFilter):
 
     def __init__(self, system: System, *, initial_set: ConvexSet | None = None, **kw) -> None:
         super().__init__(system, **kw)
-        C.check_initial_set("initial_set", initial_set, system.n)
+        check_initial_set("initial_set", initial_set, system.n)
         self._x0 = initial_set if initial_set is not None else system.x0_set
 
     # covariance <-> reported set
@@ -67,19 +68,19 @@ class EKF(SetFilter):
         R = torch.diag_embed(self.measurement_noise**2 / 3)
         return R if self.system.measurement_cov is None else R + self.system.measurement_cov
 
-    def initial_state(self, batch: int | None = None) -> FilterState:
+    def _initial_state(self, batch: int | None = None) -> FilterState:
         hull = self._x0.interval_hull()
         b = state_batch(batch)
         x = hull.center.expand(b, -1)
         P = torch.diag_embed(hull.radius**2 / 3).expand(b, -1, -1)
         return self._state(x, P, torch.ones(b, dtype=torch.bool))
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``x = f(x) + w_c``, ``P = A P A' + Q``."""
         from diffsmf.linearize import jacobian
 
         x, P = state.set.center, state.extras["covariance"]
-        fn = C.step_function(self.system, u)
+        fn = step_function(self.system, u)
         A = jacobian(fn, x)
         xn = fn(x) + self.process_noise_center
         Pn = linalg.matmul(linalg.matmul(A, P), A.mT) + self.process_covariance()

@@ -27,13 +27,24 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.filters import _common as C
 from diffsmf.filters.base import (
     FilterState,
     StrictlyPositive,
     register_minkowski_scale,
     scaled_minkowski_sum,
 )
+from diffsmf.filters.ellipsoidal import EllipsoidalSetFilter
+from diffsmf.filters.params import register_remainder, register_remainder_margin
+from diffsmf.filters.prediction import noise_ellipsoid, step_function
+from diffsmf.filters.remainders import (
+    add_remainder_margin,
+    checked_remainder,
+    remainder_box,
+    rounding_margin,
+    spent_initial_box,
+    widen,
+)
+from diffsmf.filters.strips import angle_ambiguous
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval
@@ -54,7 +65,7 @@ def _max_sv(M: Tensor) -> Tensor:
     return linalg.eigvalsh(_sym(M))[..., -1].clamp_min(0.0)
 
 
-class ESMF(C.EllipsoidalSetFilter):
+class ESMF(EllipsoidalSetFilter):
     """Extended set-membership filter of Song et al. 2017 (guaranteed, ellipsoidal).
 
     Args:
@@ -110,42 +121,42 @@ class ESMF(C.EllipsoidalSetFilter):
         **kw,
     ) -> None:
         super().__init__(system, initial_set=initial_set, **kw)
-        C.register_remainder_margin(self, remainder_margin, system.n)
-        C.register_remainder(self, remainder, system.n)
+        register_remainder_margin(self, remainder_margin, system.n)
+        register_remainder(self, remainder, system.n)
         register_minkowski_scale(self, minkowski_scale)
         if rho_rule not in ("eq40", "eq13", "volume"):
             raise ValueError(f"rho_rule: expected 'eq13', 'eq40' or 'volume', got {rho_rule!r}")
         self.rho_rule = rho_rule
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Eq. 24-35: ``E(f(c) + a, A P A') (+) [(Qbar (+) Q) (+) Delta]``."""
         from diffsmf.linearize import jacobian, parameter_deviation
         from diffsmf.sets.ellipsoid import Ellipsoid
 
         E = state.set
         c = E.center
-        box = C.remainder_box(E, state.extras)  # eq. 27 (∩ the initial box at k = 0)
-        fn = C.step_function(self.system, u)
+        box = remainder_box(E, state.extras)  # eq. 27 (∩ the initial box at k = 0)
+        fn = step_function(self.system, u)
         A = jacobian(fn, c)  # eq. 25
-        R, ev = C.checked_remainder(self.remainder_fn(fn, box, c, A))  # eq. 26-28
+        R, ev = checked_remainder(self.remainder_fn(fn, box, c, A))  # eq. 26-28
         fc = fn(c)
-        R = C.widen(R, C.rounding_margin(fc, R.center, R.radius))
-        R = C.add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
+        R = widen(R, rounding_margin(fc, R.center, R.radius))
+        R = add_remainder_margin(R, self.remainder_margin)  # learnable, only adds
         s = self.minkowski_scale  # p = s * trace rule in every sum (s = 1: the paper)
-        Well = C.noise_ellipsoid(self)  # an ellipsoidal / zonotope W as given
+        Well = noise_ellipsoid(self)  # an ellipsoidal / zonotope W as given
         Wq = self.process_noise_box().to_ellipsoid() if Well is None else Well
         Qhat = scaled_minkowski_sum(R.to_ellipsoid(), Wq, "scaled-trace", s)  # eq. 29-31
         if self.system.parameters is not None:  # eq. 18-23, 30, 32
             D = parameter_deviation(
                 self.system.f, box, self.system.parameters, self.system.theta_nominal, u
             )
-            D, ev_d = C.checked_remainder(D)
+            D, ev_d = checked_remainder(D)
             ev = ev | ev_d
             Qhat = scaled_minkowski_sum(Qhat, D.to_ellipsoid(), "scaled-trace", s)
         lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
         new = scaled_minkowski_sum(lin, Qhat, "scaled-trace", s)  # eq. 34-35
         new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
-        return state.replace(set=new, extras=C.spent_initial_box(state.extras)).flag(ev)
+        return state.replace(set=new, extras=spent_initial_box(state.extras)).flag(ev)
 
     def _observation_noise(self, y: Tensor, hc: Tensor, Rh: Interval) -> Ellipsoid:
         """Ellipsoid ``E(v', Rhat) [B, m]`` containing measurement noise + remainder of ``h``.
@@ -159,11 +170,11 @@ class ESMF(C.EllipsoidalSetFilter):
         V = self.measurement_noise_set()
         if isinstance(V, Interval):
             noise = Interval(V.lower + Rh.lower, V.upper + Rh.upper)
-            noise = C.widen(noise, C.rounding_margin(y, hc, noise.center, noise.radius))
+            noise = widen(noise, rounding_margin(y, hc, noise.center, noise.radius))
             return noise.to_ellipsoid()  # diag(m r^2): covering ellipsoid of the box
         Vell = V if isinstance(V, Ellipsoid) else Ellipsoid.from_zonotope(V)
         vr = Vell.interval_hull().radius
-        Rb = C.widen(Rh, C.rounding_margin(y, hc, Rh.center, Rh.radius, vr))
+        Rb = widen(Rh, rounding_margin(y, hc, Rh.center, Rh.radius, vr))
         return Rb.to_ellipsoid().minkowski_sum(Vell, method="trace")
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
@@ -177,10 +188,10 @@ class ESMF(C.EllipsoidalSetFilter):
         hc = h(c)
         # unbounded remainder of h: the measurement cannot shrink the set (update skipped)
         hull = E.interval_hull()
-        Rh, ev_h = C.checked_remainder(self.remainder_fn(h, hull, c, H))
+        Rh, ev_h = checked_remainder(self.remainder_fn(h, hull, c, H))
         ok_h = ev_h == 0
         if self.system.angle_outputs:  # a residual that may be on the wrong branch: skipped
-            amb = C.angle_ambiguous(self.system, hull, c, H, Rh, self.measurement_noise_box())
+            amb = angle_ambiguous(self.system, hull, c, H, Rh, self.measurement_noise_box())
             ok_h = ok_h & ~amb.any(-1)
         noise = self._observation_noise(y, hc, Rh)
         Rhat = noise.shape

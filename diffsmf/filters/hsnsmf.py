@@ -16,9 +16,18 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.filters import _common as C
 from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.filters.params import (
+    register_remainder,
+    register_remainder_margin,
+    register_stirling_step,
+    stirling_steps,
+)
+from diffsmf.filters.prediction import prediction_remainder, step_function, zonotope_prediction
+from diffsmf.filters.state import check_initial_set, expand_state_set
+from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.conversions import as_parallelotope
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive
 
@@ -72,32 +81,32 @@ class HSNSMF(SetFilter):
         **kw,
     ) -> None:
         super().__init__(system, **kw)
-        C.check_initial_set("initial_set", initial_set, system.n)
-        C.register_stirling_step(self, stirling_step, system.n)
-        C.register_remainder_margin(self, remainder_margin, system.n)
-        C.register_remainder(self, remainder, system.n)
-        self._x0 = C.as_parallelotope(initial_set if initial_set is not None else system.x0_set)
+        check_initial_set("initial_set", initial_set, system.n)
+        register_stirling_step(self, stirling_step, system.n)
+        register_remainder_margin(self, remainder_margin, system.n)
+        register_remainder(self, remainder, system.n)
+        self._x0 = as_parallelotope(initial_set if initial_set is not None else system.x0_set)
 
-    def initial_state(self, batch: int | None = None) -> FilterState:
-        S = C.expand_state_set(self._x0, batch)
+    def _initial_state(self, batch: int | None = None) -> FilterState:
+        S = expand_state_set(self._x0, batch)
         return FilterState(set=S, consistent=torch.ones(S.batch_shape, dtype=torch.bool))
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Theorem 1-2 (eq. 20-22): zonotope ``[F T, T_e + T_w]`` -> outer parallelotope."""
         from diffsmf.linearize import stirling_jacobian
 
         P = state.set
         c, T = P.center, P.T
-        fn = C.step_function(self.system, u)
-        F = stirling_jacobian(fn, c, C.stirling_steps(self, c, P.interval_hull().radius))  # eq. 12
-        E, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
+        fn = step_function(self.system, u)
+        F = stirling_jacobian(fn, c, stirling_steps(self, c, P.interval_hull().radius))  # eq. 12
+        E, ev = prediction_remainder(  # not finite: flagged (events), never NaN
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin, events=True
         )  # eq. 14-18 (+ margin)
-        Z = C.zonotope_prediction(self, fn(c), linalg.traced_matmul(F, T), E)  # eq. 20-21
+        Z = zonotope_prediction(self, fn(c), linalg.traced_matmul(F, T), E)  # eq. 20-21
         return state.replace(set=Z.to_parallelotope()).flag(ev)  # eq. 22 (Chisci)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Theorem 3 strips (eq. 23-29) intersected one by one (eq. 30-41)."""
         P = state.set  # remainder of h at the parallelotope's vertices
-        new, ok, ev = C.stirling_strip_update(self, P, P, y, lambda S, st: S.intersect_strip(st))
+        new, ok, ev = stirling_strip_update(self, P, P, y, lambda S, st: S.intersect_strip(st))
         return state.replace(set=new, consistent=ok).flag(ev, unbounded=False)

@@ -43,9 +43,18 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.filters import _common as C
 from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.filters.params import (
+    register_remainder,
+    register_remainder_margin,
+    register_stirling_step,
+    stirling_steps,
+)
+from diffsmf.filters.prediction import prediction_remainder, step_function, zonotope_prediction
+from diffsmf.filters.state import check_initial_set, expand_state_set
+from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.base import ConvexSet, where
+from diffsmf.sets.conversions import as_zonotope
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive, is_int
 
@@ -99,16 +108,16 @@ class MSZM(SetFilter):
         **kw,
     ) -> None:
         super().__init__(system, **kw)
-        C.check_initial_set("initial_set", initial_set, system.n)
+        check_initial_set("initial_set", initial_set, system.n)
         if not is_int(order) or order < 1:
             raise ValueError(f"order: must be an integer >= 1, got {order!r}")
-        C.register_stirling_step(self, stirling_step, system.n)
-        C.register_remainder_margin(self, remainder_margin, system.n)
-        C.register_remainder(self, remainder, system.n)
+        register_stirling_step(self, stirling_step, system.n)
+        register_remainder_margin(self, remainder_margin, system.n)
+        register_remainder(self, remainder, system.n)
         self.order = int(order)
         self.reduce_method = reduce_method
         self.strip_method = strip_method
-        self._x0 = C.as_zonotope(initial_set if initial_set is not None else system.x0_set)
+        self._x0 = as_zonotope(initial_set if initial_set is not None else system.x0_set)
 
     @property
     def n_generators(self) -> int:
@@ -136,34 +145,34 @@ class MSZM(SetFilter):
         red = Zonotope(Z.center, Gc).reduce(self.order, method=self.reduce_method)
         return where(count > q, red.pad_generators(q), small)
 
-    def initial_state(self, batch: int | None = None) -> FilterState:
-        S = self._fit(C.expand_state_set(self._x0, batch))
+    def _initial_state(self, batch: int | None = None) -> FilterState:
+        S = self._fit(expand_state_set(self._x0, batch))
         return FilterState(set=S, consistent=torch.ones(S.batch_shape, dtype=torch.bool))
 
-    def predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
+    def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (Z - c) (+) E (+) W`` then reduction (Alamo 2005 sec. 4)."""
         from diffsmf.linearize import stirling_jacobian
 
         Z = state.set
         c, G = Z.center, Z.generators
-        fn = C.step_function(self.system, u)
+        fn = step_function(self.system, u)
         hull = Z.interval_hull()
-        F = stirling_jacobian(fn, c, C.stirling_steps(self, c, hull.radius))  # Wang 2022, eq. 12
+        F = stirling_jacobian(fn, c, stirling_steps(self, c, hull.radius))  # Wang 2022, eq. 12
         # remainder over the interval hull (Alamo 2005; Wang et al. 2022, sec. 4.1: the baselines
         # bound the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
-        E, ev = C.prediction_remainder(  # not finite: flagged (events), never NaN
+        E, ev = prediction_remainder(  # not finite: flagged (events), never NaN
             self.system, self.remainder_fn, fn, hull, c, F, u, self.remainder_margin,
             events=True,
         )
         FG = linalg.traced_matmul(F, G)
-        Zp = C.zonotope_prediction(self, fn(c), FG, E)  # W's own generators (Alamo 2005)
+        Zp = zonotope_prediction(self, fn(c), FG, E)  # W's own generators (Alamo 2005)
         return state.replace(set=self._fit(Zp)).flag(ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Strips (Wang et al. 2022, eq. 23-29) intersected with Alamo 2005 Property 2, then
         reduced."""
         Z = state.set
-        new, ok, ev = C.stirling_strip_update(
+        new, ok, ev = stirling_strip_update(
             self, Z, Z.interval_hull(), y,
             lambda S, st: S.intersect_strip(st, method=self.strip_method),
         )

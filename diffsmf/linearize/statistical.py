@@ -20,7 +20,7 @@ from torch import Tensor
 from diffsmf import linalg
 from diffsmf.utils import tracing
 
-__all__ = ["axis_points", "statistical_linearization"]
+__all__ = ["axis_points", "check_levels", "statistical_linearization"]
 
 _AXES = ("principal", "symmetric")
 
@@ -117,7 +117,7 @@ def _unit_points(n: int, levels: Sequence[float], like: Tensor) -> Tensor:
     return torch.cat(rows, 0)
 
 
-def _check_levels(levels: Sequence[float]) -> tuple[float, ...]:
+def check_levels(levels: Sequence[float]) -> tuple[float, ...]:
     lv = tuple(float(t) for t in levels)
     if len(lv) == 0 or any(not (t > 0) for t in lv):
         raise ValueError(f"levels: need at least one positive level, got {levels!r}")
@@ -147,7 +147,7 @@ def axis_points(
     """
     if axes not in _AXES:
         raise ValueError(f"axes: expected one of {_AXES}, got {axes!r}")
-    lv = _check_levels(levels)
+    lv = check_levels(levels)
     if center.dim() < 1 or shape.shape[-2:] != (center.shape[-1], center.shape[-1]):
         raise ValueError(
             f"shape: expected [..., n, n] with n = {center.shape[-1]}, got {tuple(shape.shape)}"

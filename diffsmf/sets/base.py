@@ -13,18 +13,56 @@ here from that declaration.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any, ClassVar
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar, TypeVar
 
 import torch
 from torch import Tensor
 
 from diffsmf.utils import checking, is_int, tracing
 
-if TYPE_CHECKING:  # pragma: no cover
-    from diffsmf.sets.interval import Interval
-
 DEFAULT_DTYPE = torch.float64
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+#: ``{(source class, target family name): conversion}``, filled by `register_conversion`
+#: (all pairs in `diffsmf.sets.conversions`).
+_CONVERSIONS: dict[tuple[type, str], Callable[..., Any]] = {}
+#: ``{name: class}`` of the set families met by `register_conversion`.
+_FAMILIES: dict[str, type] = {}
+
+
+def register_conversion(src: type, dst: type) -> Callable[[_F], _F]:
+    """Decorator registering ``fn(S, *args, **kw)`` as the conversion of a ``src`` set to the
+    family ``dst``, as ``torch.distributions.kl.register_kl`` registers KL pairs. Every pair is
+    registered in `diffsmf.sets.conversions`, the one module that imports all the families,
+    so that the modules of the families do not import each other (`convert`, `family`)."""
+
+    def deco(fn: _F) -> _F:
+        _CONVERSIONS[(src, dst.__name__)] = fn
+        _FAMILIES[src.__name__] = src
+        _FAMILIES[dst.__name__] = dst
+        return fn
+
+    return deco
+
+
+def convert(S: ConvexSet, dst: str, *args: Any, **kw: Any) -> ConvexSet:
+    """``S`` converted to the set family named ``dst`` (e.g. ``"Zonotope"``) by the conversion
+    registered for the first class of ``type(S).__mro__`` that has one (`register_conversion`);
+    ``ValueError`` when there is none."""
+    for cls in type(S).__mro__:
+        fn = _CONVERSIONS.get((cls, dst))
+        if fn is not None:
+            return fn(S, *args, **kw)
+    raise ValueError(f"S: no conversion of a {type(S).__name__} to a {dst}")
+
+
+def family(name: str) -> type:
+    """The set class named ``name`` (``"Interval"``, ``"Zonotope"``, ...), as registered by
+    `register_conversion`: the constructor that a module lower in the import order uses
+    without importing the family's module."""
+    return _FAMILIES[name]
 
 
 def as_tensor(name: str, value: Any, *, like: Tensor | None = None, min_dim: int = 0) -> Tensor:
@@ -201,14 +239,13 @@ class ConvexSet:
         """Support function h(d) = max_{x in S} d.x for directions ``d [..., n]`` -> ``[...]``."""
         raise NotImplementedError
 
-    def interval_hull(self) -> Interval:
-        """Smallest axis-aligned box containing the set (from the support function)."""
-        from diffsmf.sets.interval import Interval
-
+    def interval_hull(self) -> ConvexSet:
+        """Smallest axis-aligned box (an `Interval`) containing the set (from the support
+        function)."""
         eye = torch.eye(self.dim, dtype=self.dtype, device=self.device)
         c = self.center
         r = _support_axes(self, eye) - c  # radius along each axis, [..., n]
-        return Interval(c - r, c + r)
+        return family("Interval")(c - r, c + r)
 
     def linear_map(self, A: Tensor, b: Tensor | None = None) -> ConvexSet:  # pragma: no cover
         """Image ``{A x + b : x in S}`` with ``A [..., k, n]``, ``b [..., k]``."""

@@ -27,6 +27,7 @@ from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_count, check_finite
 from diffsmf.sets.czono_lp import LP_ITERS, LP_TOL, box_lp, support_value
+from diffsmf.sets.strip import strip_fields
 from diffsmf.utils import HIGHS_OPTIONS, is_int
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -445,7 +446,7 @@ class ConstrainedZonotope(ConvexSet):
         1-D zonotope ``Y = y + sigma [-1, 1]``): one new generator (zero in x) and one new
         constraint ``a'G xi - sigma xi_new = y - a'c``. Batched over the batch dims of Z and
         the strip."""
-        a, y, sig = _strip_fields(strip, self)
+        a, y, sig = strip_fields(strip, self)
         return self._intersect_strips(a.unsqueeze(-2), y.unsqueeze(-1), sig.unsqueeze(-1))
 
     def intersect_strips(
@@ -749,17 +750,6 @@ class ConstrainedZonotope(ConvexSet):
 def as_constrained_zonotope(S: ConvexSet) -> ConstrainedZonotope:
     """Same as `ConstrainedZonotope.from_set`."""
     return ConstrainedZonotope.from_set(S)
-
-
-def _strip_fields(strip: Any, ref: ConvexSet) -> tuple[Tensor, Tensor, Tensor]:
-    try:
-        p, y, sig = strip.normal, strip.offset, strip.halfwidth
-    except AttributeError as exc:
-        raise ValueError("strip: expected a Strip (normal, offset, halfwidth)") from exc
-    p = p.to(ref.center.dtype)
-    if p.shape[-1] != ref.dim:
-        raise ValueError(f"strip: normal has dim {p.shape[-1]}, set has dim {ref.dim}")
-    return p, y.to(p.dtype), sig.to(p.dtype)
 
 
 def _eliminate(

@@ -24,19 +24,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
 from diffsmf.interval.rounding import down, eps, nan_to_zero, subnormal, tiny, up
-from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count
+from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count, family
 from diffsmf.utils import checking, tracing
-
-if TYPE_CHECKING:  # pragma: no cover
-    from diffsmf.sets.ellipsoid import Ellipsoid
-    from diffsmf.sets.parallelotope import Parallelotope
-    from diffsmf.sets.zonotope import Zonotope
 
 __all__ = ["Interval", "interval_eval"]
 
@@ -371,10 +366,8 @@ class Interval(ConvexSet):
     def to_interval(self) -> Interval:
         return self
 
-    def linear_map(self, A: Tensor, b: Tensor | None = None) -> Zonotope:
+    def linear_map(self, A: Tensor, b: Tensor | None = None) -> ConvexSet:
         """Exact image ``{A x + b}`` as a Zonotope(A c + b, A diag(r)); ``A [..., k, n]``."""
-        from diffsmf.sets.zonotope import Zonotope
-
         A = as_tensor("A", A, like=self.lower, min_dim=2)
         if A.shape[-1] != self.dim:
             raise ValueError(f"A: expected [..., k, {self.dim}], got {tuple(A.shape)}")
@@ -382,7 +375,7 @@ class Interval(ConvexSet):
         center = (A @ c.unsqueeze(-1)).squeeze(-1)
         if b is not None:
             center = center + as_tensor("b", b, like=self.lower)
-        return Zonotope(center, A * r.unsqueeze(-2))
+        return family("Zonotope")(center, A * r.unsqueeze(-2))
 
     def translate(self, b: Tensor) -> Interval:
         b = as_tensor("b", b, like=self.lower)
@@ -424,32 +417,26 @@ class Interval(ConvexSet):
         c, r = self.mid_rad()
         return c, torch.clamp(r, min=min_radius)
 
-    def to_zonotope(self) -> Zonotope:
+    def to_zonotope(self) -> ConvexSet:
         """Zonotope(c, diag(r)) (exact)."""
-        from diffsmf.sets.zonotope import Zonotope
-
         c, r = self.mid_rad()
-        return Zonotope(c, torch.diag_embed(r))
+        return family("Zonotope")(c, torch.diag_embed(r))
 
-    def to_parallelotope(self, min_radius: float = 1e-12) -> Parallelotope:
+    def to_parallelotope(self, min_radius: float = 1e-12) -> ConvexSet:
         """Parallelotope(c, diag(r)); radii below ``min_radius`` are floored (outer bound)."""
-        from diffsmf.sets.parallelotope import Parallelotope
-
         c, r = self._floored_radius(min_radius)
-        return Parallelotope(c, torch.diag_embed(r))
+        return family("Parallelotope")(c, torch.diag_embed(r))
 
-    def to_ellipsoid(self, min_radius: float = 1e-12) -> Ellipsoid:
+    def to_ellipsoid(self, min_radius: float = 1e-12) -> ConvexSet:
         """Covering ellipsoid diag(n r_i^2) (Song et al. 2017, eq. 23/29 with the n-D erratum).
 
         Radii below ``min_radius`` are floored (the shape must be positive definite); the
         shape is inflated by ``4 eps`` relative so the corners are inside despite rounding.
         """
-        from diffsmf.sets.ellipsoid import Ellipsoid
-
         c, r = self._floored_radius(min_radius)
         n = self.dim
         q = _up(n * r * r * (1.0 + 4.0 * _eps(r)))
-        return Ellipsoid(c, torch.diag_embed(q))
+        return family("Ellipsoid")(c, torch.diag_embed(q))
 
     def intersect(self, other: Interval) -> Interval:
         """Elementwise intersection; may be empty (check `is_empty`), not validated."""

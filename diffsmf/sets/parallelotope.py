@@ -15,6 +15,7 @@ from torch import Tensor
 
 from diffsmf import linalg
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
+from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.utils import checking
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -246,11 +247,10 @@ class Parallelotope(ConvexSet):
         An empty intersection (eq. 31-32: ``eps0+ < -1`` or ``eps0- > 1``) returns the input
         unchanged (never NaN); use `intersects_strip` to flag it.
         """
-        from diffsmf.sets.zonotope import _strip_batch, _strip_fields
 
-        a, y, sig = _strip_fields(strip, self)
+        a, y, sig = strip_fields(strip, self)
         n = self.dim
-        batch = _strip_batch(self.batch_shape, a, y, sig)
+        batch = strip_batch(self.batch_shape, a, y, sig)
         xc, T = self._c.expand(*batch, n), self.T.expand(*batch, n, n)
         a, y, sig = a.expand(*batch, n), y.expand(batch), sig.expand(batch)
         tiny = torch.finfo(T.dtype).tiny

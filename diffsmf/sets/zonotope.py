@@ -23,14 +23,22 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
+from diffsmf.sets.base import (
+    ConvexSet,
+    as_offset,
+    as_tensor,
+    as_vector,
+    check_count,
+    check_finite,
+    family,
+)
 from diffsmf.sets.czono_lp import certify_feasible
+from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.utils import HIGHS_OPTIONS, materialize, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
     from diffsmf.sets.interval import Interval
-    from diffsmf.sets.parallelotope import Parallelotope
     from diffsmf.sets.strip import Strip
 
 __all__ = ["Zonotope", "MAX_VOLUME_SUBSETS", "MAX_BASES"]
@@ -369,7 +377,7 @@ class Zonotope(ConvexSet):
             return _zonotope_contains(self._c.detach(), self.generators.detach(), x.detach(), atol)
 
     # ------------------------------------------------------------------ conversions
-    def to_parallelotope(self) -> Parallelotope:
+    def to_parallelotope(self) -> ConvexSet:
         """Minimal-volume outer parallelotope over generator bases (Chisci et al. 1996).
 
         Wang et al. 2022, eq. 22: for a basis B of n generators, ``T = B diag(sum_j |(B^-1 G)_ij|)``
@@ -381,10 +389,8 @@ class Zonotope(ConvexSet):
         appended first. The basis choice is made without gradient; T is differentiable.
         A relative outward margin covers the rounding of the solve.
         """
-        from diffsmf.sets.parallelotope import Parallelotope
-
         T = _outer_parallelotope(self.generators)
-        return Parallelotope._make(self._c, T)
+        return family("Parallelotope")._make(self._c, T)
 
     def to_ellipsoid(self) -> Ellipsoid:
         """Covering ellipsoid of the outer parallelotope ``c + T[-1,1]^n``
@@ -485,9 +491,9 @@ class Zonotope(ConvexSet):
         """
         if method not in ("fradius", "volume"):
             raise ValueError(f"method: unknown strip method {method!r}")
-        p, y, sig = _strip_fields(strip, self)
+        p, y, sig = strip_fields(strip, self)
         c, G = self._c, self.generators
-        batch = _strip_batch(self.batch_shape, p, y, sig)
+        batch = strip_batch(self.batch_shape, p, y, sig)
         c = c.expand(*batch, self.dim)
         G = G.expand(*batch, *G.shape[-2:])
         p, y, sig = p.expand(*batch, self.dim), y.expand(batch), sig.expand(batch)
@@ -529,9 +535,8 @@ def _as_zonotope_fields(other: Any, ref: Zonotope) -> tuple[Tensor, Tensor]:
         c = as_tensor("other", other, like=ref.center, min_dim=1)
         return c, c.new_zeros(*c.shape, 0)
     from diffsmf.sets.interval import Interval
-    from diffsmf.sets.parallelotope import Parallelotope
 
-    if isinstance(other, Parallelotope):
+    if isinstance(other, family("Parallelotope")):
         return other.center, other.T
     if isinstance(other, Interval):
         lo, up = other.lower, other.upper
@@ -540,29 +545,6 @@ def _as_zonotope_fields(other: Any, ref: Zonotope) -> tuple[Tensor, Tensor]:
         z = other.to_zonotope()
         return z.center, z.generators
     raise ValueError(f"other: cannot add a {type(other).__name__} to a Zonotope exactly")
-
-
-def _strip_fields(strip: Any, ref: ConvexSet) -> tuple[Tensor, Tensor, Tensor]:
-    """(normal [..., n], offset [...], halfwidth [...]) of a Strip, checked against ``ref``."""
-    try:
-        p, y, sig = strip.normal, strip.offset, strip.halfwidth
-    except AttributeError as exc:
-        raise ValueError("strip: expected a Strip (normal, offset, halfwidth)") from exc
-    p = p.to(ref.center.dtype)
-    if p.shape[-1] != ref.dim:
-        raise ValueError(f"strip: normal has dim {p.shape[-1]}, set has dim {ref.dim}")
-    return p, y.to(p.dtype), sig.to(p.dtype)
-
-
-def _strip_batch(batch: torch.Size, p: Tensor, y: Tensor, sig: Tensor) -> torch.Size:
-    """Common batch shape of a set and a strip; ``ValueError`` naming ``strip`` otherwise."""
-    try:
-        return torch.broadcast_shapes(batch, p.shape[:-1], y.shape, sig.shape)
-    except RuntimeError as exc:
-        raise ValueError(
-            f"strip: batch shape {tuple(y.shape)} does not broadcast with the set's "
-            f"batch shape {tuple(batch)}"
-        ) from exc
 
 
 def _outer_parallelotope(G: Tensor) -> Tensor:

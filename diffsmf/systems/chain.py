@@ -9,8 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffsmf.systems import register
-from diffsmf.systems.library import _box, _positive, _sym_box
+from diffsmf.systems.library import box, positive, sym_box
 from diffsmf.systems.system import System
 
 __all__ = ["oscillator_chain"]
@@ -26,7 +25,6 @@ def _laplacian(N: int) -> Tensor:
     return L
 
 
-@register("oscillator_chain")
 def oscillator_chain(
     n: int = 8,
     dt: float = 0.05,
@@ -68,7 +66,7 @@ def oscillator_chain(
         raise ValueError(f"n: must be an even integer >= 2, got {n!r}")
     for name, val in (("dt", dt), ("stiffness", stiffness), ("coupling", coupling),
                       ("cubic", cubic), ("damping", damping), ("x0_radius", x0_radius)):
-        _positive(name, val)
+        positive(name, val)
     N = n // 2
     K = (stiffness * torch.eye(N, dtype=torch.float64) + coupling * _laplacian(N))
     # p+ = p + dt v ; v+ = -dt K p + (1 - dt damping) v - dt cubic p^3  (linear part as one map)
@@ -91,8 +89,8 @@ def oscillator_chain(
 
     sign = torch.tensor([(-1.0) ** i for i in range(N)], dtype=torch.float64)
     c0 = torch.cat([0.2 * sign, torch.zeros(N, dtype=torch.float64)])
-    W, V = _sym_box(n, w, "w"), _sym_box(N, v, "v")
-    s = System(f, h, _box(c0, x0_radius), W, V,
+    W, V = sym_box(n, w, "w"), sym_box(N, v, "v")
+    s = System(f, h, box(c0, x0_radius), W, V,
                name=f"oscillator_chain(n={n})")
     s.horizon, s.paper_x0 = horizon, None
     return s

@@ -1,4 +1,4 @@
-"""Built-in systems of the implemented papers (registered with `diffsmf.systems.register`).
+"""Built-in systems of the implemented papers (registered in `diffsmf.systems.registry`).
 
 Every factory returns a fresh `System` and accepts keyword overrides
 (step, noise bounds, ...). Each system also carries two plain attributes used by examples and
@@ -17,7 +17,6 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets import Ellipsoid, Interval
-from diffsmf.systems import register
 from diffsmf.systems.system import System
 
 __all__ = [
@@ -31,24 +30,23 @@ def _vec(*v: float) -> Tensor:
     return torch.tensor(v, dtype=_F64)
 
 
-def _box(center: Tensor, radius: Tensor | float) -> Interval:
+def box(center: Tensor, radius: Tensor | float) -> Interval:
     return Interval(center - radius, center + radius)
 
 
-def _sym_box(n: int, bound: float, name: str) -> Interval:
+def sym_box(n: int, bound: float, name: str) -> Interval:
     """Noise box ``[-bound, bound]^n``."""
     if not bound >= 0:
         raise ValueError(f"{name}: noise bound must be >= 0, got {bound}")
-    return _box(torch.zeros(n, dtype=_F64), bound)
+    return box(torch.zeros(n, dtype=_F64), bound)
 
 
-def _positive(name: str, value: float) -> float:
+def positive(name: str, value: float) -> float:
     if not value > 0:
         raise ValueError(f"{name}: must be positive, got {value}")
     return float(value)
 
 
-@register("bilinear")
 def bilinear(u: float = 0.6, w: float = 1e-3, v: float = 1e-3, horizon: int = 100) -> System:
     """Wang et al. 2022, eq. 42 (sec. 4.1): ``x+ = [0.5 x1 x2, 0.2 x2^2] + u + w``, ``y = x1 + v``.
 
@@ -65,14 +63,13 @@ def bilinear(u: float = 0.6, w: float = 1e-3, v: float = 1e-3, horizon: int = 10
         return x[..., 0:1]
 
     s = System(
-        f, h, _box(_vec(-0.2, 0.3), 0.1), _sym_box(2, w, "w"), _sym_box(1, v, "v"),
+        f, h, box(_vec(-0.2, 0.3), 0.1), sym_box(2, w, "w"), sym_box(1, v, "v"),
         inputs=lambda k: _vec(u, u), name="bilinear",
     )
     s.horizon, s.paper_x0 = horizon, None
     return s
 
 
-@register("spring_damper")
 def spring_damper(
     dt: float = 0.1,
     k0: float = 1.5,
@@ -97,7 +94,7 @@ def spring_damper(
     default initial box is therefore ``[0.2, 0.3] +- 0.15`` (every state of it, with
     worst-case noise, stays below ``|x1| = 0.55``); ``x0_radius=0.2`` gives the paper's box.
     """
-    dt = _positive("dt", dt)
+    dt = positive("dt", dt)
 
     def f(x: Tensor, u: Tensor | None = None, theta: Tensor | None = None) -> Tensor:
         x1, x2 = x[..., 0], x[..., 1]
@@ -109,14 +106,13 @@ def spring_damper(
         return x[..., 0:1]
 
     s = System(
-        f, h, _box(_vec(0.2, 0.3), _positive("x0_radius", x0_radius)), _sym_box(2, w, "w"),
-        _sym_box(1, v, "v"), name="spring_damper",
+        f, h, box(_vec(0.2, 0.3), positive("x0_radius", x0_radius)), sym_box(2, w, "w"),
+        sym_box(1, v, "v"), name="spring_damper",
     )
     s.horizon, s.paper_x0 = horizon, None
     return s
 
 
-@register("mismatch_quadratic")
 def mismatch_quadratic(
     w: float = 1e-3,
     v: float = 1e-2,
@@ -154,7 +150,7 @@ def mismatch_quadratic(
 
     s = System(
         f, h, Ellipsoid(_vec(2.0, 0.5), 3.0 * torch.eye(2, dtype=_F64)),
-        _sym_box(2, w, "w"), _sym_box(2, v, "v"), Interval(_vec(lo), _vec(hi)),
+        sym_box(2, w, "w"), sym_box(2, v, "v"), Interval(_vec(lo), _vec(hi)),
         theta_schedule=schedule, name="mismatch_quadratic",
     )
     s.horizon, s.paper_x0 = horizon, _vec(3.0, 1.0)
@@ -165,7 +161,6 @@ def mismatch_quadratic(
 _FERMENTER = dict(Y=0.4, eta=2.2, gamma=0.2, mu_m=0.48, P_m=50.0, K_m=1.2, K_i=22.0)
 
 
-@register("fermenter")
 def fermenter(
     dt: float = 1.0,
     w: float = 1e-2,
@@ -193,7 +188,7 @@ def fermenter(
     which contains the true initial state ``[7.038, 2.404, 24.87]`` (``paper_x0``, the
     steady state for the nominal D, S_f).
     """
-    dt = _positive("dt", dt)
+    dt = positive("dt", dt)
     p = _FERMENTER
     t1, t2 = switch_times
 
@@ -216,10 +211,10 @@ def fermenter(
         t = k * dt
         return _vec(0.15, 20.0) if t < t1 else _vec(0.09, 17.0) if t <= t2 else _vec(0.21, 23.0)
 
-    theta_box = _box(_vec(0.15, 20.0), _vec(dD, dSf))
+    theta_box = box(_vec(0.15, 20.0), _vec(dD, dSf))
     s = System(
-        f, h, _box(_vec(5.0, 1.0, 20.0), _vec(*x0_radius)),
-        _sym_box(3, w, "w"), _sym_box(3, v, "v"), theta_box,
+        f, h, box(_vec(5.0, 1.0, 20.0), _vec(*x0_radius)),
+        sym_box(3, w, "w"), sym_box(3, v, "v"), theta_box,
         theta_schedule=schedule, name="fermenter",
     )
     s.horizon = int(round(300.0 / dt)) if horizon is None else horizon
@@ -230,7 +225,6 @@ def fermenter(
 _B_VDP = torch.tensor([0.0, 1.0], dtype=_F64)
 
 
-@register("vdp")
 def vdp(dt: float = 0.05, w: float = 1e-3, v: float = 1e-2, horizon: int = 400) -> System:
     """Wang et al. 2009, eq. 23 (Van der Pol type), explicit Euler with step ``dt`` (s):
     ``x1+ = x1 + dt x2``, ``x2+ = x2 + dt (x2 - x1 - x1^2 x2 + u)``, ``y = x1 + v``.
@@ -240,7 +234,7 @@ def vdp(dt: float = 0.05, w: float = 1e-3, v: float = 1e-2, horizon: int = 400) 
     the box ``[1.5, 0.7] +- 0.5`` centred at the paper's observer start, containing the true
     ``x(0) = [1.2, 0.5]`` (``paper_x0``).
     """
-    dt = _positive("dt", dt)
+    dt = positive("dt", dt)
 
     def f(x: Tensor, u: Tensor | None, theta: Tensor | None = None) -> Tensor:
         x1, x2 = x[..., 0], x[..., 1]
@@ -251,7 +245,7 @@ def vdp(dt: float = 0.05, w: float = 1e-3, v: float = 1e-2, horizon: int = 400) 
         return x[..., 0:1]
 
     s = System(
-        f, h, _box(_vec(1.5, 0.7), 0.5), _sym_box(2, w, "w"), _sym_box(1, v, "v"),
+        f, h, box(_vec(1.5, 0.7), 0.5), sym_box(2, w, "w"), sym_box(1, v, "v"),
         inputs=lambda k: _vec(math.sin(k * dt)), name="vdp",
     )
     s.horizon, s.paper_x0 = horizon, _vec(1.2, 0.5)
@@ -263,7 +257,6 @@ _CSTR = dict(q_V=1.0, Caf=1.0, Tf=350.0, k0=7.2e10, E_R=8750.0, dH_rcp=-5e4 / 23
              UA_Vrcp=5e4 / (100.0 * 239.0))
 
 
-@register("cstr")
 def cstr(
     dt: float = 0.1,
     substeps: int = 4,
@@ -295,7 +288,7 @@ def cstr(
     a first-day plant whose state scales differ by two orders of magnitude, used to check that
     the filters do not depend on the units of the states.
     """
-    dt = _positive("dt", dt)
+    dt = positive("dt", dt)
     if not isinstance(substeps, int) or substeps < 1:
         raise ValueError(f"substeps: must be an integer >= 1, got {substeps!r}")
     p = _CSTR
@@ -319,14 +312,13 @@ def cstr(
         return x[..., 1:2]
 
     s = System(
-        f, h, _box(_vec(0.9, 320.0, 295.0), _vec(*x0_radius)),
-        _box(torch.zeros(3, dtype=_F64), _vec(*w)), _sym_box(1, v, "v"), name="cstr",
+        f, h, box(_vec(0.9, 320.0, 295.0), _vec(*x0_radius)),
+        box(torch.zeros(3, dtype=_F64), _vec(*w)), sym_box(1, v, "v"), name="cstr",
     )
     s.horizon, s.paper_x0 = horizon, None
     return s
 
 
-@register("unicycle_rb")
 def unicycle_rb(
     dt: float = 0.1,
     speed: float = 1.0,
@@ -359,7 +351,7 @@ def unicycle_rb(
     heading0] +- (0.2, 0.2, 0.05)``; horizon 1,000 steps (100 s,
     3.2 laps). Not from the seed papers.
     """
-    dt = _positive("dt", dt)
+    dt = positive("dt", dt)
     lx, ly = landmark
 
     def f(x: Tensor, u: Tensor | None, theta: Tensor | None = None) -> Tensor:
@@ -376,8 +368,8 @@ def unicycle_rb(
         return torch.stack([rng, torch.atan2(dy, dx) - x[..., 2]], -1)
 
     s = System(
-        f, h, _box(_vec(0.0, 0.0, heading0), _vec(*x0_radius)),
-        _box(torch.zeros(3, dtype=_F64), _vec(*w)), _box(torch.zeros(2, dtype=_F64), _vec(*v)),
+        f, h, box(_vec(0.0, 0.0, heading0), _vec(*x0_radius)),
+        box(torch.zeros(3, dtype=_F64), _vec(*w)), box(torch.zeros(2, dtype=_F64), _vec(*v)),
         inputs=lambda k: _vec(speed, turn_rate), name="unicycle_rb", angle_outputs=[1],
     )
     s.horizon, s.paper_x0 = horizon, None

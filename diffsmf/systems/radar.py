@@ -27,7 +27,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from diffsmf.systems import register
 from diffsmf.systems.system import System
 
 __all__ = ["RADAR_X0", "radar", "radar_initial_cov", "radar_matrices"]
@@ -61,7 +60,6 @@ def _range_bearing(x: Tensor) -> Tensor:
     return torch.stack([torch.sqrt(x1 * x1 + x2 * x2), torch.atan2(x2, x1)], -1)
 
 
-@register("radar")
 def radar(
     T: float = 1.0,
     initial_shape: Tensor | None = None,

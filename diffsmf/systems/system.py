@@ -213,6 +213,11 @@ class System(nn.Module):
         register_row_model(self.h)
         enclose(self.h, Interval(x, x), 0, "h")
 
+    @property
+    def angle_mask(self) -> Tensor:
+        """``[m]`` bool: True for the angle outputs (`angle_outputs`)."""
+        return self._angle_mask
+
     def innovation(self, y: Tensor, y_pred: Tensor) -> Tensor:
         """``y - y_pred [..., m]`` with the angle outputs' components wrapped into
         ``[-pi, pi)`` (`wrap_angle`): the residual on the branch that the prediction

@@ -27,14 +27,9 @@ import torch
 from torch import Tensor
 from torch._dynamo.exc import TorchDynamoException
 
-from diffsmf.filters.base import (
-    FilterResult,
-    FilterState,
-    SetFilter,
-    compiled_loop,
-    flat_state,
-    state_from_flat,
-)
+from diffsmf.filters.base import FilterResult, FilterState, SetFilter
+from diffsmf.filters.runtime import compiled_loop
+from diffsmf.filters.state import flat_state, state_from_flat
 from diffsmf.linearize import jacobian
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
@@ -261,7 +256,7 @@ def _flat_guarded_step(
     guard_empty: bool,
 ) -> tuple[tuple, Tensor]:
     """`_guarded_step` on flat tensors (what ``filt.compile()`` traces for tuning, through
-    `diffsmf.filters.base.compiled_loop`) -> ``(flat state, excess)``."""
+    `diffsmf.filters.runtime.compiled_loop`) -> ``(flat state, excess)``."""
     state = state_from_flat(fields, consistent, bounded, extras, set_type)
     new, excess = _guarded_step(filt, state, u, y, guard_empty)
     return flat_state(new), excess

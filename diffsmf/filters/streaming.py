@@ -1,4 +1,4 @@
-"""Compiled filter steps called without Dynamo: the online fast path of ``SetFilter.streaming``.
+"""Streaming: compiled filter steps called without Dynamo (the fast path of ``streaming()``).
 
 A call of a ``torch.compile``-d step passes through Dynamo's frame (guard evaluation, or
 entering and leaving its skip-guards stance) and AOTAutograd's and Inductor's wrappers before
@@ -32,6 +32,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from diffsmf.filters.state import flat_step
 from diffsmf.utils import traced
 
 #: Attributes of a filter that change while it runs, not its configuration.
@@ -142,16 +143,16 @@ class _Step(nn.Module):
         self.filt = filt
 
     def forward(self, *flat: Any) -> Any:
-        return self.filt._flat_step(*flat)
+        return flat_step(self.filt, *flat)
 
 
 class DirectSteps:
     """The compiled one-step graphs of a filter for one configuration, called without Dynamo.
 
     ``steps(fields, consistent, bounded, extras, u, y, set_type)`` takes the flat state of
-    `diffsmf.filters.base._flat_args` (fields ``[B, ...]``, ``consistent [B]``,
+    `diffsmf.filters.state.flat_args` (fields ``[B, ...]``, ``consistent [B]``,
     ``bounded [B]``, extras ``{name: [B, ...]}``), ``u [B, p]`` or None and ``y [B, m]``, and
-    returns the next flat state, like ``SetFilter._flat_step``. Call it in no-grad mode.
+    returns the next flat state, like `diffsmf.filters.state.flat_step`. Call it in no-grad mode.
     """
 
     def __init__(self, filt: nn.Module, options: dict[str, Any]) -> None:

@@ -1,0 +1,127 @@
+"""The prediction pieces shared by the linearising set-membership filters (HSNSMF, MSZM, CDSMF,
+ESMF, CZSMF): the step function at the nominal parameter, the guaranteed remainder box of a
+step (model remainder + parameter mismatch + the user's margin), the process noise as the
+zonotope or ellipsoidal predictions take it, and the predicted zonotope of HSNSMF and MSZM.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from diffsmf.filters.base import SetFilter
+from diffsmf.filters.remainders import (
+    add_remainder_margin,
+    checked_remainder,
+    rounding_margin,
+    sanitize_remainder,
+)
+from diffsmf.sets.base import ConvexSet
+from diffsmf.sets.interval import Interval
+from diffsmf.systems.system import System
+
+__all__ = [
+    "noise_ellipsoid",
+    "noise_generators",
+    "prediction_remainder",
+    "step_function",
+    "zonotope_prediction",
+]
+
+
+def step_function(system: System, u: Tensor | None) -> Callable[[Tensor], Tensor]:
+    """``x [..., n] -> f(x, u, theta_nom) [..., n]`` (the nominal model of one step).
+
+    ``u [B, p]`` is closed over; `diffsmf.linearize` puts extra point dims (stencils,
+    vertices) in *leading* positions, so ``u`` broadcasts against them.
+    """
+    from diffsmf.interval.engine import StepModel
+
+    return StepModel(system.f, u, system.theta_nominal)
+
+
+def prediction_remainder(
+    system: System,
+    remainder: Callable[..., Interval],
+    fn: Callable[[Tensor], Tensor],
+    S: ConvexSet,
+    c: Tensor,
+    J: Tensor,
+    u: Tensor | None,
+    margin: Tensor | None = None,
+    events: bool = False,
+) -> tuple[Interval, Tensor]:
+    """Box ``[B, n]`` containing ``f(x, u, theta) - f(c, u, theta_nom) - J (x - c)`` on ``S``,
+    and ``ok [B]``: False where no finite box exists (`sanitize_remainder`); with
+    ``events=True`` the `FilterEvent` codes ``[B]`` instead (`checked_remainder`:
+    ``DOMAIN`` / ``DIVERGED``, 0 where the box is finite), for ``FilterState.flag``.
+
+    ``remainder`` is a `diffsmf.linearize` remainder bound (``dc_remainder`` for Wang et al.
+    2022, ``lagrange_remainder`` for Song et al. 2017); when the system has mismatched parameters
+    the deviation ``f(x, u, theta) - f(x, u, theta_nom)`` over ``S`` x ``parameters``
+    (``linearize.parameter_deviation``, Song et al. 2017, eq. 18-21, evaluated over the whole set,
+    not only at the centre as in the paper) is added. ``margin [n]`` (>= 0, the filters'
+    ``remainder_margin``) then enlarges the computed box to ``[lo - m, hi + m]``
+    (`add_remainder_margin`); it can only add to the guaranteed box, never replace it.
+    Where the box is not finite (a singularity of the model over ``S``) it is returned as 0
+    with ``ok`` False, and the caller flags those elements (``FilterState.and_bounded(ok)``).
+    """
+    from diffsmf.linearize import parameter_deviation
+
+    R = remainder(fn, S, c, J)
+    if system.parameters is not None:
+        D = parameter_deviation(system.f, S, system.parameters, system.theta_nominal, u)
+        R = Interval._make(R.lower + D.lower, R.upper + D.upper)
+    R = add_remainder_margin(R, margin)
+    return checked_remainder(R) if events else sanitize_remainder(R)
+
+
+def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Process noise for the zonotope-type predictions (HSNSMF, MSZM) -> ``(center [n],
+    box half-widths [n], generators [n, q] or None)``.
+
+    A box W (the built-ins) is ``(c, r, None)`` as before (bit for bit); a zonotope or
+    parallelotope W keeps its own generators (``(c, 0, G)``: exact Minkowski sum); an
+    ellipsoid, which a zonotope cannot hold exactly, enters by its interval hull.
+    """
+    from diffsmf.sets.zonotope import Zonotope
+
+    W = filt.process_noise_set()
+    if isinstance(W, Zonotope):
+        return W.center, torch.zeros_like(W.center), W.generators
+    box = W if isinstance(W, Interval) else W.interval_hull()
+    return box.center, box.radius, None
+
+
+def noise_ellipsoid(filt: SetFilter) -> ConvexSet | None:
+    """Process noise for the ellipsoidal predictions (CDSMF, ESMF): ``None`` for a box W (the
+    filters keep their box sum with the remainder, as before), else the ellipsoid W itself or
+    the covering ellipsoid of a zonotope W (`Ellipsoid.from_zonotope`, not its hull)."""
+    from diffsmf.sets.ellipsoid import Ellipsoid
+
+    W = filt.process_noise_set()
+    if isinstance(W, Interval):
+        return None
+    return W if isinstance(W, Ellipsoid) else Ellipsoid.from_zonotope(W)
+
+
+def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) -> ConvexSet:
+    """The predicted zonotope of HSNSMF and MSZM: ``f(c) + F G (+) E (+) W`` (Wang et al. 2022, eq.
+    20-21, Theorem 2; Alamo 2005) -> Zonotope ``[B]``.
+
+    ``fc [B, n]`` the model at the centre, ``FG [B, n, q]`` the mapped generators, ``E`` the
+    remainder box. A box W joins the remainder box (one diagonal block), a zonotope W adds
+    its own generators (`noise_generators`); the diagonal is padded by the float64
+    rounding margin of the affine part.
+    """
+    from diffsmf.sets.zonotope import Zonotope
+
+    wc, wr, Gw = noise_generators(filt)
+    rad = E.radius + wr  # Theorem 2: sum of two boxes
+    rad = rad + rounding_margin(fc, E.center, FG.abs().sum(-1), rad)
+    parts = [FG, torch.diag_embed(rad)]
+    if Gw is not None:
+        parts.append(Gw.expand(*FG.shape[:-1], Gw.shape[-1]))
+    return Zonotope(fc + E.center + wc, torch.cat(parts, -1))

@@ -1,0 +1,248 @@
+"""The filter state and result, and the flat form in which a compiled step takes a state.
+
+`FilterState` is what one filter step maps to the next, `FilterResult` what ``forward``
+returns. A compiled step (`diffsmf.filters.runtime`) takes a state as flat tensors: the set's
+fields, ``consistent``, ``bounded`` and the extras (`flat_args` / `flat_state`), and
+`state_from_flat` rebuilds it; `flat_step` is the step on that form (what is traced).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from diffsmf.filters.events import LOSES_BOUND, FilterEvent, mark_unbounded
+from diffsmf.sets.base import ConvexSet, check_count, check_nonempty
+
+__all__ = [
+    "FilterResult",
+    "FilterState",
+    "check_initial_set",
+    "expand_state_set",
+    "flat_args",
+    "flat_state",
+    "flat_step",
+    "flat_steps",
+    "state_batch",
+    "state_from_flat",
+]
+
+
+@dataclass(frozen=True)
+class FilterState:
+    """Online filter state.
+
+    set: current set, batch shape ``[B]``; consistent: ``[B]`` bool (False when the last
+    measurement did not meet the predicted set); extras: filter-specific tensors
+    (e.g. ``"covariance" [B, n, n]``); bounded: ``[B]`` bool or ``None`` (= all True): False
+    from the step where the set stopped being finite (a remainder became unbounded, e.g. at a
+    singularity of the model, or the set outgrew `MAX_SET_RADIUS`). Such an element's
+    guaranteed set is all of R^n; ``set`` then holds a finite placeholder (the initial set)
+    so that the batch carries on, and must not be read as an estimate: read
+    ``guaranteed_set`` (R^n there). ``extras["events"]`` ``[B]`` int64: the `FilterEvent`
+    bits met so far (sticky; see `diffsmf.filters.events`).
+    """
+
+    set: ConvexSet
+    consistent: Tensor
+    extras: dict[str, Tensor] = field(default_factory=dict)
+    bounded: Tensor | None = None
+
+    def replace(self, **kw: Any) -> FilterState:
+        d = {
+            "set": self.set,
+            "consistent": self.consistent,
+            "extras": self.extras,
+            "bounded": self.bounded,
+        }
+        d.update(kw)
+        return FilterState(**d)
+
+    def and_bounded(self, ok: Tensor) -> FilterState:
+        """This state with ``bounded &= ok`` (``ok [B]`` bool)."""
+        b = ok if self.bounded is None else self.bounded & ok
+        return self.replace(bounded=b)
+
+    def flag(self, events: Tensor, unbounded: bool = True) -> FilterState:
+        """This state with the `FilterEvent` bits ``events [B]`` (int) recorded: OR-ed into
+        ``extras["events"]``; with ``unbounded`` (events of the set itself, e.g. its
+        prediction remainder), ``bounded`` is False where one of them loses the bound
+        (``LOSES_BOUND``: diverged, domain, non-finite). ``unbounded=False`` for events of a
+        measurement update, which keep the guarantee: a lost bound there is recorded as
+        ``MEASUREMENT_SKIPPED`` (the update was skipped). Branch-free."""
+        ev = events.to(torch.int64)
+        if not unbounded:  # a measurement that could not be bounded: skipped, not a lost bound
+            skipped = (ev & LOSES_BOUND) != 0
+            ev = (ev & ~LOSES_BOUND) | torch.where(skipped, int(FilterEvent.MEASUREMENT_SKIPPED), 0)
+        old = self.extras.get("events")
+        new = self.replace(extras={**self.extras, "events": ev if old is None else old | ev})
+        return new.and_bounded((ev & LOSES_BOUND) == 0) if unbounded else new
+
+    @property
+    def events(self) -> Tensor:
+        """``[B]`` int64 `FilterEvent` bits met so far (0 = none)."""
+        ev = self.extras.get("events")
+        return torch.zeros_like(self.consistent, dtype=torch.int64) if ev is None else ev
+
+    @property
+    def guaranteed_set(self) -> ConvexSet:
+        """The set to read as the estimate: ``set`` where ``bounded``, all of R^n where not
+        (`diffsmf.filters.events.mark_unbounded`: ``contains`` True, ``interval_hull``
+        -inf / +inf, ``volume`` inf there)."""
+        return mark_unbounded(self.set, self.bounded)
+
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    """Sets over time.
+
+    sets: batch shape ``[B, T+1]`` (index 0 = initial set, k = after ``y_k``);
+    center, lower, upper: ``[B, T+1, n]``; volume: ``[B, T+1]``; consistent: ``[B, T+1]``
+    bool; extras: stacked filter-specific tensors, e.g. ``"covariance" [B, T+1, n, n]``;
+    bounded: ``[B, T+1]`` bool, False where the set stopped being finite (see
+    `FilterState`): there ``lower = -inf``, ``upper = +inf``, ``volume = inf``,
+    ``center`` is NaN (never a plausible-looking number), ``consistent`` is True (no
+    measurement contradicts an unbounded prediction) and ``sets`` is all of R^n
+    (`diffsmf.filters.events.mark_unbounded`: ``sets.contains(x)`` True, its hull +-inf).
+    events (property): ``[B, T+1]`` int64 `FilterEvent` bits met at or before each step
+    (``describe_events(res.events)`` says what happened where).
+    """
+
+    sets: ConvexSet
+    center: Tensor
+    lower: Tensor
+    upper: Tensor
+    volume: Tensor
+    consistent: Tensor
+    extras: dict[str, Tensor] = field(default_factory=dict)
+    bounded: Tensor | None = None
+
+    @property
+    def covariance(self) -> Tensor | None:
+        return self.extras.get("covariance")
+
+    @property
+    def events(self) -> Tensor:
+        """``[B, T+1]`` int64: the `FilterEvent` bits met by each trajectory at or before
+        each step (0 = none; zeros for a result without events)."""
+        ev = self.extras.get("events")
+        if ev is None:
+            return torch.zeros(self.consistent.shape, dtype=torch.int64,
+                               device=self.consistent.device)
+        return ev
+
+
+
+def _contiguous(v: Any) -> Any:
+    """A tensor made contiguous (one compiled graph for expanded and dense inputs); other
+    extras (e.g. the ellipsoidal filters' initial box, an Interval) as they are."""
+    return v.contiguous() if isinstance(v, Tensor) else v
+
+
+
+def flat_args(state: FilterState, grad_leaves: bool = False) -> tuple:
+    """``state`` as the flat, contiguous tensors that the compiled step takes: fields,
+    consistent, bounded (all True for None), extras (contiguous: the expanded initial set
+    would otherwise be a second graph). ``grad_leaves``: every floating field and extra that
+    does not require grad becomes a leaf that does (`_grad_leaf`)."""
+    S, b = state.set, state.bounded
+    if b is None:
+        b = torch.ones_like(state.consistent)
+    leaf = _grad_leaf if grad_leaves else _identity
+    return (
+        tuple(leaf(t.contiguous()) for t in S._tensors()), state.consistent.contiguous(),
+        b.contiguous(), {k: leaf(_contiguous(v)) for k, v in state.extras.items()},
+    )
+
+
+def state_from_flat(
+    fields: tuple[Tensor, ...], consistent: Tensor, bounded: Tensor, extras: dict[str, Tensor],
+    set_type: type,
+) -> FilterState:
+    """The `FilterState` of a compiled step's flat inputs (see `flat_state`)."""
+    return FilterState(set_type._from_tensors(fields), consistent, extras, bounded)
+
+
+def flat_state(state: FilterState) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
+    """``state`` as a compiled step returns it: ``(fields, consistent, bounded, extras)``
+    (``bounded`` all True for None); `diffsmf.filters.runtime.unflatten` rebuilds it."""
+    nb = torch.ones_like(state.consistent) if state.bounded is None else state.bounded
+    return state.set._tensors(), state.consistent, nb, dict(state.extras)
+
+
+def _identity(t: Any) -> Any:
+    return t
+
+
+def _grad_leaf(t: Any) -> Any:
+    """A floating tensor that does not require grad as a leaf that does (else ``t``).
+
+    Dynamo guards on ``requires_grad``: while training, the initial state (constant) and the
+    later states (functions of the parameters) would otherwise compile two graph pairs,
+    forward and backward, for the same step (about 40 s each for HSNSMF at B = 64). As
+    leaves, the initial state's tensors take the graph of the later steps; the gradient they
+    receive is not used, and the parameters' gradients are unchanged."""
+    if isinstance(t, Tensor) and t.is_floating_point() and not t.requires_grad:
+        return t.detach().requires_grad_()
+    return t
+
+
+
+def flat_step(
+    filt: Any,
+    fields: tuple[Tensor, ...],
+    consistent: Tensor,
+    bounded: Tensor,
+    extras: dict[str, Tensor],
+    u: Tensor | None,
+    y: Tensor,
+    set_type: type,
+) -> tuple[tuple[Tensor, ...], Tensor, Tensor, dict[str, Tensor]]:
+    """The step of the filter ``filt`` on flat tensors (the function that ``compile`` traces):
+    its eager ``update(predict(state, u), y)`` between `state_from_flat` and `flat_state`."""
+    state = state_from_flat(fields, consistent, bounded, extras, set_type)
+    return flat_state(filt._eager_step(state, u, y))
+
+
+def flat_steps(
+    filt: Any,
+    fields: tuple[Tensor, ...],
+    consistent: Tensor,
+    bounded: Tensor,
+    extras: dict[str, Tensor],
+    us: Tensor | None,
+    ys: Tensor,
+    set_type: type,
+) -> tuple[tuple, ...]:
+    """``K = ys.shape[1]`` steps of `flat_step` (``us [B, K, p]``, ``ys [B, K, m]``)
+    -> the K flat states (the function that ``compile(steps_per_call=K)`` traces)."""
+    out = []
+    flat = (fields, consistent, bounded, extras)
+    for j in range(ys.shape[1]):
+        u = None if us is None else us[:, j]
+        flat = flat_step(filt, *flat, u, ys[:, j], set_type)
+        out.append(flat)
+    return tuple(out)
+
+
+def check_initial_set(name: str, S: ConvexSet | None, n: int) -> None:
+    """Validate an ``initial_set`` override (a non-empty set of dim ``n``, batch shape ``[]``)."""
+    if S is not None and (not isinstance(S, ConvexSet) or S.dim != n or S.batch_shape != ()):
+        raise ValueError(f"{name}: must be a diffsmf set of dim {n} with empty batch shape")
+    if S is not None:
+        check_nonempty(name, S)
+
+
+def expand_state_set(S: ConvexSet, batch: int | None) -> ConvexSet:
+    """``S`` (batch shape ``[]``) broadcast to ``[batch]`` (default 1)."""
+    return S.expand(state_batch(batch))
+
+
+def state_batch(batch: Any) -> int:
+    """The ``batch`` argument of ``initial_state``: ``None`` -> 1, else an ``int >= 0`` (not
+    a ``bool``); anything else raises ``ValueError`` naming ``batch``."""
+    return 1 if batch is None else check_count("batch", batch)
