@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import logging
 import math
 import types
 import warnings
@@ -317,8 +318,8 @@ def compile_filter(
     filt.__dict__.pop("_guarded_step_failed", None)
     filt._compile_kwargs = kw
     # each its own code object (own recompile budget, see _own_code); compiled lazily
-    one = torch.compile(_own_code(flat_step).__get__(filt), **kw)
-    multi = torch.compile(_own_code(flat_steps).__get__(filt), **kw)
+    one = _quiet(torch.compile(_own_code(flat_step).__get__(filt), **kw))
+    multi = _quiet(torch.compile(_own_code(flat_steps).__get__(filt), **kw))
 
     def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
         if not filt._compile_ready(state):
@@ -349,6 +350,32 @@ def eager(filt: nn.Module) -> Iterator[nn.Module]:
         filt.__dict__.update(saved)
 
 
+class _NoShimNotes(logging.Filter):
+    """Drops Inductor's note that an op has no C shim and runs through its proxy executor (a
+    working fallback the user cannot act on; it printed one line per op per compile)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "c-shim" not in str(record.msg)
+
+
+_SHIM_FILTER = _NoShimNotes()
+
+
+def _quiet(compiled: Callable[..., Any]) -> Callable[..., Any]:
+    """``compiled`` run with Inductor's proxy-executor notes filtered out, for the duration of
+    each call only (the logger is left as it was)."""
+    log = logging.getLogger("torch._inductor.ir")
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        log.addFilter(_SHIM_FILTER)
+        try:
+            return compiled(*args, **kwargs)
+        finally:
+            log.removeFilter(_SHIM_FILTER)
+
+    return call
+
+
 def compiled_function(
     filt: nn.Module, name: str, fn: Callable[..., Any], **overrides: Any
 ) -> Callable[..., Any] | None:
@@ -366,7 +393,7 @@ def compiled_function(
         return None
     cache = filt.__dict__.setdefault("_compiled_functions", {})
     if name not in cache:
-        cache[name] = torch.compile(_own_code(fn).__get__(filt), **{**kw, **overrides})
+        cache[name] = _quiet(torch.compile(_own_code(fn).__get__(filt), **{**kw, **overrides}))
     return cache[name]
 
 
