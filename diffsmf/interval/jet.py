@@ -35,7 +35,7 @@ from torch import Tensor
 
 from diffsmf.sets.interval import Interval
 
-__all__ = ["Jet", "as_interval", "chain", "hull", "move", "mul", "nonsmooth", "point"]
+__all__ = ["Jet", "chain", "hull", "move", "mul", "nonsmooth", "point"]
 
 
 class Jet:
@@ -74,14 +74,6 @@ class Jet:
 
 def point(t: Tensor) -> Interval:
     """The degenerate interval ``[t, t]``."""
-    return Interval._make(t, t)
-
-
-def as_interval(x: Any, like: Tensor) -> Interval:
-    """Interval, tensor or number -> Interval of ``like``'s dtype and device."""
-    if isinstance(x, Interval):
-        return x
-    t = torch.as_tensor(x, dtype=like.dtype, device=like.device)
     return Interval._make(t, t)
 
 

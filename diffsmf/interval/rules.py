@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.interval.errors import EngineError
-from diffsmf.interval.jet import Jet, as_interval, chain, hadd, hull, move, mul, nonsmooth, point
+from diffsmf.interval.jet import Jet, chain, hadd, hull, move, mul, nonsmooth, point
 from diffsmf.interval.rounding import down, up
 from diffsmf.sets.interval import Interval
 
@@ -1145,12 +1145,7 @@ def _unsupported(ctx: Ctx, what: str) -> Exception:
     return EngineError(f"{what} (operation {ctx.name}) is not supported")
 
 
-def _scalar_like(ctx: Ctx, x: Any) -> Any:
-    return x
-
-
 register(aten.scalar_tensor, category="constant")(lambda ctx, *a, **k: aten.scalar_tensor(*a, **k))
-del as_interval
 
 
 def _like_value(x: Any) -> Tensor:
