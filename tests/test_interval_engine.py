@@ -211,3 +211,10 @@ def test_ordinary_ways_of_writing_a_model_run_and_are_contained(name):
     with torch.no_grad():
         res = ds.filters.HSNSMF(s)(tr.y)
     assert bool(res.bounded.all()) and bool(res.sets.contains(tr.x.detach()).all())
+
+
+def test_inclusion_needs_a_rule_function():
+    with pytest.raises(ValueError, match="rule: must be a function"):
+        inclusion(None)
+    with pytest.raises(ValueError, match="decorates a function"):
+        inclusion(lambda lo, hi: (lo, hi, lo, hi))(3.0)

@@ -94,7 +94,14 @@ def inclusion(rule: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor, Ten
             return torch.tanh(x) * 2.0
     """
 
+    if not callable(rule):
+        raise ValueError(f"rule: must be a function (lo, hi) -> (value_lo, value_hi, jac_lo, "
+                         f"jac_hi), got {type(rule).__name__}")
+
     def deco(fn: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
+        if not callable(fn):
+            raise ValueError(f"inclusion: decorates a function, got {type(fn).__name__}")
+
         class _Leaf:
             def __init__(self) -> None:
                 self._diffsmf_raw = fn
