@@ -17,7 +17,7 @@ from torch import Tensor
 
 from diffsmf.utils import tracing
 
-__all__ = ["hessian", "jacobian", "stirling_jacobian"]
+__all__ = ["hessian", "jacobian", "stirling_jacobian", "value_and_jacobian"]
 
 Fn = Callable[[Tensor], Tensor]
 
@@ -37,17 +37,33 @@ def jacobian(fn: Fn, x: Tensor) -> Tensor:
     planes).
 
     One forward pass and one reverse pass per output component (the batch elements do not
-    interact, so the gradient of the summed component i is row i of every Jacobian). Plain
-    ``torch.autograd.grad``: for the small ``k`` of state-space models this is faster than a
-    ``vmap`` over cotangents, whose Python overhead dominated the filters' step time.
+    interact, so the gradient of the summed output component i is row i of every Jacobian).
+    Plain ``torch.autograd.grad``: for the small ``k`` of state-space models this is faster
+    than a ``vmap`` over cotangents, whose Python overhead dominated the filters' step time.
     Differentiable when grad mode is on (usable inside a loss, and twice: `hessian`
     nests it); under ``torch.no_grad`` the result is detached. If ``fn`` broadcasts ``x``
     against a larger batch (closure over batched tensors), ``x`` is first expanded to the
     output batch shape.
     """
+    return value_and_jacobian(fn, x)[1]
+
+
+def value_and_jacobian(fn: Fn, x: Tensor, *, points: bool = False) -> tuple[Tensor, Tensor]:
+    """``(fn(x) [..., k], jacobian(fn, x) [..., k, n])`` from the same passes.
+
+    The value is ``fn`` at ``x`` expanded to the output batch shape (detached under
+    ``torch.no_grad``). ``points=True`` declares the leading dim of ``x`` a dim of stacked
+    points (vertices, stencils) that ``fn``'s closures broadcast against, as the remainder
+    bounds and `stirling_jacobian` stack them: then ``x`` is replicated ``r >= k`` times in
+    a further leading dim, copy ``i`` feeding output component ``i``, and one reverse pass
+    of ``sum_i y[i, ..., i]`` gives every row (one forward pass of ``r`` copies and one
+    reverse pass instead of one forward and ``k`` reverse passes; the same values).
+    """
     x = _check_x(x)
     if tracing():
         return _jacobian_forward(fn, x)
+    if points and x.dim() >= 2:
+        return _stacked(fn, x)
     graph = torch.is_grad_enabled()
     with torch.enable_grad():
         base = x if x.requires_grad else x.detach().requires_grad_()
@@ -60,8 +76,9 @@ def jacobian(fn: Fn, x: Tensor) -> Tensor:
             wrt = base.expand(*batch, x.shape[-1])
             y = fn(wrt).expand(*batch, y.shape[-1])
         k = y.shape[-1]
+        val = y if graph else y.detach()
         if not y.requires_grad:  # fn does not depend on x (nor on anything with a gradient)
-            return torch.zeros((*batch, k, x.shape[-1]), dtype=y.dtype, device=y.device)
+            return val, torch.zeros((*batch, k, x.shape[-1]), dtype=y.dtype, device=y.device)
         rows = []
         for i in range(k):
             (g,) = torch.autograd.grad(
@@ -69,11 +86,40 @@ def jacobian(fn: Fn, x: Tensor) -> Tensor:
                 allow_unused=True,
             )
             rows.append(torch.zeros_like(wrt) if g is None else g)
-    return torch.stack(rows, -2)
+    return val, torch.stack(rows, -2)
 
 
-def _jacobian_forward(fn: Fn, x: Tensor) -> Tensor:
-    """Forward-mode Jacobian ``[..., k, n]``: one ``torch.func.jvp`` per basis direction,
+def _stacked(fn: Fn, x: Tensor) -> tuple[Tensor, Tensor]:
+    """`value_and_jacobian` with ``points=True`` (``x [P, ..., n]``, eager)."""
+    graph = torch.is_grad_enabled()
+    n = x.shape[-1]
+    with torch.enable_grad():
+        base = x if x.requires_grad else x.detach().requires_grad_()
+        r = n  # copies; the common k = n (state maps) needs a single evaluation
+        wrt = base.expand(r, *x.shape)
+        y = fn(wrt)
+        if not isinstance(y, Tensor) or y.dim() < 2:
+            raise ValueError("fn: must return a tensor of shape [..., k] (batch dims kept)")
+        k = y.shape[-1]
+        batch = torch.broadcast_shapes(x.shape[:-1], y.shape[1:-1])
+        if k > r or batch != x.shape[:-1] or y.shape[:-1] != (r, *batch):
+            r = max(k, 1)
+            wrt = base.expand(r, *batch, n)
+            y = fn(wrt).expand(r, *batch, k)
+        val = y[0] if graph else y[0].detach()
+        if not y.requires_grad:  # fn does not depend on x (nor on anything with a gradient)
+            return val, torch.zeros((*batch, k, n), dtype=y.dtype, device=y.device)
+        (g,) = torch.autograd.grad(
+            (y if r == k else y[:k]).diagonal(0, 0, -1).sum(), wrt, retain_graph=graph,
+            create_graph=graph, allow_unused=True,
+        )
+    if g is None:
+        return val, torch.zeros((*batch, k, n), dtype=y.dtype, device=y.device)
+    return val, (g if r == k else g[:k]).movedim(0, -2)
+
+
+def _jacobian_forward(fn: Fn, x: Tensor) -> tuple[Tensor, Tensor]:
+    """``fn(x)`` and the forward-mode Jacobian ``[..., k, n]``: one ``torch.func.jvp`` per basis direction,
     vectorised by ``vmap`` over the n directions (not over the batch, so closures over
     batched tensors broadcast as usual). Used while ``torch.compile`` traces a filter step
     (``autograd.grad`` would break the graph); the values equal the reverse-mode ones up to
@@ -82,6 +128,7 @@ def _jacobian_forward(fn: Fn, x: Tensor) -> Tensor:
     n = x.shape[-1]
     y0 = fn(x)
     batch = torch.broadcast_shapes(x.shape[:-1], y0.shape[:-1])
+    y0 = y0.expand(*batch, y0.shape[-1])
     xb = x.expand(*batch, n)
     eye = torch.eye(n, dtype=x.dtype, device=x.device)
     E = eye.reshape(n, *([1] * len(batch)), n).expand(n, *batch, n)
@@ -90,7 +137,7 @@ def _jacobian_forward(fn: Fn, x: Tensor) -> Tensor:
         return torch.func.jvp(fn, (xb,), (t,))[1]
 
     cols = torch.func.vmap(column)(E)  # [n, *batch, k]
-    return cols.movedim(0, -1)
+    return y0, cols.movedim(0, -1)
 
 
 def hessian(fn: Fn, x: Tensor) -> Tensor:

@@ -15,6 +15,7 @@ by ``fn``. ``fn`` must be batch-elementwise (see `diffsmf.linearize.jacobians`).
 from __future__ import annotations
 
 import itertools
+import math
 import weakref
 from collections.abc import Callable
 
@@ -23,7 +24,7 @@ from torch import Tensor
 
 from diffsmf import linalg
 from diffsmf.interval.engine import enclose_dynamics
-from diffsmf.linearize.jacobians import jacobian
+from diffsmf.linearize.jacobians import jacobian, value_and_jacobian
 from diffsmf.linearize.jets import Jet, jet_eval
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
@@ -112,10 +113,39 @@ def _check(S: ConvexSet, c: Tensor, J: Tensor | None) -> tuple[Tensor, Tensor | 
 
 def _padded(lo: Tensor, hi: Tensor, scale: Tensor) -> Interval:
     """``[lo - tol, hi + tol]`` with ``tol = PAD * eps * scale`` (detached) + tiny."""
-    tol = (_PAD_ULPS * _eps(lo)) * scale.detach() + torch.finfo(lo.dtype).tiny
+    tol = (_PAD_ULPS * _eps(lo)) * _nograd(scale) + torch.finfo(lo.dtype).tiny
     # internal bounds (lo <= hi by construction): no validation, and no host sync, per call;
     # a NaN propagates to the filters' guard (sanitize_remainder), which flags the element
     return Interval._make(lo - tol, hi + tol)
+
+
+def _nograd(t: Tensor) -> Tensor:
+    """``t`` detached (no op when it carries no gradient)."""
+    return t.detach() if t.requires_grad else t
+
+
+#: A short dot product over the last dim is unrolled into slices when its output has at least
+#: this many elements (torch's reduction over a trailing dim of size 2-4 costs ~100 ns per
+#: output); smaller ones are a product and a sum (two ops).
+_UNROLL_ELEMS = 1 << 14
+_UNROLL_MAX_N = 4
+
+
+def _dot(a: Tensor, b: Tensor) -> Tensor:
+    """``sum_j a[..., j] b[..., j]`` (broadcast) -> ``[...]``.
+
+    For ``n <= 2`` the float result is the same either way (each product and the one sum
+    rounded once); for larger ``n`` the order of the additions may differ, within the
+    ``n eps sum |terms|`` that every caller's rounding padding covers.
+    """
+    n = a.shape[-1]
+    shape = torch.broadcast_shapes(a.shape, b.shape)
+    if n > _UNROLL_MAX_N or math.prod(shape[:-1]) < _UNROLL_ELEMS:
+        return (a * b).sum(-1)
+    out = a[..., 0] * b[..., 0]
+    for j in range(1, n):
+        out = out + a[..., j] * b[..., j]
+    return out
 
 
 def _hull_with(S: ConvexSet, c: Tensor) -> Interval:
@@ -191,7 +221,8 @@ def _lagrange(
 
 
 def _lower_order(
-    fn: Fn, jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, R: Interval
+    fn: Fn, jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, R: Interval,
+    jv: Tensor | None = None,
 ) -> Interval:
     """``R`` intersected with the bounds of lower order, per output.
 
@@ -200,29 +231,41 @@ def _lower_order(
     ``[J_fn]`` for ``J`` when ``J`` is None (the exact Jacobian at ``c`` lies in it). It bounds
     the outputs whose Hessian enclosure is infinite (a kink of relu, abs, clamp, max or a PWL
     model inside the set). Where the Jacobian enclosure itself is infinite (a branch on the
-    state that may jump), zeroth order: ``r in [f](box) - f(c) - J (S - c)``.
+    state that may jump), zeroth order: ``r in [f](box) - f(c) - J (S - c)``. ``jv`` is
+    ``_abs_max(jet.val)`` when the caller has it.
+
+    The interval product is evaluated in plain float: ``box`` contains ``c``, so
+    ``d = box - c`` has ``d_lo <= 0 <= d_hi`` and ``[a, b] [d_lo, d_hi]`` is
+    ``[min(a d_hi, b d_lo), max(a d_lo, b d_hi)]``; its rounding (the subtractions, the
+    products and the sum, at most ``(n + 2) eps sum_j (|a_j| + |b_j|) |d_j|``) is covered by
+    the padding, whose scale includes those terms.
     """
-    d = box.__sub__(c)
+    dl = (box.lower - c).unsqueeze(-2)  # [..., 1, n], <= 0
+    du = (box.upper - c).unsqueeze(-2)  # >= 0
+    gl, gu = jet.grad.lower, jet.grad.upper
     # infinite Jacobian bounds are masked out of the products and put back in the result, so
     # that no 0 * inf reaches the gradients of the other batch elements
-    finite = torch.isfinite(jet.grad.lower) & torch.isfinite(jet.grad.upper)
-    zero = torch.zeros_like(jet.grad.lower)
-    G = Interval._make(torch.where(finite, jet.grad.lower, zero),
-                       torch.where(finite, jet.grad.upper, zero))
-    R1 = (G.__sub__(G if J is None else J) * d.unsqueeze(-2)).sum(-1)
+    finite = torch.isfinite(gu - gl)  # False for an infinite bound (and NaN)
+    Jl, Ju = (gu, gl) if J is None else (J, J)  # J = None: [J_fn] - [J_fn]
+    a = torch.where(finite, gl - Jl, 0.0)  # [..., k, n]: [a, b] = [J_fn] - J
+    b = torch.where(finite, gu - Ju, 0.0)
+    lo = torch.minimum(a * du, b * dl).sum(-1)  # [..., k]
+    hi = torch.maximum(a * dl, b * du).sum(-1)
     rows = finite.all(-1)
-    inf = torch.full_like(R1.lower, torch.inf)
-    R1 = Interval._make(torch.where(rows, R1.lower, -inf), torch.where(rows, R1.upper, inf))
-    mag = d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2)
-    scale = _abs_max(jet.val) + (0.0 if J is None else (J.abs() * mag).sum(-1).detach())
-    R = R.intersect(_padded(R1.lower, R1.upper, scale))
-    if not tracing() and bool(finite.all()):
+    mag = torch.maximum(-dl, du)  # [..., 1, n]
+    Jm = a.abs() + b.abs() if J is None else a.abs() + b.abs() + J.abs()
+    jv = _abs_max(jet.val) if jv is None else jv  # the caller's, when it has it
+    scale = jv + _nograd((Jm * mag).sum(-1))
+    R1 = _padded(lo, hi, scale)
+    R = Interval._make(torch.where(rows, torch.maximum(R.lower, R1.lower), R.lower),
+                       torch.where(rows, torch.minimum(R.upper, R1.upper), R.upper))
+    if not tracing() and bool(rows.all()):
         return R
     Jc = jacobian(fn, c) if J is None else J
     fc = fn(c)
     L = _linear_range(S, Jc, c)
     R0 = jet.val.__sub__(fc).__sub__(L)
-    scale0 = _abs_max(jet.val) + fc.abs().detach() + _abs_max(L)
+    scale0 = jv + fc.abs().detach() + _abs_max(L)
     both = R.intersect(_padded(R0.lower, R0.upper, scale0))
     # only the outputs without a finite first-order bound (the same result eager and traced)
     use = ~rows
@@ -232,8 +275,8 @@ def _lower_order(
 
 def _abs_max(I: Interval) -> Tensor:
     """``max |x|`` over an interval array (inf-safe, detached)."""
-    m = torch.maximum(I.lower.abs(), I.upper.abs()).detach()
-    return torch.where(torch.isfinite(m), m, torch.zeros_like(m))
+    m = _nograd(torch.maximum(I.lower.abs(), I.upper.abs()))
+    return torch.where(torch.isfinite(m), m, 0.0)
 
 
 def hessian_eig_lower_bound(H: Interval) -> Tensor:
@@ -247,21 +290,39 @@ def hessian_eig_lower_bound(H: Interval) -> Tensor:
     lo, hi = H.lower, H.upper
     finite = torch.isfinite(lo) & torch.isfinite(hi)
     ok = finite.all(-1).all(-1)
-    lo = torch.where(finite, lo, torch.zeros_like(lo))
-    hi = torch.where(finite, hi, torch.zeros_like(hi))
+    lam = _curvature(torch.where(finite, lo, 0.0), torch.where(finite, hi, 0.0))[0][0]
+    return torch.where(ok, lam, -torch.inf)
+
+
+def _curvature(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """`hessian_eig_lower_bound` and `diagonal_shift` of the interval matrices ``[lo, hi]``
+    and ``[-hi, -lo]`` (``[..., n, n]``) at once -> ``(lam [2, ...], w [2, ..., n])``.
+
+    The two share their off-diagonal magnitudes, radius matrix and norm; the midpoint of the
+    second is minus the first's, so its ``lambda_min`` is minus the first's ``lambda_max``
+    (one eigenvalue call for the midpoint and the radius matrix together; for n <= 2 the
+    closed form gives exactly ``-lambda_max``, above that any difference is within the
+    solver's error that the ``(8 n + 16) eps`` padding covers). Non-finite entries give a
+    non-finite ``lam`` / ``w``.
+    """
     n = lo.shape[-1]
     eye = torch.eye(n, dtype=torch.bool, device=lo.device)
-    mag = torch.maximum(lo.abs(), hi.abs())
-    off = torch.where(eye, torch.zeros_like(mag), mag).sum(-1)
-    gersh = (torch.diagonal(lo, dim1=-2, dim2=-1) - off).amin(-1)
+    off = torch.maximum(lo.abs(), hi.abs()).masked_fill(eye, 0.0).sum(-1)  # [..., n]
+    diag = torch.stack([torch.diagonal(lo, dim1=-2, dim2=-1),
+                        -torch.diagonal(hi, dim1=-2, dim2=-1)])  # [2, ..., n]
+    gersh = (diag - off).amin(-1)  # [2, ...]
     Hc = 0.5 * (lo + hi)
     Hr = 0.5 * (hi - lo)
-    Hc = 0.5 * (Hc + Hc.mT)
-    Hr = 0.5 * (Hr + Hr.mT)
-    weyl = linalg.eigvalsh(Hc)[..., 0] - linalg.eigvalsh(Hr)[..., -1]
-    norm = (Hc.abs() + Hr.abs()).sum((-2, -1)).detach()
-    lam = torch.maximum(gersh, weyl) - (8 * n + 16) * _eps(lo) * norm
-    return torch.where(ok, lam, torch.full_like(lam, -torch.inf))
+    Hcr = torch.stack([Hc, Hr])
+    Hcr = 0.5 * (Hcr + Hcr.mT)
+    ev = linalg.eigvalsh(Hcr)  # [2, ..., n]: midpoint, radius
+    weyl = torch.stack([ev[0, ..., 0], -ev[0, ..., -1]]) - ev[1, ..., -1]
+    A = Hcr.abs()
+    norm = _nograd((A[0] + A[1]).sum((-2, -1)))
+    tol = (8 * n + 16) * _eps(lo)
+    lam = torch.maximum(gersh, weyl) - tol * norm
+    w = (off - diag + tol * _nograd(diag.abs() + off)).clamp(min=0) * 0.5
+    return lam, w
 
 
 def _extreme_points(S: ConvexSet, max_vertices: int) -> tuple[Tensor, bool]:
@@ -302,15 +363,8 @@ def diagonal_shift(H: Interval) -> Tensor:
     member diagonally dominant with a non-negative diagonal. Padded for rounding; inf where
     ``H`` is unbounded.
     """
-    lo, hi = H.lower, H.upper
-    n = lo.shape[-1]
-    eye = torch.eye(n, dtype=torch.bool, device=lo.device)
-    mag = torch.maximum(lo.abs(), hi.abs())
-    off = torch.where(eye, torch.zeros_like(mag), mag).sum(-1)
-    diag = torch.diagonal(lo, dim1=-2, dim2=-1)
-    pad = (8 * n + 16) * _eps(lo) * (diag.abs() + off).detach()
-    w = (off - diag + pad).clamp(min=0) * 0.5
-    return torch.where(torch.isnan(w), torch.full_like(w, torch.inf), w)
+    w = _curvature(H.lower, H.upper)[1][0]
+    return torch.where(torch.isnan(w), torch.inf, w)
 
 
 #: Half-widths below this are not used to normalise the DC split (a flat direction of the box,
@@ -318,10 +372,11 @@ def diagonal_shift(H: Interval) -> Tensor:
 _MIN_SCALE = 1e-150
 
 
-def _convexifying_weights(Hpm: Interval, box: Interval) -> Tensor:
+def _convexifying_weights(H: Interval, box: Interval) -> tuple[Tensor, Tensor]:
     """Weights ``W [4, ..., k, n]`` of the four quadratics ``q = sum_j W_j (x_j - c_j)^2`` of
-    the DC split: ball and diagonal shift for ``r`` and for ``-r`` (``Hpm [2, ..., k, n, n]``
-    holds the interval Hessians of ``r`` and ``-r``).
+    the DC split: ball and diagonal shift for ``r`` and for ``-r`` (``H [..., k, n, n]`` is
+    the interval Hessian of ``r``; that of ``-r`` is ``-H``), and ``bad [4, ..., k]``: True
+    where a form does not exist (an unbounded Hessian; there ``W`` is 0, not to be used).
 
     Scale-covariant: both forms are computed for the Hessian in the coordinates normalised by
     the box's half-widths ``s`` (``x~ = x / s``, Hessian ``diag(s) M diag(s)``) and mapped
@@ -335,54 +390,62 @@ def _convexifying_weights(Hpm: Interval, box: Interval) -> Tensor:
     s = box.radius
     # a flat or non-finite width (a diverged element) normalises by 1: no inf reaches the
     # weights or, through them, the gradients of the other elements
-    s = torch.where((s > _MIN_SCALE) & torch.isfinite(s), s, torch.ones_like(s))  # [..., n]
+    s = torch.where((s > _MIN_SCALE) & torch.isfinite(s), s, 1.0)  # [..., n]
     ss = (s.unsqueeze(-1) * s.unsqueeze(-2)).unsqueeze(-3)  # [..., 1, n, n]
-    hfin = torch.isfinite(Hpm.lower) & torch.isfinite(Hpm.upper)  # [2, ..., k, n, n]
-    unbounded = ~hfin.all(-1).all(-1)  # [2, ..., k]: no convexification
-    z = torch.zeros_like(Hpm.lower)
-    Hs = Interval._make(torch.where(hfin, Hpm.lower, z) * ss, torch.where(hfin, Hpm.upper, z) * ss)
-    inv = (1.0 / (s * s)).unsqueeze(-2)  # [..., 1, n]
-    ball = (-hessian_eig_lower_bound(Hs)).clamp(min=0) * 0.5  # [2, ..., k]: alpha~, beta~
-    diag = diagonal_shift(Hs)  # [2, ..., k, n]
-    ball = ball.unsqueeze(-1).expand_as(diag)
-    W = torch.stack([ball[0], diag[0], ball[1], diag[1]])  # [4, ..., k, n], scaled
-    # inf (an unbounded Hessian: no convexification) stays inf; only finite weights are
-    # mapped back, so no inf * 0 reaches the gradients
-    bad = torch.stack([unbounded[0], unbounded[0], unbounded[1], unbounded[1]]).unsqueeze(-1)
-    fin = torch.isfinite(W) & ~bad
-    Wb = torch.where(fin, W, torch.zeros_like(W)) * inv
-    return torch.where(fin, Wb, torch.full_like(W, torch.inf))
+    hfin = torch.isfinite(H.upper - H.lower)  # False for an infinite bound (and NaN)
+    unbounded = ~hfin.flatten(-2).all(-1)  # [..., k]: no convexification
+    lo = torch.where(hfin, H.lower, 0.0) * ss
+    hi = torch.where(hfin, H.upper, 0.0) * ss
+    lam, diag = _curvature(lo, hi)  # [2, ..., k] (r and -r), [2, ..., k, n]
+    ball = ((-lam).clamp(min=0) * 0.5).unsqueeze(-1).expand_as(diag)  # alpha~, beta~
+    W = torch.stack([ball, diag], 1).flatten(0, 1)  # [4, ..., k, n], scaled
+    # a non-finite weight (an unbounded or overflowing Hessian) marks the form bad; only
+    # finite weights are mapped back, so no inf * 0 reaches the gradients
+    fin = torch.isfinite(W) & ~unbounded.unsqueeze(-1)
+    Wf = torch.where(fin, W, 0.0) * (1.0 / (s * s)).unsqueeze(-2)
+    return Wf, ~fin.all(-1)
 
 
-def _dc_upper(rv: Tensor, qv: Tensor) -> Tensor:
-    """Wang et al. 2022, eq. 15: r + q convex, tangent of q at c is 0 -> r <= max_v (r(v) +
-    q(v))."""
-    return (rv + qv).amax(0)
+def _dc_bounds(rv: Tensor, gP: Tensor, dP: Tensor, W: Tensor) -> tuple[Tensor, Tensor]:
+    """Wang et al. 2022, eq. 15-16 for the four forms -> candidate ``(lower, upper)``
+    ``[4, ..., k]`` (forms: ball and diagonal for ``r``, then for ``-r``).
 
+    ``rv [N, ..., k]``: ``r`` at the vertices; ``gP [P, ..., k, n]``: the gradient of ``r``
+    at the tangent points (``c`` first, where ``r = 0``, then the vertices when ``P > 1``);
+    ``dP [1 + N, ..., n]``: ``x - c`` at ``c`` (0) and the vertices; ``W [4, ..., k, n]``.
 
-def _dc_lower(
-    rv: Tensor, qv: Tensor, grad_c: Tensor, grad_v: Tensor | None, W: Tensor, dv: Tensor
-) -> Tensor:
-    """Wang et al. 2022, eq. 16: r >= tangent of the convex r + q at p, minus the concave q.
+    * eq. 15 (``r + q`` convex, its tangent at ``c`` is 0): ``r <= max_v (r(v) + q(v))``;
+    * eq. 16: ``r + q`` lies above its tangent plane at ``p`` and ``q`` is quadratic, so
+      ``r(x) >= r(p) + grad r(p).(x - p) - sum_j W_j (x_j - p_j)^2`` (the tangent plane
+      minus ``q``, rewritten: no ``p x v x n`` tensor), a concave function of ``x`` whose
+      minimum over the polytope is at a vertex. The best tangent point is kept.
 
-    ``tangent_p(x) - q(x)`` is concave, so its minimum over the polytope is at a vertex; the
-    best tangent point among ``c`` and (if ``grad_v`` given) the vertices is kept. The
-    tangent points are processed in chunks (memory ``chunk x N x batch x k x n``).
-    ``rv, qv [N, ..., k]``, ``grad_c [..., k, n]``, ``grad_v [N, ..., k, n]``, ``W [..., k, n]``.
+    The forms of ``-r`` give the upper bound ``min_p max_v (L + Q)`` and the lower bound
+    ``min_v (r(v) - q(v))`` the same way. Rounding: the terms are at most ``|r(p)|``,
+    ``2 |grad r(p)| |x - c|`` and ``4 W |x - c|^2`` in magnitude, which the caller's padding
+    covers. The tangent points go in chunks (memory ``chunk x N x 4 x batch x k``).
     """
-    lower = ((grad_c * dv.unsqueeze(-2)).sum(-1) - qv).amin(0)  # p = c: r(c) = q(c) = 0
-    if grad_v is None:
-        return lower
-    g1v = materialize(rv + qv)  # [N, ..., k]
-    grad_g1 = materialize(grad_v + 2 * W * dv.unsqueeze(-2))  # [N, ..., k, n]
-    N = dv.shape[0]
-    step = max(1, _TANGENT_ELEMS // max(1, grad_g1.numel()))
-    for p0 in range(0, N, step):
+    P = gP.shape[0]
+    dv = dP[1:]  # [N, ..., n]
+    rP = torch.cat([torch.zeros_like(rv[:1]), rv[: P - 1]])  # [P, ..., k]: r(c) = 0
+    step = max(1, _TANGENT_ELEMS // max(1, 4 * dv.shape[0] * rv[0].numel()))
+    lo_t = up_t = qc = None
+    for p0 in range(0, P, step):
         sl = slice(p0, p0 + step)
-        diff = materialize(dv.unsqueeze(0) - dv[sl].unsqueeze(1))  # [p, v] -> v - p
-        tang = g1v[sl].unsqueeze(1) + (grad_g1[sl].unsqueeze(1) * diff.unsqueeze(-2)).sum(-1)
-        lower = torch.maximum(lower, (tang - qv.unsqueeze(0)).amin(1).amax(0))
-    return lower
+        diff = dv.unsqueeze(0) - dP[sl].unsqueeze(1)  # [p, N, ..., n]: x_v - p
+        # the tangent plane of r at p, at the vertices: [p, N, ..., k]
+        L = rP[sl].unsqueeze(1) + _dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2))
+        # sum_j W_j (x_vj - p_j)^2 for the four forms: [p, N, 4, ..., k]
+        Q = _dot(W, (diff * diff).unsqueeze(-2).unsqueeze(2))
+        L4 = L.unsqueeze(2)
+        lo = (L4 - Q[:, :, :2]).amin(1).amax(0)  # [2, ..., k]: r
+        up = (L4 + Q[:, :, 2:]).amax(1).amin(0)  # -r
+        lo_t = lo if lo_t is None else torch.maximum(lo_t, lo)
+        up_t = up if up_t is None else torch.minimum(up_t, up)
+        qc = Q[0] if qc is None else qc  # [N, 4, ..., k]: q at the vertices (p = c)
+    up_v = (rv.unsqueeze(1) + qc[:, :2]).amax(0)  # eq. 15 for r
+    lo_v = (rv.unsqueeze(1) - qc[:, 2:]).amin(0)  # eq. 15 for -r
+    return torch.cat([lo_t, lo_v]), torch.cat([up_v, up_t])
 
 
 def dc_remainder(
@@ -430,55 +493,38 @@ def dc_remainder(
     if _remember(fn, jet):  # same result as every later call (which skips the jets)
         return _affine_remainder(fn, S, c, J)
     H = jet.hess  # [..., k, n, n]
-    if not tracing() and bool((H.lower.detach() == 0).all() and (H.upper.detach() == 0).all()):
+    if not tracing() and not (bool(H.lower.any()) or bool(H.upper.any())):
         # fn is affine on the hull: r(x) = (J_exact - J)(x - c) exactly, no vertices needed
         R = _lagrange(jet, box, S, c, J, None if J is None else jacobian(fn, c) - J)
         return _lower_order(fn, jet, box, S, c, J, R)
     # the four convexifications at once (leading dim 4): r + q convex with q the ball
     # (alpha |x - c|^2) or the diagonal shift, and -r + q convex with the same two forms
-    Hpm = Interval._make(torch.stack([H.lower, -H.upper]), torch.stack([H.upper, -H.lower]))
-    W = _convexifying_weights(Hpm, box)  # [4, ..., k, n]
-    finite = torch.isfinite(W)
-    Wf = materialize(torch.where(finite, W, torch.zeros_like(W)))
+    W, bad = _convexifying_weights(H, box)  # [4, ..., k, n], [4, ..., k]
     Vf = _front(V)  # [N, ..., n]
     tangents = V.shape[-2] <= _MAX_TANGENTS  # tangent planes at the vertices too
-    cb, Vb = torch.broadcast_tensors(c.unsqueeze(0), Vf)
-    pts = torch.cat([cb[:1], Vb])  # [1 + N, ..., n]: c, then the vertices
-    Jall = jacobian(fn, pts if tangents else c)  # one batched autograd call
-    Jc = Jall[0] if tangents else Jall  # [..., k, n]
-    fall = fn(pts)  # [1 + N, ..., k]
-    fc, fv = fall[0], fall[1:]
-    J = materialize(Jc if J is None else J)
-    dv = materialize(Vf - c)  # [N, ..., n]
-    rv = fv - fc - (J * dv.unsqueeze(-2)).sum(-1)  # remainder at the vertices [N, ..., k]
-    grad_c = Jc - J
-    grad_v = Jall[1:] - J if tangents else None
-    dv2 = (dv * dv).unsqueeze(-2)  # [N, ..., 1, n]
-    sgn = torch.tensor([1.0, 1.0, -1.0, -1.0], dtype=rv.dtype, device=rv.device)
-    sgn = sgn.reshape(4, *([1] * (rv.dim() - 1)))  # [4, 1.., 1] against [..., k]
-    rs = rv.unsqueeze(1) * sgn  # [N, 4, ..., k]: r, r, -r, -r
-    qv = (Wf * dv2.unsqueeze(1)).sum(-1)  # [N, 4, ..., k]
-    gs = sgn.unsqueeze(-1)
-    gv = None if grad_v is None else grad_v.unsqueeze(1) * gs
-    up = _dc_upper(rs, qv)  # [4, ..., k]
-    lo = _dc_lower(rs, qv, grad_c * gs, gv, Wf, dv.unsqueeze(1))
-    bad = ~finite.all(-1)  # [4, ..., k]: no convexification (unbounded Hessian)
-    inf = torch.full_like(up, torch.inf)
-    upper = torch.where(bad, inf, torch.cat([up[:2], -lo[2:]])).amin(0)
-    lower = torch.where(bad, -inf, torch.cat([lo[:2], -up[2:]])).amax(0)
-    # rounding scale: magnitudes of every term summed above
-    adv = dv.abs()
-    wmax = Wf.amax(0)
-    scale = (fv.abs() + fc.abs() + (J.abs() * adv.unsqueeze(-2)).sum(-1)).amax(0)
-    scale = scale + _abs_max(jet.val)  # rounding of fn at interior points
-    scale = scale + (wmax * dv2).sum(-1).amax(0)
-    gm = grad_c.abs() if grad_v is None else grad_c.abs() + grad_v.abs().amax(0)
-    scale = scale + 4 * (gm * adv.amax(0).unsqueeze(-2)).sum(-1)
-    scale = scale + 4 * (wmax * (adv.amax(0) ** 2).unsqueeze(-2)).sum(-1)
+    pts = torch.cat([torch.broadcast_to(c, Vf.shape[1:]).unsqueeze(0), Vf])  # [1 + N, ..., n]
+    if tangents:  # one batched autograd call: values and gradients at c and the vertices
+        fall, Jall = value_and_jacobian(fn, pts, points=True)  # [1 + N, ..., k (, n)]
+    else:
+        fall, Jall = fn(pts), jacobian(fn, c).unsqueeze(0)
+    Jc = Jall[0]  # [..., k, n]
+    J = Jc if J is None else J
+    dP = pts - c  # [1 + N, ..., n]: exactly 0 at c
+    rall = fall - fall[0] - _dot(J, dP.unsqueeze(-2))  # r at c (0) and the vertices
+    gP = Jall - J  # [P, ..., k, n]: gradients of r at the tangent points
+    lo, up = _dc_bounds(rall[1:], gP, dP, W)  # [4, ..., k]
+    upper = up.masked_fill(bad, torch.inf).amin(0)
+    lower = lo.masked_fill(bad, -torch.inf).amax(0)
+    # rounding scale: magnitudes of every term summed above (|r| at the points, the tangent
+    # planes' slopes and the quadratics over the hull, c included: box - c covers x - c)
+    jv = _abs_max(jet.val)  # rounding of fn at interior points
+    mag = torch.maximum(box.upper - c, c - box.lower)  # [..., n] >= |x - c| on the hull
+    G = 4.0 * (gP.abs().amax(0) + J.abs()) + 4.0 * W.amax(0) * mag.unsqueeze(-2)
+    scale = 2.0 * fall.abs().amax(0) + jv + _dot(G, mag.unsqueeze(-2))
     out = _padded(lower, upper, scale)
     if with_lagrange:
-        out = out.intersect(_lagrange(jet, box, S, c, J, grad_c))
-    return _lower_order(fn, jet, box, S, c, J, out)
+        out = out.intersect(_lagrange(jet, box, S, c, J, Jc - J))
+    return _lower_order(fn, jet, box, S, c, J, out, jv)
 
 
 def parameter_deviation(
