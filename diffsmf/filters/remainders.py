@@ -49,11 +49,16 @@ def remainder_events(R: Interval) -> Tensor:
     `MAX_SET_RADIUS` (a pole of the model, or a set grown without
     bound: squaring such a radius, as the ellipsoidal covers do, would overflow before the
     guard sees the set), else 0. Branch-free, per element."""
-    nan = (torch.isnan(R.lower) | torch.isnan(R.upper)).any(-1)
-    big = MAX_SET_RADIUS
-    ok = ((R.lower.abs() <= big) & (R.upper.abs() <= big)).all(-1)  # False for NaN and inf
-    ev = torch.where(ok, 0, int(FilterEvent.DIVERGED))
-    return torch.where(nan, int(FilterEvent.DOMAIN), ev)
+    return _events_ok(R)[0]
+
+
+def _events_ok(R: Interval) -> tuple[Tensor, Tensor]:
+    """`remainder_events` and ``ok [...]`` (True where they are 0)."""
+    m = torch.maximum(R.lower.abs(), R.upper.abs())  # NaN where a bound is NaN
+    nan = torch.isnan(m).any(-1)
+    ok = (m <= MAX_SET_RADIUS).all(-1)  # False for NaN and inf
+    ev = torch.where(nan, int(FilterEvent.DOMAIN), int(FilterEvent.DIVERGED))
+    return ev.masked_fill(ok, 0), ok
 
 
 def checked_remainder(R: Interval) -> tuple[Interval, Tensor]:
@@ -61,10 +66,9 @@ def checked_remainder(R: Interval) -> tuple[Interval, Tensor]:
     ``R`` where they are 0 and the box 0 elsewhere, so that no NaN / inf reaches the rest of
     the batch. The caller records the events (``FilterState.flag``), which marks those
     elements unbounded: no bounded guaranteed set exists for them."""
-    ev = remainder_events(R)
-    keep = (ev == 0).unsqueeze(-1)
-    z = torch.zeros_like(R.lower)
-    return Interval._make(torch.where(keep, R.lower, z), torch.where(keep, R.upper, z)), ev
+    ev, ok = _events_ok(R)
+    drop = ~ok.unsqueeze(-1)
+    return Interval._make(R.lower.masked_fill(drop, 0.0), R.upper.masked_fill(drop, 0.0)), ev
 
 
 def sanitize_remainder(R: Interval) -> tuple[Interval, Tensor]:

@@ -106,7 +106,7 @@ def _stacked(fn: Fn, x: Tensor) -> tuple[Tensor, Tensor]:
             r = max(k, 1)
             wrt = base.expand(r, *batch, n)
             y = fn(wrt).expand(r, *batch, k)
-        val = y[0] if graph else y[0].detach()
+        val = y[0]  # carries the graph only while grad mode records it (the caller's mode)
         if not y.requires_grad:  # fn does not depend on x (nor on anything with a gradient)
             return val, torch.zeros((*batch, k, n), dtype=y.dtype, device=y.device)
         (g,) = torch.autograd.grad(

@@ -134,9 +134,10 @@ _UNROLL_MAX_N = 4
 def _dot(a: Tensor, b: Tensor) -> Tensor:
     """``sum_j a[..., j] b[..., j]`` (broadcast) -> ``[...]``.
 
-    For ``n <= 2`` the float result is the same either way (each product and the one sum
-    rounded once); for larger ``n`` the order of the additions may differ, within the
-    ``n eps sum |terms|`` that every caller's rounding padding covers.
+    Small outputs: a product and a sum (two ops). Large ones: the first product, then
+    ``addcmul_`` in place (no temporary per term: a fresh large tensor costs its page
+    faults). The two may differ in the last bits (order of the additions, a fused
+    multiply-add), within the ``n eps sum |terms|`` that every caller's padding covers.
     """
     n = a.shape[-1]
     shape = torch.broadcast_shapes(a.shape, b.shape)
@@ -144,7 +145,7 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
         return (a * b).sum(-1)
     out = a[..., 0] * b[..., 0]
     for j in range(1, n):
-        out = out + a[..., j] * b[..., j]
+        out.addcmul_(a[..., j], b[..., j])
     return out
 
 
@@ -222,7 +223,7 @@ def _lagrange(
 
 def _lower_order(
     fn: Fn, jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, R: Interval,
-    jv: Tensor | None = None,
+    jv: Tensor | None = None, d: tuple[Tensor, Tensor] | None = None,
 ) -> Interval:
     """``R`` intersected with the bounds of lower order, per output.
 
@@ -232,30 +233,35 @@ def _lower_order(
     the outputs whose Hessian enclosure is infinite (a kink of relu, abs, clamp, max or a PWL
     model inside the set). Where the Jacobian enclosure itself is infinite (a branch on the
     state that may jump), zeroth order: ``r in [f](box) - f(c) - J (S - c)``. ``jv`` is
-    ``_abs_max(jet.val)`` when the caller has it.
+    ``_abs_max(jet.val)`` and ``d`` the pair ``(box.lower - c, box.upper - c)`` when the
+    caller has them.
 
     The interval product is evaluated in plain float: ``box`` contains ``c``, so
     ``d = box - c`` has ``d_lo <= 0 <= d_hi`` and ``[a, b] [d_lo, d_hi]`` is
     ``[min(a d_hi, b d_lo), max(a d_lo, b d_hi)]``; its rounding (the subtractions, the
     products and the sum, at most ``(n + 2) eps sum_j (|a_j| + |b_j|) |d_j|``) is covered by
-    the padding, whose scale includes those terms.
+    the padding, whose scale includes ``2 (hi - lo) >= sum_j (|a_j| + |b_j|) max|d_j|`` (each
+    term's lower bound is <= 0 <= its upper bound, and ``|a_j| max|d_j|`` is at most the
+    largest of its four products).
     """
-    dl = (box.lower - c).unsqueeze(-2)  # [..., 1, n], <= 0
-    du = (box.upper - c).unsqueeze(-2)  # >= 0
+    dl, du = (box.lower - c, box.upper - c) if d is None else d
+    dl = dl.unsqueeze(-2)  # [..., 1, n], <= 0
+    du = du.unsqueeze(-2)  # >= 0
     gl, gu = jet.grad.lower, jet.grad.upper
     # infinite Jacobian bounds are masked out of the products and put back in the result, so
     # that no 0 * inf reaches the gradients of the other batch elements
-    finite = torch.isfinite(gu - gl)  # False for an infinite bound (and NaN)
+    finite = (gu - gl) < torch.inf  # False for an infinite bound (and NaN): gu - gl >= 0
+    inf_g = ~finite
     Jl, Ju = (gu, gl) if J is None else (J, J)  # J = None: [J_fn] - [J_fn]
-    a = torch.where(finite, gl - Jl, 0.0)  # [..., k, n]: [a, b] = [J_fn] - J
-    b = torch.where(finite, gu - Ju, 0.0)
+    a = (gl - Jl).masked_fill(inf_g, 0.0)  # [..., k, n]: [a, b] = [J_fn] - J
+    b = (gu - Ju).masked_fill(inf_g, 0.0)
     lo = torch.minimum(a * du, b * dl).sum(-1)  # [..., k]
     hi = torch.maximum(a * dl, b * du).sum(-1)
     rows = finite.all(-1)
-    mag = torch.maximum(-dl, du)  # [..., 1, n]
-    Jm = a.abs() + b.abs() if J is None else a.abs() + b.abs() + J.abs()
     jv = _abs_max(jet.val) if jv is None else jv  # the caller's, when it has it
-    scale = jv + _nograd((Jm * mag).sum(-1))
+    scale = jv + _nograd(hi - lo) * 2.0
+    if J is not None:  # the float evaluation of J (x - c)
+        scale = scale + _nograd((J.abs() * torch.maximum(-dl, du)).sum(-1))
     R1 = _padded(lo, hi, scale)
     R = Interval._make(torch.where(rows, torch.maximum(R.lower, R1.lower), R.lower),
                        torch.where(rows, torch.minimum(R.upper, R1.upper), R.upper))
@@ -276,7 +282,7 @@ def _lower_order(
 def _abs_max(I: Interval) -> Tensor:
     """``max |x|`` over an interval array (inf-safe, detached)."""
     m = _nograd(torch.maximum(I.lower.abs(), I.upper.abs()))
-    return torch.where(torch.isfinite(m), m, 0.0)
+    return torch.nan_to_num(m, nan=0.0, posinf=0.0)
 
 
 def hessian_eig_lower_bound(H: Interval) -> Tensor:
@@ -390,29 +396,32 @@ def _convexifying_weights(H: Interval, box: Interval) -> tuple[Tensor, Tensor]:
     s = box.radius
     # a flat or non-finite width (a diverged element) normalises by 1: no inf reaches the
     # weights or, through them, the gradients of the other elements
-    s = torch.where((s > _MIN_SCALE) & torch.isfinite(s), s, 1.0)  # [..., n]
+    s = torch.where((s > _MIN_SCALE) & (s < torch.inf), s, 1.0)  # [..., n]
     ss = (s.unsqueeze(-1) * s.unsqueeze(-2)).unsqueeze(-3)  # [..., 1, n, n]
-    hfin = torch.isfinite(H.upper - H.lower)  # False for an infinite bound (and NaN)
-    unbounded = ~hfin.flatten(-2).all(-1)  # [..., k]: no convexification
-    lo = torch.where(hfin, H.lower, 0.0) * ss
-    hi = torch.where(hfin, H.upper, 0.0) * ss
+    hinf = ~((H.upper - H.lower) < torch.inf)  # an infinite bound (or NaN): upper - lower >= 0
+    unbounded = hinf.flatten(-2).any(-1)  # [..., k]: no convexification
+    lo = H.lower.masked_fill(hinf, 0.0) * ss
+    hi = H.upper.masked_fill(hinf, 0.0) * ss
     lam, diag = _curvature(lo, hi)  # [2, ..., k] (r and -r), [2, ..., k, n]
     ball = ((-lam).clamp(min=0) * 0.5).unsqueeze(-1).expand_as(diag)  # alpha~, beta~
     W = torch.stack([ball, diag], 1).flatten(0, 1)  # [4, ..., k, n], scaled
     # a non-finite weight (an unbounded or overflowing Hessian) marks the form bad; only
     # finite weights are mapped back, so no inf * 0 reaches the gradients
-    fin = torch.isfinite(W) & ~unbounded.unsqueeze(-1)
-    Wf = torch.where(fin, W, 0.0) * (1.0 / (s * s)).unsqueeze(-2)
-    return Wf, ~fin.all(-1)
+    drop = ~(W < torch.inf) | unbounded.unsqueeze(-1)  # W >= 0 or NaN
+    Wf = W.masked_fill(drop, 0.0) * (1.0 / (s * s)).unsqueeze(-2)
+    return Wf, drop.any(-1)
 
 
-def _dc_bounds(rv: Tensor, gP: Tensor, dP: Tensor, W: Tensor) -> tuple[Tensor, Tensor]:
-    """Wang et al. 2022, eq. 15-16 for the four forms -> candidate ``(lower, upper)``
-    ``[4, ..., k]`` (forms: ball and diagonal for ``r``, then for ``-r``).
+def _dc_bounds(
+    rP: Tensor, gP: Tensor, dP: Tensor, W: Tensor, bad: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Wang et al. 2022, eq. 15-16 for the four forms (ball and diagonal for ``r``, then for
+    ``-r``), the tightest of those that exist -> ``(lower, upper)`` ``[..., k]``.
 
-    ``rv [N, ..., k]``: ``r`` at the vertices; ``gP [P, ..., k, n]``: the gradient of ``r``
-    at the tangent points (``c`` first, where ``r = 0``, then the vertices when ``P > 1``);
-    ``dP [1 + N, ..., n]``: ``x - c`` at ``c`` (0) and the vertices; ``W [4, ..., k, n]``.
+    ``rP [1 + N, ..., k]``: ``r`` at ``c`` (0) and the vertices; ``gP [P, ..., k, n]``: the
+    gradient of ``r`` at the tangent points (``c``, then the vertices when ``P > 1``);
+    ``dP [1 + N, ..., n]``: ``x - c`` at ``c`` (0) and the vertices; ``W [4, ..., k, n]``;
+    ``bad [4, ..., k]``: the forms that do not exist.
 
     * eq. 15 (``r + q`` convex, its tangent at ``c`` is 0): ``r <= max_v (r(v) + q(v))``;
     * eq. 16: ``r + q`` lies above its tangent plane at ``p`` and ``q`` is quadratic, so
@@ -427,25 +436,44 @@ def _dc_bounds(rv: Tensor, gP: Tensor, dP: Tensor, W: Tensor) -> tuple[Tensor, T
     """
     P = gP.shape[0]
     dv = dP[1:]  # [N, ..., n]
-    rP = torch.cat([torch.zeros_like(rv[:1]), rv[: P - 1]])  # [P, ..., k]: r(c) = 0
+    rv = rP[1:]
+    neg = _form_signs(rv)  # -1 for the forms of r, +1 for those of -r: [4, 1.., 1]
     step = max(1, _TANGENT_ELEMS // max(1, 4 * dv.shape[0] * rv[0].numel()))
-    lo_t = up_t = qc = None
+    M = V4 = None
     for p0 in range(0, P, step):
         sl = slice(p0, p0 + step)
         diff = dv.unsqueeze(0) - dP[sl].unsqueeze(1)  # [p, N, ..., n]: x_v - p
         # the tangent plane of r at p, at the vertices: [p, N, ..., k]
-        L = rP[sl].unsqueeze(1) + _dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2))
-        # sum_j W_j (x_vj - p_j)^2 for the four forms: [p, N, 4, ..., k]
+        L = _dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2)) + rP[sl].unsqueeze(1)
+        # Q = sum_j W_j (x_vj - p_j)^2 for the four forms: [p, N, 4, ..., k]
         Q = _dot(W, (diff * diff).unsqueeze(-2).unsqueeze(2))
-        L4 = L.unsqueeze(2)
-        lo = (L4 - Q[:, :, :2]).amin(1).amax(0)  # [2, ..., k]: r
-        up = (L4 + Q[:, :, 2:]).amax(1).amin(0)  # -r
-        lo_t = lo if lo_t is None else torch.maximum(lo_t, lo)
-        up_t = up if up_t is None else torch.minimum(up_t, up)
-        qc = Q[0] if qc is None else qc  # [N, 4, ..., k]: q at the vertices (p = c)
-    up_v = (rv.unsqueeze(1) + qc[:, :2]).amax(0)  # eq. 15 for r
-    lo_v = (rv.unsqueeze(1) - qc[:, 2:]).amin(0)  # eq. 15 for -r
-    return torch.cat([lo_t, lo_v]), torch.cat([up_v, up_t])
+        if V4 is None:  # eq. 15 with q at the vertices (p = c): max_v (q(v) +- r(v))
+            V4 = torch.addcmul(Q[0], rv.unsqueeze(1), neg, value=-1.0).amax(0)  # [4, ..., k]
+        # Q - L (forms of r) and Q + L (forms of -r), in place: -max_v is the tangent
+        # bound's min_v for r, max_v the upper bound for -r
+        m = Q.addcmul_(L.unsqueeze(2), neg).amax(1).amin(0)  # [4, ..., k]
+        M = m if M is None else torch.minimum(M, m)
+    # forms of r: upper V4 (eq. 15), lower -M (eq. 16); forms of -r: upper M, lower -V4
+    pos = neg < 0
+    upper = torch.where(pos, V4, M).masked_fill(bad, torch.inf).amin(0)
+    lower = torch.where(pos, M, V4).masked_fill(bad, torch.inf).amin(0).neg()
+    return lower, upper
+
+
+_SIGNS: dict = {}
+
+
+def _form_signs(like: Tensor) -> Tensor:
+    """``[-1, -1, 1, 1]`` shaped ``[4, 1, .., 1]`` against ``[4, *like.shape[1:]]`` (cached
+    per dtype, device and rank in eager mode: a constant, not an op per call)."""
+    key = (like.dtype, like.device, like.dim())
+    t = None if tracing() else _SIGNS.get(key)
+    if t is None:
+        t = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=like.dtype, device=like.device)
+        t = t.reshape(4, *([1] * (like.dim() - 1)))
+        if not tracing():
+            _SIGNS[key] = t
+    return t
 
 
 def dc_remainder(
@@ -510,22 +538,20 @@ def dc_remainder(
     Jc = Jall[0]  # [..., k, n]
     J = Jc if J is None else J
     dP = pts - c  # [1 + N, ..., n]: exactly 0 at c
-    rall = fall - fall[0] - _dot(J, dP.unsqueeze(-2))  # r at c (0) and the vertices
+    rP = fall - fall[0] - _dot(J, dP.unsqueeze(-2))  # r at c (exactly 0) and the vertices
     gP = Jall - J  # [P, ..., k, n]: gradients of r at the tangent points
-    lo, up = _dc_bounds(rall[1:], gP, dP, W)  # [4, ..., k]
-    upper = up.masked_fill(bad, torch.inf).amin(0)
-    lower = lo.masked_fill(bad, -torch.inf).amax(0)
+    lower, upper = _dc_bounds(rP, gP, dP, W, bad)  # [..., k]
     # rounding scale: magnitudes of every term summed above (|r| at the points, the tangent
     # planes' slopes and the quadratics over the hull, c included: box - c covers x - c)
     jv = _abs_max(jet.val)  # rounding of fn at interior points
-    mag = torch.maximum(box.upper - c, c - box.lower)  # [..., n] >= |x - c| on the hull
-    G = 4.0 * (gP.abs().amax(0) + J.abs()) + 4.0 * W.amax(0) * mag.unsqueeze(-2)
-    scale = 2.0 * fall.abs().amax(0) + jv + _dot(G, mag.unsqueeze(-2))
+    d = (box.lower - c, box.upper - c)
+    mag = torch.maximum(d[1], d[0].neg())  # [..., n] >= |x - c| on the hull
+    G = gP.abs().amax(0) + J.abs() + W.amax(0) * mag.unsqueeze(-2)  # [..., k, n]
+    scale = fall.abs().amax(0) * 2.0 + jv + _dot(G, mag.unsqueeze(-2)) * 4.0
     out = _padded(lower, upper, scale)
     if with_lagrange:
         out = out.intersect(_lagrange(jet, box, S, c, J, Jc - J))
-    return _lower_order(fn, jet, box, S, c, J, out, jv)
-
+    return _lower_order(fn, jet, box, S, c, J, out, jv, d)
 
 def parameter_deviation(
     f: Callable[..., Tensor],
