@@ -268,6 +268,47 @@ def test_dc_on_many_generator_zonotopes_planar_and_3d():
             assert (R.width <= lagrange_remainder(fn, Z, c, J).width + 1e-15).all()
 
 
+def test_dc_without_vertex_tangents_and_in_chunks_encloses_sampled_errors(monkeypatch):
+    import diffsmf.linearize.remainders as rem
+
+    def f7(x):  # n = 7: 128 box corners, more than the vertex tangents are used for
+        return torch.stack([torch.sin(x[..., 0] * x[..., 1]) + x[..., 6] ** 2,
+                            x[..., 2] * x[..., 3] - torch.cos(x[..., 4] + x[..., 5])], -1)
+
+    c = torch.randn(3, 7, generator=GEN) * 0.3
+    S = Interval(c - 0.1, c + 0.15)
+    pts = torch.cat([S.sample(3000, generator=GEN), S.sample_extreme(500, generator=GEN)],
+                    -2).movedim(-2, 0)
+    J = stirling_jacobian(f7, c, 0.05)
+    err = f7(pts) - f7(c) - ((pts - c).unsqueeze(-2) * J).sum(-1)
+    R = dc_remainder(f7, S, c, J)
+    assert _encloses(R, err)
+    assert (R.width <= 2 * lagrange_remainder(f7, S, c, J).width).all()  # a real bound
+    # tangent planes at the 16 corners of a 4-D box, in one chunk and one point per chunk
+    S4, c4 = Interval(c[..., :4] - 0.1, c[..., :4] + 0.2), c[..., :4]
+
+    def f4(x):
+        return f7(torch.cat([x, x[..., :3] * 0.5], -1))
+
+    one = dc_remainder(f4, S4, c4, None)
+    monkeypatch.setattr(rem, "_TANGENT_ELEMS", 1)
+    many = dc_remainder(f4, S4, c4, None)
+    assert torch.equal(one.lower, many.lower) and torch.equal(one.upper, many.upper)
+
+
+def test_value_and_jacobian_with_stacked_points_matches_jacobian():
+    from diffsmf.linearize.jacobians import value_and_jacobian
+
+    x = torch.randn(5, 3, 2, generator=GEN)  # [points, batch, n] against U [3, 1]
+    for fn in (smooth, lambda z: smooth(z)[..., :1], lambda z: torch.cat([smooth(z)] * 2, -1)):
+        y, J = value_and_jacobian(fn, x, points=True)
+        torch.testing.assert_close(J, jacobian(fn, x), rtol=0, atol=0)
+        torch.testing.assert_close(y, fn(x), rtol=0, atol=0)
+    xg = x.clone().requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda z: value_and_jacobian(smooth, z, points=True)[1], (xg,))
+
+
 def test_dc_is_exact_at_vertices_for_a_convex_quadratic_upper_bound():
     # r(x) = |x - c|^2 on a box: alpha = 0 and the DC upper bound is the max over vertices
     S = Interval(torch.tensor([0.0, 0.0]), torch.tensor([1.0, 2.0]))

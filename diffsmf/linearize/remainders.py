@@ -312,23 +312,51 @@ def _curvature(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
     non-finite ``lam`` / ``w``.
     """
     n = lo.shape[-1]
-    eye = torch.eye(n, dtype=torch.bool, device=lo.device)
-    off = torch.maximum(lo.abs(), hi.abs()).masked_fill(eye, 0.0).sum(-1)  # [..., n]
+    off = torch.maximum(lo.abs(), hi.abs()).masked_fill(_eye(n, lo.device), 0.0).sum(-1)
     diag = torch.stack([torch.diagonal(lo, dim1=-2, dim2=-1),
                         -torch.diagonal(hi, dim1=-2, dim2=-1)])  # [2, ..., n]
     gersh = (diag - off).amin(-1)  # [2, ...]
-    Hc = 0.5 * (lo + hi)
-    Hr = 0.5 * (hi - lo)
-    Hcr = torch.stack([Hc, Hr])
-    Hcr = 0.5 * (Hcr + Hcr.mT)
-    ev = linalg.eigvalsh(Hcr)  # [2, ..., n]: midpoint, radius
-    weyl = torch.stack([ev[0, ..., 0], -ev[0, ..., -1]]) - ev[1, ..., -1]
-    A = Hcr.abs()
-    norm = _nograd((A[0] + A[1]).sum((-2, -1)))
+    Hcr = torch.stack([0.5 * (lo + hi), 0.5 * (hi - lo)])  # [2, ..., n, n]: midpoint, radius
+    if n == 2:
+        weyl, norm = _weyl2(Hcr)
+    else:
+        Hcr = 0.5 * (Hcr + Hcr.mT)
+        ev = linalg.eigvalsh(Hcr)  # [2, ..., n]
+        weyl = torch.stack([ev[0, ..., 0], -ev[0, ..., -1]]) - ev[1, ..., -1]
+        A = Hcr.abs()
+        norm = _nograd((A[0] + A[1]).sum((-2, -1)))
     tol = (8 * n + 16) * _eps(lo)
     lam = torch.maximum(gersh, weyl) - tol * norm
     w = (off - diag + tol * _nograd(diag.abs() + off)).clamp(min=0) * 0.5
     return lam, w
+
+
+def _weyl2(Hcr: Tensor) -> tuple[Tensor, Tensor]:
+    """The Weyl bounds ``[lambda_min(H_c) - rho(H_r), -lambda_max(H_c) - rho(H_r)]``
+    ``[2, ...]`` and a norm (the sum of ``|entries|`` of both) of 2 x 2 ``Hcr [2, ..., 2, 2]``
+    (midpoint, radius), with `linalg.eigvalsh`'s closed form on the symmetric parts
+    (``(a + d) / 2 -+ sqrt(((a - d) / 2)^2 + b^2)``, the same floats)."""
+    a, b01, b10, d = Hcr.flatten(-2).unbind(-1)  # [2, ...] each
+    b = 0.5 * (b01 + b10)
+    m, h = 0.5 * (a + d), 0.5 * (a - d)
+    r = torch.sqrt(h * h + b * b + torch.finfo(a.dtype).tiny)  # [2, ...]
+    rho = m[1] + r[1]
+    weyl = torch.stack([m[0] - r[0], -m[0] - r[0]]) - rho
+    return weyl, _nograd(Hcr.abs().sum((0, -2, -1)))
+
+
+_EYES: dict = {}
+
+
+def _eye(n: int, device: torch.device) -> Tensor:
+    """Boolean identity ``[n, n]`` (cached in eager mode: a constant, not an op per call)."""
+    key = (n, device)
+    t = None if tracing() else _EYES.get(key)
+    if t is None:
+        t = torch.eye(n, dtype=torch.bool, device=device)
+        if not tracing():
+            _EYES[key] = t
+    return t
 
 
 def _extreme_points(S: ConvexSet, max_vertices: int) -> tuple[Tensor, bool]:
@@ -403,7 +431,7 @@ def _convexifying_weights(H: Interval, box: Interval) -> tuple[Tensor, Tensor]:
     lo = H.lower.masked_fill(hinf, 0.0) * ss
     hi = H.upper.masked_fill(hinf, 0.0) * ss
     lam, diag = _curvature(lo, hi)  # [2, ..., k] (r and -r), [2, ..., k, n]
-    ball = ((-lam).clamp(min=0) * 0.5).unsqueeze(-1).expand_as(diag)  # alpha~, beta~
+    ball = (lam.clamp(max=0) * -0.5).unsqueeze(-1).expand_as(diag)  # alpha~, beta~
     W = torch.stack([ball, diag], 1).flatten(0, 1)  # [4, ..., k, n], scaled
     # a non-finite weight (an unbounded or overflowing Hessian) marks the form bad; only
     # finite weights are mapped back, so no inf * 0 reaches the gradients
@@ -441,7 +469,7 @@ def _dc_bounds(
     step = max(1, _TANGENT_ELEMS // max(1, 4 * dv.shape[0] * rv[0].numel()))
     M = V4 = None
     for p0 in range(0, P, step):
-        sl = slice(p0, p0 + step)
+        sl = slice(p0, min(p0 + step, P))  # the tangent points only (dP has all 1 + N)
         diff = dv.unsqueeze(0) - dP[sl].unsqueeze(1)  # [p, N, ..., n]: x_v - p
         # the tangent plane of r at p, at the vertices: [p, N, ..., k]
         L = _dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2)) + rP[sl].unsqueeze(1)
