@@ -119,11 +119,11 @@ def _stacked(fn: Fn, x: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _jacobian_forward(fn: Fn, x: Tensor) -> tuple[Tensor, Tensor]:
-    """``fn(x)`` and the forward-mode Jacobian ``[..., k, n]``: one ``torch.func.jvp`` per basis direction,
-    vectorised by ``vmap`` over the n directions (not over the batch, so closures over
-    batched tensors broadcast as usual). Used while ``torch.compile`` traces a filter step
-    (``autograd.grad`` would break the graph); the values equal the reverse-mode ones up to
-    rounding, and the result stays differentiable (reverse-over-forward).
+    """``fn(x)`` and the forward-mode Jacobian ``[..., k, n]``: one ``torch.func.jvp`` per
+    basis direction, vectorised by ``vmap`` over the n directions (not over the batch, so
+    closures over batched tensors broadcast as usual). Used while ``torch.compile`` traces a
+    filter step (``autograd.grad`` would break the graph); the values equal the reverse-mode
+    ones up to rounding, and the result stays differentiable (reverse-over-forward).
     """
     n = x.shape[-1]
     y0 = fn(x)

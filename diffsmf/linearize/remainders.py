@@ -470,11 +470,11 @@ def _dc_bounds(
     M = V4 = None
     for p0 in range(0, P, step):
         sl = slice(p0, min(p0 + step, P))  # the tangent points only (dP has all 1 + N)
-        diff = dv.unsqueeze(0) - dP[sl].unsqueeze(1)  # [p, N, ..., n]: x_v - p
+        diff = materialize(dv.unsqueeze(0) - dP[sl].unsqueeze(1))  # [p, N, ..., n]: x_v - p
         # the tangent plane of r at p, at the vertices: [p, N, ..., k]
-        L = _dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2)) + rP[sl].unsqueeze(1)
+        L = materialize(_dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2)) + rP[sl].unsqueeze(1))
         # Q = sum_j W_j (x_vj - p_j)^2 for the four forms: [p, N, 4, ..., k]
-        Q = _dot(W, (diff * diff).unsqueeze(-2).unsqueeze(2))
+        Q = _dot(W, materialize(diff * diff).unsqueeze(-2).unsqueeze(2))
         if V4 is None:  # eq. 15 with q at the vertices (p = c): max_v (q(v) +- r(v))
             V4 = torch.addcmul(Q[0], rv.unsqueeze(1), neg, value=-1.0).amax(0)  # [4, ..., k]
         # Q - L (forms of r) and Q + L (forms of -r), in place: -max_v is the tangent
@@ -556,6 +556,7 @@ def dc_remainder(
     # the four convexifications at once (leading dim 4): r + q convex with q the ball
     # (alpha |x - c|^2) or the diagonal shift, and -r + q convex with the same two forms
     W, bad = _convexifying_weights(H, box)  # [4, ..., k, n], [4, ..., k]
+    W = materialize(W)
     Vf = _front(V)  # [N, ..., n]
     tangents = V.shape[-2] <= _MAX_TANGENTS  # tangent planes at the vertices too
     pts = torch.cat([torch.broadcast_to(c, Vf.shape[1:]).unsqueeze(0), Vf])  # [1 + N, ..., n]
@@ -564,10 +565,10 @@ def dc_remainder(
     else:
         fall, Jall = fn(pts), jacobian(fn, c).unsqueeze(0)
     Jc = Jall[0]  # [..., k, n]
-    J = Jc if J is None else J
-    dP = pts - c  # [1 + N, ..., n]: exactly 0 at c
+    J = materialize(Jc if J is None else J)
+    dP = materialize(pts - c)  # [1 + N, ..., n]: exactly 0 at c
     rP = fall - fall[0] - _dot(J, dP.unsqueeze(-2))  # r at c (exactly 0) and the vertices
-    gP = Jall - J  # [P, ..., k, n]: gradients of r at the tangent points
+    gP = materialize(Jall - J)  # [P, ..., k, n]: gradients of r at the tangent points
     lower, upper = _dc_bounds(rP, gP, dP, W, bad)  # [..., k]
     # rounding scale: magnitudes of every term summed above (|r| at the points, the tangent
     # planes' slopes and the quadratics over the hull, c included: box - c covers x - c)
