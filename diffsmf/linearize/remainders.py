@@ -149,6 +149,19 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     return out
 
 
+def _reduce_last(t: Tensor, op: str) -> Tensor:
+    """``t.sum(-1)`` / ``t.amin(-1)`` / ``t.any(-1)`` (``op``); unrolled into slices for a
+    short last dim and a large output, like `_dot` (the same floats for ``n <= 2``)."""
+    n = t.shape[-1]
+    if n > _UNROLL_MAX_N or math.prod(t.shape[:-1]) < _UNROLL_ELEMS:
+        return getattr(t, op)(-1)
+    f = {"sum": torch.add, "amin": torch.minimum, "any": torch.logical_or}[op]
+    out = t[..., 0]
+    for j in range(1, n):
+        out = f(out, t[..., j])
+    return out
+
+
 def _hull_with(S: ConvexSet, c: Tensor) -> Interval:
     """Interval hull of ``S`` and ``c`` (so the segments [c, x] lie inside), padded outward."""
     box = S.interval_hull()
@@ -255,13 +268,13 @@ def _lower_order(
     Jl, Ju = (gu, gl) if J is None else (J, J)  # J = None: [J_fn] - [J_fn]
     a = (gl - Jl).masked_fill(inf_g, 0.0)  # [..., k, n]: [a, b] = [J_fn] - J
     b = (gu - Ju).masked_fill(inf_g, 0.0)
-    lo = torch.minimum(a * du, b * dl).sum(-1)  # [..., k]
-    hi = torch.maximum(a * dl, b * du).sum(-1)
+    lo = _reduce_last(torch.minimum(a * du, b * dl), "sum")  # [..., k]
+    hi = _reduce_last(torch.maximum(a * dl, b * du), "sum")
     rows = finite.all(-1)
     jv = _abs_max(jet.val) if jv is None else jv  # the caller's, when it has it
     scale = jv + _nograd(hi - lo) * 2.0
     if J is not None:  # the float evaluation of J (x - c)
-        scale = scale + _nograd((J.abs() * torch.maximum(-dl, du)).sum(-1))
+        scale = scale + _nograd(_dot(J.abs(), torch.maximum(-dl, du)))
     R1 = _padded(lo, hi, scale)
     R = Interval._make(torch.where(rows, torch.maximum(R.lower, R1.lower), R.lower),
                        torch.where(rows, torch.minimum(R.upper, R1.upper), R.upper))
@@ -312,10 +325,11 @@ def _curvature(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
     non-finite ``lam`` / ``w``.
     """
     n = lo.shape[-1]
-    off = torch.maximum(lo.abs(), hi.abs()).masked_fill(_eye(n, lo.device), 0.0).sum(-1)
+    off = _reduce_last(torch.maximum(lo.abs(), hi.abs()).masked_fill(_eye(n, lo.device), 0.0),
+                       "sum")  # [..., n]
     diag = torch.stack([torch.diagonal(lo, dim1=-2, dim2=-1),
                         -torch.diagonal(hi, dim1=-2, dim2=-1)])  # [2, ..., n]
-    gersh = (diag - off).amin(-1)  # [2, ...]
+    gersh = _reduce_last(diag - off, "amin")  # [2, ...]
     Hcr = torch.stack([0.5 * (lo + hi), 0.5 * (hi - lo)])  # [2, ..., n, n]: midpoint, radius
     if n == 2:
         weyl, norm = _weyl2(Hcr)
@@ -437,7 +451,7 @@ def _convexifying_weights(H: Interval, box: Interval) -> tuple[Tensor, Tensor]:
     # finite weights are mapped back, so no inf * 0 reaches the gradients
     drop = ~(W < torch.inf) | unbounded.unsqueeze(-1)  # W >= 0 or NaN
     Wf = W.masked_fill(drop, 0.0) * (1.0 / (s * s)).unsqueeze(-2)
-    return Wf, drop.any(-1)
+    return Wf, _reduce_last(drop, "any")
 
 
 def _dc_bounds(
