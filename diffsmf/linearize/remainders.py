@@ -83,10 +83,10 @@ def _remember(fn: Fn, jet: Jet) -> bool:
 def _affine_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None) -> Interval:
     """Remainder of an affine ``fn``: exactly ``(J_exact - J)(x - c)`` over ``S`` (support
     function), padded by the float error of evaluating ``fn`` and ``J (x - c)`` on the hull."""
-    Jx = jacobian(fn, c)  # [..., k, n], constant for affine fn
+    fc, Jx = value_and_jacobian(fn, c)  # [..., k (, n)], Jx constant for affine fn
     box = _hull_with(S, c)
     mag = box.lower.abs().maximum(box.upper.abs())
-    scale = fn(c).abs() + ((Jx.abs() + (0.0 if J is None else J.abs())) * mag.unsqueeze(-2)).sum(-1)
+    scale = fc.abs() + ((Jx.abs() + (0.0 if J is None else J.abs())) * mag.unsqueeze(-2)).sum(-1)
     if J is None:
         z = torch.zeros_like(scale)
         return _padded(z, z, scale)
@@ -354,9 +354,22 @@ def _weyl2(Hcr: Tensor) -> tuple[Tensor, Tensor]:
     b = 0.5 * (b01 + b10)
     m, h = 0.5 * (a + d), 0.5 * (a - d)
     r = torch.sqrt(h * h + b * b + torch.finfo(a.dtype).tiny)  # [2, ...]
-    rho = m[1] + r[1]
-    weyl = torch.stack([m[0] - r[0], -m[0] - r[0]]) - rho
+    # [m - r, -m - r] (exactly -(m + r)) of the midpoint, minus rho(H_r) = m + r of the radius
+    weyl = torch.addcmul(-r[0], m[0], _pm1(m)) - (m[1] + r[1])
     return weyl, _nograd(Hcr.abs().sum((0, -2, -1)))
+
+
+def _pm1(like: Tensor) -> Tensor:
+    """``[1, -1]`` shaped ``[2, 1, .., 1]`` against ``[2, *like.shape[1:]]`` (cached like
+    `_form_signs`)."""
+    key = ("pm1", like.dtype, like.device, like.dim())
+    t = None if tracing() else _SIGNS.get(key)
+    if t is None:
+        t = torch.tensor([1.0, -1.0], dtype=like.dtype, device=like.device)
+        t = t.reshape(2, *([1] * (like.dim() - 1)))
+        if not tracing():
+            _SIGNS[key] = t
+    return t
 
 
 _EYES: dict = {}
