@@ -598,7 +598,12 @@ def dc_remainder(
     gP = materialize(Jall - J)  # [P, ..., k, n]: gradients of r at the tangent points
     lower, upper = _dc_bounds(rP, gP, dP, W, bad)  # [..., k]
     # rounding scale: magnitudes of every term summed above (|r| at the points, the tangent
-    # planes' slopes and the quadratics over the hull, c included: box - c covers x - c)
+    # planes' slopes and the quadratics over the hull, c included: box - c covers x - c).
+    # The tangent bound is evaluated as r(p) + g.(x_v - p) - sum_j W_j (x_vj - p_j)^2, not as
+    # the paper's tangent of r + q minus q: the same number in exact arithmetic, other last
+    # bits in floats. Each term is at most 2 |g| mag or 4 W mag^2 (|x_v - p| <= 2 mag), the
+    # error of the evaluation at most (n + 3) eps times their sum, well inside the padding of
+    # _PAD_ULPS eps times this scale (4 |g| mag + 4 W mag^2 + 2 max|f| + ...).
     jv = _abs_max(jet.val)  # rounding of fn at interior points
     d = (box.lower - c, box.upper - c)
     mag = torch.maximum(d[1], d[0].neg())  # [..., n] >= |x - c| on the hull
