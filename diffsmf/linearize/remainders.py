@@ -236,7 +236,7 @@ def _lagrange(
 
 def _lower_order(
     fn: Fn, jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, R: Interval,
-    jv: Tensor | None = None, d: tuple[Tensor, Tensor] | None = None,
+    jv: Tensor | None = None, d: tuple[Tensor, Tensor, Tensor] | None = None,
 ) -> Interval:
     """``R`` intersected with the bounds of lower order, per output.
 
@@ -246,8 +246,8 @@ def _lower_order(
     the outputs whose Hessian enclosure is infinite (a kink of relu, abs, clamp, max or a PWL
     model inside the set). Where the Jacobian enclosure itself is infinite (a branch on the
     state that may jump), zeroth order: ``r in [f](box) - f(c) - J (S - c)``. ``jv`` is
-    ``_abs_max(jet.val)`` and ``d`` the pair ``(box.lower - c, box.upper - c)`` when the
-    caller has them.
+    ``_abs_max(jet.val)`` and ``d`` the triple ``(box.lower - c, box.upper - c, max |box - c|)``
+    when the caller has them.
 
     The interval product is evaluated in plain float: ``box`` contains ``c``, so
     ``d = box - c`` has ``d_lo <= 0 <= d_hi`` and ``[a, b] [d_lo, d_hi]`` is
@@ -257,7 +257,7 @@ def _lower_order(
     term's lower bound is <= 0 <= its upper bound, and ``|a_j| max|d_j|`` is at most the
     largest of its four products).
     """
-    dl, du = (box.lower - c, box.upper - c) if d is None else d
+    dl, du, mag = (box.lower - c, box.upper - c, None) if d is None else d
     dl = dl.unsqueeze(-2)  # [..., 1, n], <= 0
     du = du.unsqueeze(-2)  # >= 0
     gl, gu = jet.grad.lower, jet.grad.upper
@@ -270,16 +270,17 @@ def _lower_order(
     b = (gu - Ju).masked_fill(inf_g, 0.0)
     lo = _reduce_last(torch.minimum(a * du, b * dl), "sum")  # [..., k]
     hi = _reduce_last(torch.maximum(a * dl, b * du), "sum")
-    rows = finite.all(-1)
     jv = _abs_max(jet.val) if jv is None else jv  # the caller's, when it has it
     scale = jv + _nograd(hi - lo) * 2.0
     if J is not None:  # the float evaluation of J (x - c)
-        scale = scale + _nograd(_dot(J.abs(), torch.maximum(-dl, du)))
+        mag = torch.maximum(-dl, du) if mag is None else mag.unsqueeze(-2)
+        scale = scale + _nograd(_dot(J.abs(), mag))
     R1 = _padded(lo, hi, scale)
+    if not tracing() and bool(finite.all()):
+        return R.intersect(R1)
+    rows = finite.all(-1)
     R = Interval._make(torch.where(rows, torch.maximum(R.lower, R1.lower), R.lower),
                        torch.where(rows, torch.minimum(R.upper, R1.upper), R.upper))
-    if not tracing() and bool(rows.all()):
-        return R
     Jc = jacobian(fn, c) if J is None else J
     fc = fn(c)
     L = _linear_range(S, Jc, c)
@@ -605,14 +606,14 @@ def dc_remainder(
     # error of the evaluation at most (n + 3) eps times their sum, well inside the padding of
     # _PAD_ULPS eps times this scale (4 |g| mag + 4 W mag^2 + 2 max|f| + ...).
     jv = _abs_max(jet.val)  # rounding of fn at interior points
-    d = (box.lower - c, box.upper - c)
-    mag = torch.maximum(d[1], d[0].neg())  # [..., n] >= |x - c| on the hull
+    dl, du = box.lower - c, box.upper - c
+    mag = torch.maximum(du, dl.neg())  # [..., n] >= |x - c| on the hull
     G = gP.abs().amax(0) + J.abs() + W.amax(0) * mag.unsqueeze(-2)  # [..., k, n]
     scale = fall.abs().amax(0) * 2.0 + jv + _dot(G, mag.unsqueeze(-2)) * 4.0
     out = _padded(lower, upper, scale)
     if with_lagrange:
         out = out.intersect(_lagrange(jet, box, S, c, J, Jc - J))
-    return _lower_order(fn, jet, box, S, c, J, out, jv, d)
+    return _lower_order(fn, jet, box, S, c, J, out, jv, (dl, du, mag))
 
 def parameter_deviation(
     f: Callable[..., Tensor],
