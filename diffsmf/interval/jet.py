@@ -33,9 +33,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.interval import arith
 from diffsmf.sets.interval import Interval
 
-__all__ = ["Jet", "chain", "hull", "move", "mul", "nonsmooth", "point"]
+__all__ = ["Jet", "chain", "hadd", "hull", "move", "mul", "nonsmooth", "point", "scaled"]
 
 
 class Jet:
@@ -78,10 +79,14 @@ def point(t: Tensor) -> Interval:
 
 
 def move(x: Any, fn: Callable[[Tensor], Tensor]) -> Any:
-    """Apply a value-moving op to both bounds of an Interval (or to a tensor / None)."""
+    """Apply a value-moving op to both bounds of an Interval (once for a point; or to a tensor /
+    None)."""
     if x is None:
         return None
     if isinstance(x, Interval):
+        if x.lower is x.upper:
+            t = fn(x.lower)
+            return Interval._make(t, t)
         return Interval._make(fn(x.lower), fn(x.upper))
     return fn(x)
 
@@ -91,18 +96,9 @@ def hull(a: Interval, b: Interval) -> Interval:
     return Interval._make(torch.minimum(a.lower, b.lower), torch.maximum(a.upper, b.upper))
 
 
-def _tangent(t: Interval, k: int) -> Interval:
-    """Insert ``k`` leading singleton dims (to broadcast a ``[*E, *s]`` factor against tangents)."""
-    if k == 0:
-        return t
-    idx = (None,) * k
-    return Interval._make(t.lower[idx], t.upper[idx])
-
-
 def _outer(a: Interval, b: Interval) -> Interval:
     """``a_i b_j`` over the leading tangent dim -> ``[n, n, ...]``."""
-    left = Interval._make(a.lower.unsqueeze(1), a.upper.unsqueeze(1))
-    return left * Interval._make(b.lower.unsqueeze(0), b.upper.unsqueeze(0))
+    return arith.mul(move(a, lambda t: t.unsqueeze(1)), move(b, lambda t: t.unsqueeze(0)))
 
 
 def _outer_sym(g: Interval) -> Interval:
@@ -115,25 +111,35 @@ def _outer_sym(g: Interval) -> Interval:
 
 
 def hadd(*hs: Interval | None) -> Interval | None:
-    """Sum of enclosures where ``None`` is the structural zero."""
+    """Sum of enclosures where ``None`` is the structural zero (a zero sum rounded outward
+    like any other: one op a bound)."""
     out = None
     for h in hs:
         if h is not None:
-            out = h if out is None else out + h
+            out = h if out is None else arith.add(out, h, exact_zero=False)
     return out
 
 
 def chain(a: Jet, v: Interval, d1: Interval | None, d2: Interval | None) -> Jet:
-    """``phi(a)`` from enclosures of ``phi``, ``phi'``, ``phi''`` over ``a.val``."""
+    """``phi(a)`` from enclosures of ``phi``, ``phi'``, ``phi''`` over ``a.val`` (the factors
+    ``[*E, *s]`` broadcast against the leading tangent dims)."""
     if a.grad is None or d1 is None:
         return a.like(v, None, None)
-    grad = a.grad * _tangent(d1, 1)
+    grad = arith.mul(a.grad, d1)
     hess = None
     if a.order >= 2:
-        h1 = None if a.hess is None else a.hess * _tangent(d1, 2)
-        h2 = None if d2 is None else _outer_sym(a.grad) * _tangent(d2, 2)
+        h1 = None if a.hess is None else arith.mul(a.hess, d1)
+        h2 = None if d2 is None else arith.mul(_outer_sym(a.grad), d2)
         hess = hadd(h1, h2)
     return a.like(v, grad, hess)
+
+
+def scaled(a: Jet, s: float) -> Jet:
+    """``s * a`` for a Python number ``s`` (two products per enclosure, not four)."""
+    def f(t: Interval | None) -> Interval | None:
+        return None if t is None else arith.scale(t, s)
+
+    return a.like(f(a.val), f(a.grad), f(a.hess))
 
 
 def mul(a: Jet | Tensor, b: Jet | Tensor) -> Jet:
@@ -141,36 +147,38 @@ def mul(a: Jet | Tensor, b: Jet | Tensor) -> Jet:
     if not isinstance(a, Jet):
         a, b = b, a
     if isinstance(b, (int, float)) and not isinstance(b, bool):  # two products, not four
-        return a.like(a.val * float(b), None if a.grad is None else a.grad * float(b),
-                      None if a.hess is None else a.hess * float(b))
+        return scaled(a, float(b))
     if not isinstance(b, Jet):  # jet times a constant tensor
         c = point(torch.as_tensor(b, dtype=a.val.lower.dtype, device=a.val.lower.device))
-        return a.like(a.val * c, _scaled(a.grad, c, 1), _scaled(a.hess, c, 2))
+        return a.like(arith.mul(a.val, c), _scaled(a.grad, c, 1), _scaled(a.hess, c, 2))
     if a is b:
-        return a.like(a.val.square(), *_square_derivs(a))
+        return a.like(arith.square(a.val), *_square_derivs(a))
     grad = hadd(_scaled(a.grad, b.val, 1), _scaled(b.grad, a.val, 1))
     hess = None
     if a.order >= 2:
         cross = None
         if a.grad is not None and b.grad is not None:
             o = _outer(a.grad, b.grad)
-            cross = o + Interval._make(o.lower.transpose(0, 1), o.upper.transpose(0, 1))
+            cross = arith.add(o, move(o, lambda t: t.transpose(0, 1)), exact_zero=False)
         hess = hadd(_scaled(a.hess, b.val, 2), _scaled(b.hess, a.val, 2), cross)
-    return a.like(a.val * b.val, grad, hess)
+    return a.like(arith.mul(a.val, b.val), grad, hess)
 
 
 def _square_derivs(a: Jet) -> tuple[Interval | None, Interval | None]:
+    """``d(a^2) = 2 a da``, ``dd(a^2) = 2 (a dda + da da')`` (the factor 2 is exact)."""
     if a.grad is None:
         return None, None
-    grad = a.grad * _tangent(a.val, 1) * 2.0
+    grad = arith.mul(a.grad, arith.scale(a.val, 2.0))
     hess = None
     if a.order >= 2:
-        hess = hadd(_scaled(a.hess, a.val, 2), _outer_sym(a.grad)) * 2.0
+        hess = arith.scale(hadd(_scaled(a.hess, a.val, 2), _outer_sym(a.grad)), 2.0)
     return grad, hess
 
 
 def _scaled(t: Interval | None, c: Interval, k: int) -> Interval | None:
-    return None if t is None else t * _tangent(c, k)
+    """``t * c`` for a derivative ``t [n]*k + [*E, *s]`` and a factor ``c [*E, *s]`` (tensors
+    broadcast from the right, and the ``k`` tangent dims lead: no reshaping)."""
+    return None if t is None else arith.mul(t, c)
 
 
 def nonsmooth(like: Interval) -> Interval:

@@ -2,12 +2,18 @@
 
 After an operation whose exact real result lies within ``k`` units in the last place of the
 computed float (``k = 1`` for the correctly rounded IEEE ``+ - * / sqrt``, ``k = 2`` for library
-transcendental functions), `down` / `up` move a lower / upper bound outward by the
-relative offset ``2 k eps |x|`` (``ulp(x) <= eps |x|`` for normal ``x``; the factor 2 absorbs the
-rounding of the offset's own addition), plus the smallest subnormal when ``absolute`` (results
-in the subnormal range or underflowed to 0). A few elementwise ops, cheaper than
-``torch.nextafter`` with inf guards. The offset is computed on detached values and added, so
-gradients of the bounds flow unchanged.
+transcendental functions), `down` / `up` move a lower / upper bound outward:
+
+* ``k = 1``: to the neighbouring float (``torch.nextafter``, one op). A correctly rounded
+  result is within half a spacing of the exact one on either side, so the neighbour bounds it;
+  an overflowed bound (a lower bound of +inf) becomes the largest finite float, 0 becomes the
+  smallest subnormal (unless ``absolute`` is False: a zero sum of floats is exact);
+* ``k >= 2``: by the relative offset ``2 k eps |x|`` (``ulp(x) <= eps |x|`` for normal ``x``;
+  the factor 2 absorbs the rounding of the offset's own addition), plus the smallest subnormal
+  when ``absolute`` (results in the subnormal range or underflowed to 0).
+
+Gradients of the bounds flow unchanged (``nextafter`` passes the gradient of its first
+argument; the relative offset is computed on detached values and added).
 """
 
 from __future__ import annotations
@@ -53,6 +59,14 @@ def _step(x: Tensor, k: int, direction: float, absolute: bool) -> Tensor:
     """
     if k <= 0:
         return x
+    if k == 1:
+        t = _TARGETS.get((direction, x.dtype, x.device))
+        if t is None:
+            t = torch.tensor(direction, dtype=x.dtype, device=x.device)
+            if not tracing():
+                _TARGETS[(direction, x.dtype, x.device)] = t
+        out = torch.nextafter(x, t)
+        return out if absolute else torch.where(x == 0, x, out)
     grad = x.requires_grad and torch.is_grad_enabled()
     if not grad or tracing() or x.device.type != "cpu" or bool(torch.isinf(x.detach()).any()):
         big = torch.finfo(x.dtype).max
@@ -61,6 +75,10 @@ def _step(x: Tensor, k: int, direction: float, absolute: bool) -> Tensor:
     if absolute:
         pad = pad + subnormal(x)
     return x + pad if direction > 0 else x - pad
+
+
+#: the 0-dim ``+-inf`` targets of ``nextafter`` per dtype and device (made once, eagerly)
+_TARGETS: dict = {}
 
 
 def down(x: Tensor, k: int = 1, absolute: bool = True) -> Tensor:

@@ -29,6 +29,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.interval import arith
+from diffsmf.interval.arith import is_number
 from diffsmf.interval.errors import EngineError
 from diffsmf.interval.jet import Jet, chain, hadd, hull, move, mul, nonsmooth, point
 from diffsmf.interval.rounding import down, up
@@ -298,33 +300,45 @@ def _broadcast_except(parts: list[Tensor], d: int) -> list[Tensor]:
     return out
 
 
-@register(aten.cat, aten.concat, category="moving")
-def _cat(ctx: Ctx, tensors: Sequence[Any], dim: int = 0) -> Any:
-    r = ctx.out_rank
-    d = _neg_dim(dim, r)
+def _join(op: Callable[..., Tensor], parts: list[Tensor], d: int) -> Tensor:
+    """``op(parts, d)`` (torch.cat or torch.stack) after broadcasting the parts to one shape
+    except along ``d`` for cat (only the parts that differ are expanded)."""
+    if op is torch.stack:
+        shape = torch.broadcast_shapes(*[t.shape for t in parts])
+        return op([t if t.shape == shape else t.expand(shape) for t in parts], d)
+    if all(t.shape[:d] + t.shape[d + 1:] == parts[0].shape[:d] + parts[0].shape[d + 1:]
+           for t in parts[1:]) and len({t.dim() for t in parts}) == 1:
+        return op(parts, d)
+    return op(_broadcast_except(parts, d), d)
+
+
+def _join_jets(op: Callable[..., Tensor], tensors: Sequence[Any], d: int) -> Any:
+    """cat / stack of jets and constants along the (negative) dim ``d``."""
     items = _common(tensors)
     if not any(isinstance(t, Jet) for t in items):
-        return torch.cat(_broadcast_except([torch.as_tensor(t) for t in items], d), d)
+        return _join(op, [torch.as_tensor(t) for t in items], d)
 
-    def cat(parts: list[Tensor]) -> Tensor:
-        return torch.cat(_broadcast_except(parts, d), d)
-
-    def cat_iv(ivs: list[Interval | None]) -> Interval | None:
+    def join_iv(ivs: list[Interval | None]) -> Interval | None:
         if ivs[0] is None:
             return None
-        return Interval._make(cat([i.lower for i in ivs]), cat([i.upper for i in ivs]))
+        lo = _join(op, [i.lower for i in ivs], d)
+        if all(i.lower is i.upper for i in ivs):
+            return point(lo)
+        return Interval._make(lo, _join(op, [i.upper for i in ivs], d))
 
     j0 = items[0]
-    return j0.like(cat_iv([j.val for j in items]), cat_iv([j.grad for j in items]),
-                   cat_iv([j.hess for j in items]))
+    return j0.like(join_iv([j.val for j in items]), join_iv([j.grad for j in items]),
+                   join_iv([j.hess for j in items]))
+
+
+@register(aten.cat, aten.concat, category="moving")
+def _cat(ctx: Ctx, tensors: Sequence[Any], dim: int = 0) -> Any:
+    return _join_jets(torch.cat, tensors, _neg_dim(dim, ctx.out_rank))
 
 
 @register(aten.stack, category="moving")
 def _stack(ctx: Ctx, tensors: Sequence[Any], dim: int = 0) -> Any:
-    r = ctx.out_rank
-    d = _neg_dim(dim, r)
-    pieces = [_map_piece(t, r - 1, lambda t_, p: t_.unsqueeze(d)) for t in tensors]
-    return _cat(Ctx(tuple(r for _ in tensors), r, "cat"), pieces, d)
+    return _join_jets(torch.stack, tensors, _neg_dim(dim, ctx.out_rank))
 
 
 @register(aten.split_with_sizes, aten.split, aten.split_with_sizes_copy, category="moving")
@@ -374,14 +388,38 @@ def _linear_combo(a: Any, b: Any, sa: float, sb: float) -> Any:
     ref = _ref([a, b])
     if ref is None:
         return sa * a + sb * b
+    if sa in (1, -1) and sb in (1, -1):  # a number added to a jet: a shift of its value
+        if not _is_jet(a) and is_number(a):
+            return _plus_const(b, sb, sa * a)
+        if not _is_jet(b) and is_number(b):
+            return _plus_const(a, sa, sb * b)
     A, B = _lift(a, ref), _lift(b, ref)
 
-    def comb(x: Interval | None, y: Interval | None) -> Interval | None:
-        xs = None if x is None else (x if sa == 1 else x * sa)
-        ys = None if y is None else (y if sb == 1 else y * sb)
-        return hadd(xs, ys)
+    def comb(x: Interval | None, y: Interval | None, exact_zero: bool) -> Interval | None:
+        if x is None or y is None:
+            return _times(y, sb) if x is None else _times(x, sa)
+        if sa == 1 and sb == -1:
+            return arith.sub(x, y, exact_zero)
+        return arith.add(_times(x, sa), _times(y, sb), exact_zero)
 
-    return ref.like(comb(A.val, B.val), comb(A.grad, B.grad), comb(A.hess, B.hess))
+    # a zero value sum stays exact; derivative sums are rounded like any other (one op a bound)
+    return ref.like(comb(A.val, B.val, True), comb(A.grad, B.grad, False),
+                    comb(A.hess, B.hess, False))
+
+
+def _times(x: Interval | None, s: float) -> Interval | None:
+    """``s * x`` (``None`` stays None; ``s = +-1`` exact)."""
+    if x is None or s == 1:
+        return x
+    return arith.neg(x) if s == -1 else arith.scale(x, float(s))
+
+
+def _plus_const(j: Jet, s: float, c: float) -> Jet:
+    """``s * j + c`` for ``s = +-1`` and a Python number ``c``."""
+    val = _times(j.val, s)
+    if c != 0:
+        val = arith.shift(val, float(c))
+    return j.like(val, _times(j.grad, s), _times(j.hess, s))
 
 
 @register(aten.add, category="arithmetic")
@@ -403,8 +441,7 @@ def _rsub(ctx: Ctx, a: Any, b: Any, alpha: float = 1) -> Any:
 def _neg(ctx: Ctx, a: Any) -> Any:
     if not isinstance(a, Jet):
         return -a
-    return a.like(-a.val, move(a.grad, torch.neg) if a.grad is None else -a.grad,
-                  None if a.hess is None else -a.hess)
+    return a.like(arith.neg(a.val), _times(a.grad, -1), _times(a.hess, -1))
 
 
 @register(aten.mul, category="arithmetic")
