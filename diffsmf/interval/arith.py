@@ -25,13 +25,23 @@ function on interval arrays.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from diffsmf.interval.rounding import down, eps, nan_to_zero, tiny, up
+from diffsmf.interval.rounding import (
+    down,
+    eps,
+    finite_inner,
+    nan_to_zero,
+    outward,
+    pair_signs,
+    tiny,
+    up,
+)
 from diffsmf.sets.base import as_tensor
 from diffsmf.utils import checking, tracing
 
@@ -64,7 +74,132 @@ class IntervalArray:
         return obj
 
 
+    @classmethod
+    def _pair(cls, both: Tensor) -> Any:
+        """An interval array from its bounds stacked as ``both [2, ...]`` (lower, upper)."""
+        return cls._make(both[0], both[1])
+
+
+class Stacked:
+    """Mixin of an interval array stored as one tensor ``both [2, ...]`` (lower, upper).
+
+    The elementwise arithmetic below then treats both bounds in one op (one product, one
+    rounding, one move); ``lower`` and ``upper`` are views made on first use. Results of
+    other operations are plain arrays (``_make``).
+    """
+
+    both: Tensor
+
+    @classmethod
+    def _new(cls, both: Tensor) -> Any:
+        obj = object.__new__(cls)
+        object.__setattr__(obj, "both", both)
+        return obj
+
+    @property
+    def lower(self) -> Tensor:  # type: ignore[override]
+        lo = self.__dict__.get("_lo")
+        if lo is None:
+            lo = self.both[0]
+            object.__setattr__(self, "_lo", lo)
+        return lo
+
+    @property
+    def upper(self) -> Tensor:  # type: ignore[override]
+        hi = self.__dict__.get("_hi")
+        if hi is None:
+            hi = self.both[1]
+            object.__setattr__(self, "_hi", hi)
+        return hi
+
+
 Iv = IntervalArray
+
+
+def _st(a: Any) -> Tensor | None:
+    """The stacked bounds ``[2, ...]`` of ``a``, or None."""
+    return a.both if isinstance(a, Stacked) else None
+
+
+def _lift(both: Tensor, rank: int, outer: int = -1) -> Tensor:
+    """Stacked bounds ``[2, *s]`` viewed with at least ``rank`` dims after the first (leading
+    singleton dims: broadcasting against tangents that lead); ``outer`` 0 or 1: the bounds dim
+    becomes ``[2, 1]`` or ``[1, 2]`` (for the four products), in the same view."""
+    k = max(rank - (both.dim() - 1), 0)
+    head = (2,) if outer < 0 else ((2, 1) if outer == 0 else (1, 2))
+    if k == 0 and outer < 0:
+        return both
+    return both.reshape(*head, *([1] * k), *both.shape[1:])
+
+
+#: stacked mode (the engine's evaluation of a program, eagerly): every non-point result is
+#: stacked, and plain operands are stacked on first use
+_STACK = [False]
+
+
+def stacking(on: bool) -> bool:
+    """Switch stacked mode; returns the previous state (see `Stacked`)."""
+    prev = _STACK[0]
+    _STACK[0] = on
+    return prev
+
+
+#: while not None: the lower bounds of stacked products, to be checked for NaN at once
+_CHECKS: list = [None]
+
+
+@contextmanager
+def deferred_checks(checks: list) -> Iterator[None]:
+    """Within: stacked products skip their own NaN check and append their lower bounds to
+    ``checks``; `products_ok` then checks them all (one host read). Where it fails, the
+    caller evaluates again outside (each product then falls back to the general rule)."""
+    prev = _CHECKS[0]
+    _CHECKS[0] = checks
+    try:
+        yield
+    finally:
+        _CHECKS[0] = prev
+
+
+def products_ok(checks: list) -> bool:
+    """True when no tensor of ``checks`` holds a NaN (two ops and one host read)."""
+    if not checks:
+        return True
+    norms = torch._foreach_norm(checks)  # NaN where a NaN is; inf where an inf is
+    return not any(math.isnan(v) for v in torch.stack(norms).tolist())
+
+
+def _as_stacked(a: Iv) -> Tensor:
+    lo, hi = a.lower, a.upper
+    if lo.shape != hi.shape:
+        lo, hi = torch.broadcast_tensors(lo, hi)
+    return torch.stack([lo, hi])
+
+
+def _stacked_pair(a: Iv, b: Iv, outer: bool = False) -> tuple[Tensor, Tensor] | None:
+    """Both operands as ``[2, ...]`` tensors that broadcast together (a point as ``[...]``), or
+    None when neither is stacked (outside stacked mode) or one is a plain non-point array."""
+    sa, sb = _st(a), _st(b)
+    if sa is None and sb is None and not _STACK[0]:
+        return None
+    pa, pb = is_point(a), is_point(b)
+    if sa is None and not pa:
+        if not _STACK[0]:
+            return None
+        sa = _as_stacked(a)
+    if sb is None and not pb:
+        if not _STACK[0]:
+            return None
+        sb = _as_stacked(b)
+    ta = sa if sa is not None else a.lower
+    tb = sb if sb is not None else b.lower
+    r = max(ta.dim() - (sa is not None), tb.dim() - (sb is not None))
+    both = outer and sa is not None and sb is not None
+    if sa is not None:
+        ta = _lift(ta, r, 0 if both else -1)
+    if sb is not None:
+        tb = _lift(tb, r, 1 if both else -1)
+    return ta, tb
 
 
 # ---------------------------------------------------------------------------- primitives
@@ -90,7 +225,7 @@ def as_interval(x: Any, like: Iv | None = None) -> Any:
 def is_point(a: Iv) -> bool:
     """True when ``a`` is a point interval by construction (``lower is upper``): the
     arithmetic then computes its bound once."""
-    return a.lower is a.upper
+    return not isinstance(a, Stacked) and a.lower is a.upper
 
 
 def add(a: Iv, b: Iv, exact_zero: bool = True) -> Any:
@@ -101,13 +236,26 @@ def add(a: Iv, b: Iv, exact_zero: bool = True) -> Any:
     """
     if is_point(a) and is_point(b):
         s = a.lower + b.lower
+        if _STACK[0]:
+            return a._pair(outward(s, absolute=not exact_zero, point=True))
         return a._make(down(s, absolute=not exact_zero), up(s, absolute=not exact_zero))
+    st = _stacked_pair(a, b)
+    if st is not None:
+        return a._pair(outward(st[0] + st[1], absolute=not exact_zero))
     lo, hi = a.lower + b.lower, a.upper + b.upper
     return a._make(down(lo, absolute=not exact_zero), up(hi, absolute=not exact_zero))
 
 
+def _flip(t: Tensor) -> Tensor:
+    """Stacked bounds with lower and upper exchanged."""
+    return t.flip(0)
+
+
 def neg(a: Iv) -> Any:
     """``-[a]`` (exact)."""
+    sa = _st(a)
+    if sa is not None:
+        return a._pair(-_flip(sa))
     if is_point(a):
         n = -a.lower
         return a._make(n, n)
@@ -118,7 +266,13 @@ def sub(a: Iv, b: Iv, exact_zero: bool = True) -> Any:
     """``[a] - [b] = [a_lo - b_hi, a_hi - b_lo]`` rounded outward (see `add`)."""
     if is_point(a) and is_point(b):
         s = a.lower - b.lower
+        if _STACK[0]:
+            return a._pair(outward(s, absolute=not exact_zero, point=True))
         return a._make(down(s, absolute=not exact_zero), up(s, absolute=not exact_zero))
+    st = _stacked_pair(a, b)
+    if st is not None:
+        tb = st[1] if is_point(b) else _flip(st[1])
+        return a._pair(outward(st[0] - tb, absolute=not exact_zero))
     lo, hi = a.lower - b.upper, a.upper - b.lower
     return a._make(down(lo, absolute=not exact_zero), up(hi, absolute=not exact_zero))
 
@@ -135,9 +289,12 @@ def mul(a: Iv, b: Iv) -> Any:
     pa, pb = is_point(a), is_point(b)
     if pa and pb:
         p = a.lower * b.lower
-        return a._make(down(p), up(p))
+        return a._pair(outward(p, point=True)) if _STACK[0] else a._make(down(p), up(p))
     if tracing():
         return _mul_general(a, b)
+    st = _stacked_pair(a, b, outer=True)
+    if st is not None:
+        return _mul_stacked(a, b, st[0], st[1])
     if pa or pb:
         c, x = (a.lower, b) if pa else (b.lower, a)
         u, v = c * x.lower, c * x.upper
@@ -150,6 +307,19 @@ def mul(a: Iv, b: Iv) -> Any:
     if math.isnan(lo.sum().item()):  # NaN-ness of lo and hi agree (same products); a sum of
         return _mul_general(a, b)  # -inf and inf (NaN) takes the general rule too
     return a._make(down(lo), up(hi))
+
+
+def _mul_stacked(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
+    """`mul` with stacked operands ``[2, ...]`` (a point as ``[...]``), eagerly."""
+    if is_point(a) or is_point(b):  # a point times a pair: the two products, sorted
+        both = torch.sort(ta * tb, dim=0).values
+    else:  # [2, 1, ...] * [1, 2, ...]: the four products, the smallest and the largest
+        both = torch.sort((ta * tb).flatten(0, 1), dim=0).values[::3]
+    if _CHECKS[0] is not None:
+        _CHECKS[0].append(both)
+    elif math.isnan(both.sum().item()):  # 0 * inf or a NaN operand: the general rule
+        return _mul_general(a, b)
+    return a._pair(outward(both))
 
 
 def _mul_general(a: Iv, b: Iv) -> Any:
@@ -172,11 +342,19 @@ def scale(a: Iv, s: float) -> Any:
         z = torch.zeros_like(a.lower)
         return a._make(z, z)
     exact = abs(s) >= 1.0 and math.frexp(s)[0] in (0.5, -0.5)
+    sa = _st(a)
+    if sa is None and _STACK[0] and not is_point(a):
+        sa = _as_stacked(a)
+    if sa is not None:
+        t = sa * s if s > 0 else _flip(sa) * s
+        if exact:
+            return a._pair(t) if abs(s) == 1.0 else a._pair(finite_inner(t))
+        return a._pair(outward(t))
     if is_point(a):
         p = a.lower * s
         if exact:
             return a._make(p, p) if abs(s) == 1.0 else a._make(_finite_lo(p), _finite_hi(p))
-        return a._make(down(p), up(p))
+        return a._pair(outward(p, point=True)) if _STACK[0] else a._make(down(p), up(p))
     lo, hi = (a.lower * s, a.upper * s) if s > 0 else (a.upper * s, a.lower * s)
     if exact:
         return a._make(lo, hi) if abs(s) == 1.0 else a._make(_finite_lo(lo), _finite_hi(hi))
@@ -196,10 +374,37 @@ def shift(a: Iv, s: float) -> Any:
     """``[a] + s`` for a Python number ``s``."""
     if s == 0:
         return a
+    sa = _st(a)
+    if sa is None and _STACK[0] and not is_point(a):
+        sa = _as_stacked(a)
+    if sa is not None:
+        return a._pair(outward(sa + s, absolute=False))
     if is_point(a):
         p = a.lower + s
+        if _STACK[0]:
+            return a._pair(outward(p, absolute=False, point=True))
         return a._make(down(p, absolute=False), up(p, absolute=False))
     return a._make(down(a.lower + s, absolute=False), up(a.upper + s, absolute=False))
+
+
+def rshift(a: Iv, s: float) -> Any:
+    """``s - [a]`` for a Python number ``s``."""
+    sa = _st(a)
+    if sa is None and _STACK[0] and not is_point(a):
+        sa = _as_stacked(a)
+    if sa is not None:
+        return a._pair(outward(s - _flip(sa), absolute=False))
+    return shift(neg(a), s)
+
+
+def shape_of(a: Iv) -> torch.Size:
+    """The shape of an interval array (without making views of stacked bounds)."""
+    return a.both.shape[1:] if isinstance(a, Stacked) else a.lower.shape
+
+
+def tensor_of(a: Iv) -> Tensor:
+    """A tensor of ``a``'s dtype and device (its lower bound, or its stacked bounds)."""
+    return a.both if isinstance(a, Stacked) else a.lower
 
 
 def is_number(x: Any) -> bool:
@@ -306,6 +511,14 @@ def monotone(
     clamp_max: float | None = None,
 ) -> Any:
     """Increasing function: [fn(lo), fn(hi)] rounded outward, clamped to fn's range."""
+    sx = _st(x)
+    if sx is None and _STACK[0] and not is_point(x):
+        sx = _as_stacked(x)
+    if sx is not None:
+        both = outward(fn(sx), ulps)
+        if clamp_min is not None or clamp_max is not None:
+            both = torch.clamp(both, min=clamp_min, max=clamp_max)
+        return x._pair(both)
     lo = down(fn(x.lower), ulps)
     hi = up(fn(x.upper), ulps)
     if clamp_min is not None or clamp_max is not None:
@@ -324,6 +537,13 @@ def absolute(x: Iv) -> Any:
 
 def square(x: Iv) -> Any:
     """Exact range of ``x ** 2``: the squares of the smallest and largest ``|x|``."""
+    sx = _st(x)
+    if sx is not None:
+        m = sx * pair_signs(sx, sx.dim())  # [-lo, hi]
+        big = m.amax(0)  # max |x|
+        small = (-m).amax(0).clamp_min(0.0)  # min |x| (0 where the interval meets 0)
+        both = torch.stack([small, big])
+        return x._pair(outward(both * both).clamp_min(0.0))
     lo, hi = x.lower, x.upper
     if is_point(x):
         p = lo * lo
@@ -334,10 +554,16 @@ def square(x: Iv) -> Any:
 
 
 def relu(x: Iv) -> Any:
+    sx = _st(x)
+    if sx is not None:
+        return x._pair(torch.relu(sx))
     return x._make(torch.relu(x.lower), torch.relu(x.upper))
 
 
 def clamp(x: Iv, min: Any = None, max: Any = None) -> Any:  # noqa: A002
+    sx = _st(x)
+    if sx is not None and not isinstance(min, Tensor) and not isinstance(max, Tensor):
+        return x._pair(torch.clamp(sx, min=min, max=max))
     return x._make(torch.clamp(x.lower, min=min, max=max), torch.clamp(x.upper, min=min, max=max))
 
 

@@ -30,9 +30,9 @@ import torch
 from torch import Tensor
 
 from diffsmf.interval import arith
-from diffsmf.interval.arith import is_number
+from diffsmf.interval.arith import Stacked, is_number
 from diffsmf.interval.errors import EngineError
-from diffsmf.interval.jet import Jet, chain, hadd, hull, move, mul, nonsmooth, point
+from diffsmf.interval.jet import EXACT_SUMS, Jet, chain, hadd, hull, move, mul, nonsmooth, point
 from diffsmf.interval.rounding import down, up
 from diffsmf.sets.interval import Interval
 
@@ -140,8 +140,8 @@ def _zeros_grad(j: Jet, tangent: int) -> Interval | None:
     if j.order < tangent:
         return None
     shape = (j.n,) * tangent + tuple(j.shape)
-    z = torch.zeros(shape, dtype=j.val.lower.dtype, device=j.val.lower.device)
-    return point(z)
+    like = arith.tensor_of(j.val)
+    return point(torch.zeros(shape, dtype=like.dtype, device=like.device))
 
 
 def _nan_where(j: Jet, bad: Tensor) -> Jet:
@@ -269,20 +269,36 @@ def _pad(ctx: Ctx, x: Any, pad: Sequence[int], value: float = 0.0) -> Any:
     return torch.nn.functional.pad(x, pad, value=value)
 
 
-def _common(items: Sequence[Any]) -> list[Any]:
-    """Lift tensors to jets and broadcast every part to common leading dims (for cat/stack)."""
+def _common(items: Sequence[Any], stacked_zeros: bool = False) -> list[Any]:
+    """Lift tensors to jets and broadcast every part to common leading dims (for cat/stack).
+
+    ``stacked_zeros``: where the other parts are stacked, a missing derivative is made as
+    stacked zeros (one op; see `_pair_zeros`)."""
     ref = _ref(items)
     if ref is None:
         return list(items)
     jets = [_lift(t, ref) for t in items]
-    need_g = any(j.grad is not None for j in jets)
-    need_h = any(j.hess is not None for j in jets)
+    need_g = [j.grad for j in jets if j.grad is not None]
+    need_h = [j.hess for j in jets if j.hess is not None]
     out = []
     for j in jets:
-        g = j.grad if j.grad is not None or not need_g else _zeros_grad(j, 1)
-        h = j.hess if j.hess is not None or not need_h else _zeros_grad(j, 2)
+        g = j.grad if j.grad is not None or not need_g else _zeros_like_part(j, 1, need_g,
+                                                                            stacked_zeros)
+        h = j.hess if j.hess is not None or not need_h else _zeros_like_part(j, 2, need_h,
+                                                                            stacked_zeros)
         out.append(j.like(j.val, g, h))
     return out
+
+
+def _zeros_like_part(j: Jet, tangent: int, others: list, stacked: bool) -> Interval | None:
+    """Zero derivative enclosure of ``j`` (stacked when ``stacked`` and another part is)."""
+    if j.order < tangent:
+        return None
+    if not stacked or not any(isinstance(o, Stacked) for o in others):
+        return _zeros_grad(j, tangent)
+    like = arith.tensor_of(j.val)
+    z = torch.zeros((2, *((j.n,) * tangent), *j.shape), dtype=like.dtype, device=like.device)
+    return Interval._pair(z)
 
 
 def _broadcast_except(parts: list[Tensor], d: int) -> list[Tensor]:
@@ -304,6 +320,9 @@ def _join(op: Callable[..., Tensor], parts: list[Tensor], d: int) -> Tensor:
     """``op(parts, d)`` (torch.cat or torch.stack) after broadcasting the parts to one shape
     except along ``d`` for cat (only the parts that differ are expanded)."""
     if op is torch.stack:
+        s0 = parts[0].shape
+        if all(t.shape == s0 for t in parts):
+            return op(parts, d)
         shape = torch.broadcast_shapes(*[t.shape for t in parts])
         return op([t if t.shape == shape else t.expand(shape) for t in parts], d)
     if all(t.shape[:d] + t.shape[d + 1:] == parts[0].shape[:d] + parts[0].shape[d + 1:]
@@ -314,13 +333,23 @@ def _join(op: Callable[..., Tensor], parts: list[Tensor], d: int) -> Tensor:
 
 def _join_jets(op: Callable[..., Tensor], tensors: Sequence[Any], d: int) -> Any:
     """cat / stack of jets and constants along the (negative) dim ``d``."""
-    items = _common(tensors)
+    items = _common(tensors, stacked_zeros=True)
     if not any(isinstance(t, Jet) for t in items):
         return _join(op, [torch.as_tensor(t) for t in items], d)
 
     def join_iv(ivs: list[Interval | None]) -> Interval | None:
         if ivs[0] is None:
             return None
+        if any(isinstance(i, Stacked) for i in ivs) and all(
+                isinstance(i, Stacked) or i.lower is i.upper for i in ivs):
+            r = max(i.both.dim() - 1 if isinstance(i, Stacked) else i.lower.dim()
+                    for i in ivs)  # stacked: one join (points expanded)
+            parts = [i.both if isinstance(i, Stacked) else i.lower.expand(2, *i.lower.shape)
+                     for i in ivs]
+            parts = [t.reshape(2, *([1] * (r + 1 - t.dim())), *t.shape[1:]) if t.dim() <= r
+                     else t for t in parts]
+            return ivs[0]._pair(_join(op, parts, d)) if isinstance(ivs[0], Stacked) else \
+                Interval._pair(_join(op, parts, d))
         lo = _join(op, [i.lower for i in ivs], d)
         if all(i.lower is i.upper for i in ivs):
             return point(lo)
@@ -402,9 +431,9 @@ def _linear_combo(a: Any, b: Any, sa: float, sb: float) -> Any:
             return arith.sub(x, y, exact_zero)
         return arith.add(_times(x, sa), _times(y, sb), exact_zero)
 
-    # a zero value sum stays exact; derivative sums are rounded like any other (one op a bound)
-    return ref.like(comb(A.val, B.val, True), comb(A.grad, B.grad, False),
-                    comb(A.hess, B.hess, False))
+    # a zero value sum stays exact; derivative sums as `diffsmf.interval.jet.EXACT_SUMS` says
+    return ref.like(comb(A.val, B.val, True), comb(A.grad, B.grad, EXACT_SUMS),
+                    comb(A.hess, B.hess, EXACT_SUMS))
 
 
 def _times(x: Interval | None, s: float) -> Interval | None:
@@ -416,9 +445,12 @@ def _times(x: Interval | None, s: float) -> Interval | None:
 
 def _plus_const(j: Jet, s: float, c: float) -> Jet:
     """``s * j + c`` for ``s = +-1`` and a Python number ``c``."""
-    val = _times(j.val, s)
-    if c != 0:
-        val = arith.shift(val, float(c))
+    if s == -1 and c != 0:
+        val = arith.rshift(j.val, float(c))
+    else:
+        val = _times(j.val, s)
+        if c != 0:
+            val = arith.shift(val, float(c))
     return j.like(val, _times(j.grad, s), _times(j.hess, s))
 
 

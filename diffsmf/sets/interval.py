@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.interval import arith
-from diffsmf.interval.arith import IntervalArray, as_interval, is_number, wrap_out
+from diffsmf.interval.arith import IntervalArray, Stacked, as_interval, is_number, wrap_out
 from diffsmf.interval.rounding import down, eps, up
 from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count, family
 from diffsmf.utils import checking
@@ -58,6 +58,12 @@ class Interval(ConvexSet, IntervalArray):
         if checking() and (lo.detach() > hi.detach()).any():
             raise ValueError("lower: must be <= upper elementwise")
         self._set(lower=lo, upper=hi)
+
+    @classmethod
+    def _pair(cls, both: Tensor) -> Interval:
+        """An Interval from its bounds stacked as ``both [2, ...]`` (internal: the engine's
+        arithmetic then treats both bounds in one op; see `diffsmf.interval.arith.Stacked`)."""
+        return _StackedInterval._new(both)
 
     @classmethod
     def from_center_radius(cls, center: Any, radius: Any) -> Interval:
@@ -435,6 +441,18 @@ class Interval(ConvexSet, IntervalArray):
         if impl is None:
             return NotImplemented
         return impl(*args, **kwargs)
+
+
+class _StackedInterval(Stacked, Interval):
+    """An Interval stored as one tensor ``both [2, ...]``; ``lower``/``upper`` are views."""
+
+    @classmethod
+    def _make(cls, lower: Tensor, upper: Tensor) -> Interval:
+        return Interval._make(lower, upper)
+
+    @classmethod
+    def _from_tensors(cls, tensors: Sequence[Tensor]) -> ConvexSet:
+        return Interval._from_tensors(tensors)
 
 
 def interval_eval(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
