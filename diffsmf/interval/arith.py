@@ -6,16 +6,16 @@ powers, monotone and trigonometric functions, reductions and matrix products, ea
 the exact real result. Results are built with the class of an operand (``a._make``), so this
 module never imports the box set.
 
-Outward rounding (guarantee): after every arithmetic operation the lower bound is moved down and
-the upper bound up by at least ``k`` units in the last place, by the relative offset
-``2 k eps |x|`` (plus the smallest subnormal for all but sums; see
-`diffsmf.interval.rounding`) -- a few elementwise ops, cheaper than ``torch.nextafter`` with
-inf guards (``k = 1`` for correctly rounded IEEE operations ``+ - * / sqrt``, ``k = 2`` for
-library transcendental functions ``exp log sin cos tanh atan sigmoid``, ``k = |p| + 1`` for
-``x ** p`` computed by ``torch.pow``). Sums and matrix products add the classical a-priori
-bound ``gamma_k * sum |terms|`` (``gamma_k = (k + 4) eps``) before rounding. The rounding
-offsets are computed on detached values and added, so gradients of ``lower``/``upper`` flow
-unchanged.
+Outward rounding (guarantee): after every arithmetic operation the lower bound is moved down
+and the upper bound up by at least ``k`` units in the last place (`diffsmf.interval.rounding`:
+one ``nextafter`` for correctly rounded IEEE operations ``+ - * / sqrt``, ``eps |x|`` for sums,
+a relative offset for library functions, ``k = 2``, and ``x ** p``, ``k = |p| + 1``). Sums and
+matrix products add the classical a-priori bound ``gamma_k * sum |terms|``
+(``gamma_k = (k + 4) eps``) before rounding. Gradients of ``lower``/``upper`` flow unchanged.
+
+Stacked mode (`Stacked`, `stacking`): while the engine evaluates a captured program eagerly
+on a small box, non-point results are stored as one tensor ``[2, ...]`` (lower, upper), so that
+the elementwise operations here treat both bounds in one op.
 
 `TORCH_IMPL` maps torch functions to their interval extensions (the ``__torch_function__``
 hook of ``Interval``), so that ``diffsmf.sets.interval.interval_eval`` evaluates a plain torch
@@ -25,6 +25,7 @@ function on interval arrays.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -132,20 +133,25 @@ def _lift(both: Tensor, rank: int, outer: int = -1) -> Tensor:
     return both.reshape(*head, *([1] * k), *both.shape[1:])
 
 
-#: stacked mode (the engine's evaluation of a program, eagerly): every non-point result is
-#: stacked, and plain operands are stacked on first use
-_STACK = [False]
+class _Mode(threading.local):
+    """Per-thread state: ``stack`` (stacked mode: the engine's evaluation of a program,
+    eagerly; every non-point result is stacked, plain operands are stacked on first use) and
+    ``checks`` (see `deferred_checks`)."""
+
+    stack = False
+    checks: list | None = None
+
+
+_M = _Mode()
 
 
 def stacking(on: bool) -> bool:
     """Switch stacked mode; returns the previous state (see `Stacked`)."""
-    prev = _STACK[0]
-    _STACK[0] = on
+    prev = _M.stack
+    _M.stack = on
     return prev
 
 
-#: while not None: the lower bounds of stacked products, to be checked for NaN at once
-_CHECKS: list = [None]
 
 
 @contextmanager
@@ -153,12 +159,12 @@ def deferred_checks(checks: list) -> Iterator[None]:
     """Within: stacked products skip their own NaN check and append their lower bounds to
     ``checks``; `products_ok` then checks them all (one host read). Where it fails, the
     caller evaluates again outside (each product then falls back to the general rule)."""
-    prev = _CHECKS[0]
-    _CHECKS[0] = checks
+    prev = _M.checks
+    _M.checks = checks
     try:
         yield
     finally:
-        _CHECKS[0] = prev
+        _M.checks = prev
 
 
 def products_ok(checks: list) -> bool:
@@ -180,15 +186,15 @@ def _stacked_pair(a: Iv, b: Iv, outer: bool = False) -> tuple[Tensor, Tensor] | 
     """Both operands as ``[2, ...]`` tensors that broadcast together (a point as ``[...]``), or
     None when neither is stacked (outside stacked mode) or one is a plain non-point array."""
     sa, sb = _st(a), _st(b)
-    if sa is None and sb is None and not _STACK[0]:
+    if sa is None and sb is None and not _M.stack:
         return None
     pa, pb = is_point(a), is_point(b)
     if sa is None and not pa:
-        if not _STACK[0]:
+        if not _M.stack:
             return None
         sa = _as_stacked(a)
     if sb is None and not pb:
-        if not _STACK[0]:
+        if not _M.stack:
             return None
         sb = _as_stacked(b)
     ta = sa if sa is not None else a.lower
@@ -236,7 +242,7 @@ def add(a: Iv, b: Iv, exact_zero: bool = True) -> Any:
     """
     if is_point(a) and is_point(b):
         s = a.lower + b.lower
-        if _STACK[0]:
+        if _M.stack:
             return a._pair(outward(s, absolute=not exact_zero, point=True))
         return a._make(down(s, absolute=not exact_zero), up(s, absolute=not exact_zero))
     st = _stacked_pair(a, b)
@@ -266,7 +272,7 @@ def sub(a: Iv, b: Iv, exact_zero: bool = True) -> Any:
     """``[a] - [b] = [a_lo - b_hi, a_hi - b_lo]`` rounded outward (see `add`)."""
     if is_point(a) and is_point(b):
         s = a.lower - b.lower
-        if _STACK[0]:
+        if _M.stack:
             return a._pair(outward(s, absolute=not exact_zero, point=True))
         return a._make(down(s, absolute=not exact_zero), up(s, absolute=not exact_zero))
     st = _stacked_pair(a, b)
@@ -289,7 +295,7 @@ def mul(a: Iv, b: Iv) -> Any:
     pa, pb = is_point(a), is_point(b)
     if pa and pb:
         p = a.lower * b.lower
-        return a._pair(outward(p, point=True)) if _STACK[0] else a._make(down(p), up(p))
+        return a._pair(outward(p, point=True)) if _M.stack else a._make(down(p), up(p))
     if tracing():
         return _mul_general(a, b)
     st = _stacked_pair(a, b, outer=True)
@@ -315,8 +321,8 @@ def _mul_stacked(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
         both = torch.sort(ta * tb, dim=0).values
     else:  # [2, 1, ...] * [1, 2, ...]: the four products, the smallest and the largest
         both = torch.sort((ta * tb).flatten(0, 1), dim=0).values[::3]
-    if _CHECKS[0] is not None:
-        _CHECKS[0].append(both)
+    if _M.checks is not None:
+        _M.checks.append(both)
     elif math.isnan(both.sum().item()):  # 0 * inf or a NaN operand: the general rule
         return _mul_general(a, b)
     return a._pair(outward(both))
@@ -343,7 +349,7 @@ def scale(a: Iv, s: float) -> Any:
         return a._make(z, z)
     exact = abs(s) >= 1.0 and math.frexp(s)[0] in (0.5, -0.5)
     sa = _st(a)
-    if sa is None and _STACK[0] and not is_point(a):
+    if sa is None and _M.stack and not is_point(a):
         sa = _as_stacked(a)
     if sa is not None:
         t = sa * s if s > 0 else _flip(sa) * s
@@ -354,7 +360,7 @@ def scale(a: Iv, s: float) -> Any:
         p = a.lower * s
         if exact:
             return a._make(p, p) if abs(s) == 1.0 else a._make(_finite_lo(p), _finite_hi(p))
-        return a._pair(outward(p, point=True)) if _STACK[0] else a._make(down(p), up(p))
+        return a._pair(outward(p, point=True)) if _M.stack else a._make(down(p), up(p))
     lo, hi = (a.lower * s, a.upper * s) if s > 0 else (a.upper * s, a.lower * s)
     if exact:
         return a._make(lo, hi) if abs(s) == 1.0 else a._make(_finite_lo(lo), _finite_hi(hi))
@@ -375,13 +381,13 @@ def shift(a: Iv, s: float) -> Any:
     if s == 0:
         return a
     sa = _st(a)
-    if sa is None and _STACK[0] and not is_point(a):
+    if sa is None and _M.stack and not is_point(a):
         sa = _as_stacked(a)
     if sa is not None:
         return a._pair(outward(sa + s, absolute=False))
     if is_point(a):
         p = a.lower + s
-        if _STACK[0]:
+        if _M.stack:
             return a._pair(outward(p, absolute=False, point=True))
         return a._make(down(p, absolute=False), up(p, absolute=False))
     return a._make(down(a.lower + s, absolute=False), up(a.upper + s, absolute=False))
@@ -390,7 +396,7 @@ def shift(a: Iv, s: float) -> Any:
 def rshift(a: Iv, s: float) -> Any:
     """``s - [a]`` for a Python number ``s``."""
     sa = _st(a)
-    if sa is None and _STACK[0] and not is_point(a):
+    if sa is None and _M.stack and not is_point(a):
         sa = _as_stacked(a)
     if sa is not None:
         return a._pair(outward(s - _flip(sa), absolute=False))
@@ -512,7 +518,7 @@ def monotone(
 ) -> Any:
     """Increasing function: [fn(lo), fn(hi)] rounded outward, clamped to fn's range."""
     sx = _st(x)
-    if sx is None and _STACK[0] and not is_point(x):
+    if sx is None and _M.stack and not is_point(x):
         sx = _as_stacked(x)
     if sx is not None:
         both = outward(fn(sx), ulps)

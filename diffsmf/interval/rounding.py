@@ -30,8 +30,7 @@ from torch import Tensor
 from diffsmf.utils import tracing
 
 __all__ = ["down", "eps", "finite_inner", "nan_to_zero", "outward", "pair_signs", "subnormal",
-           "tiny",
-           "up"]
+           "tiny", "up"]
 
 
 def eps(t: Tensor) -> float:
