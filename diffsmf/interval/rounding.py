@@ -11,9 +11,10 @@ transcendental functions), `down` / `up` move a lower / upper bound outward:
 * ``k = 1`` for a sum (``absolute=False``): by ``eps |x|`` (at least one spacing: ``ulp(x) <=
   eps |x|`` for normal ``x``; and nothing below the normal range, where a sum of floats is
   exact, so a zero sum stays exact);
-* ``k >= 2``: by the relative offset ``2 k eps |x|`` (the factor 2 absorbs the rounding of the
-  offset's own addition), plus the smallest subnormal when ``absolute`` (results in the
-  subnormal range or underflowed to 0).
+* ``k >= 2``: to the neighbouring float, then by the relative offset ``2 (k - 1) eps |x|``
+  (``ulp(x) <= eps |x|`` for normal ``x``; the factor 2 absorbs the rounding of the offset's
+  own addition), plus the smallest subnormal when ``absolute`` (results in the subnormal range
+  or underflowed to 0).
 
 `outward` rounds bounds stacked as one tensor ``[2, ...]`` (lower, upper) in the same ops.
 Gradients of the bounds flow unchanged (``nextafter`` passes the gradient of its first
@@ -55,34 +56,29 @@ def nan_to_zero(t: Tensor) -> Tensor:
 
 
 def _step(x: Tensor, k: int, direction: float, absolute: bool) -> Tensor:
-    """Move ``x`` outward by at least ``k`` ulps towards ``direction`` (+-inf).
-
-    An overflowed bound (a lower bound of +inf, an upper bound of -inf) first becomes the largest
-    finite float, like ``nextafter``. On the CPU with autograd recording, a host check for
-    infinities is cheaper than a clamp node on every call; elsewhere (no grad, tracing,
-    accelerators: no host sync) the clamp is always applied.
-    """
+    """Move ``x`` outward by at least ``k`` ulps towards ``direction`` (+-inf): one
+    ``nextafter`` (an overflowed bound, a lower bound of +inf, becomes the largest finite
+    float), then for ``k >= 2`` the relative offset ``2 (k - 1) eps |x|`` (+ the smallest
+    subnormal when ``absolute``); a sum (``absolute=False``, ``k = 1``) by ``eps |x|``."""
     if k <= 0:
         return x
     if k == 1 and not absolute:  # a sum: eps |x| (one ulp or more; 0 below the normal range,
         big = torch.finfo(x.dtype).max  # where a sum of floats is exact)
         x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
         return torch.add(x, _nograd(x).abs(), alpha=eps(x) if direction > 0 else -eps(x))
+    t = _TARGETS.get((direction, x.dtype, x.device))
+    if t is None:
+        t = torch.tensor(direction, dtype=x.dtype, device=x.device)
+        if not tracing():
+            _TARGETS[(direction, x.dtype, x.device)] = t
+    out = torch.nextafter(x, t)
     if k == 1:
-        t = _TARGETS.get((direction, x.dtype, x.device))
-        if t is None:
-            t = torch.tensor(direction, dtype=x.dtype, device=x.device)
-            if not tracing():
-                _TARGETS[(direction, x.dtype, x.device)] = t
-        return torch.nextafter(x, t)
-    grad = x.requires_grad and torch.is_grad_enabled()
-    if not grad or tracing() or x.device.type != "cpu" or bool(torch.isinf(x.detach()).any()):
-        big = torch.finfo(x.dtype).max
-        x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
-    pad = (x.detach() if grad else x).abs() * (2.0 * k * eps(x))
+        return out
+    # then k - 1 ulps more, relatively (the first step made an overflowed bound finite)
+    pad = _nograd(out).abs() * (2.0 * (k - 1) * eps(x))
     if absolute:
         pad = pad + subnormal(x)
-    return x + pad if direction > 0 else x - pad
+    return out + pad if direction > 0 else out - pad
 
 
 #: the 0-dim ``+-inf`` targets of ``nextafter`` per dtype and device (made once, eagerly)
