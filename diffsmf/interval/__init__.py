@@ -1,12 +1,13 @@
 """The guarantee engine: interval arithmetic and derivative enclosures of any torch model.
 
 * `rounding`: outward rounding, the guarantee of every operation;
+* `arith`: interval arrays, Moore arithmetic on ``lower``/``upper`` tensors;
 * `jet`: interval jets (value, gradient and Hessian enclosures);
 * `rules`: one inclusion rule per ATen op, in a registry;
 * `capture`: a model captured once as an ATen graph, evaluated by rules;
 * `engine`: the entry point, `enclose`.
 
-The box set and the interval array class live in `diffsmf.sets` (``Interval``).
+The box set, whose arithmetic delegates to `arith`, lives in `diffsmf.sets` (``Interval``).
 """
 
 from __future__ import annotations

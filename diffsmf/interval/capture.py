@@ -29,10 +29,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from diffsmf.interval.arith import Stacked, deferred_checks, products_ok, stacking, tensor_of
 from diffsmf.interval.errors import EngineError
-from diffsmf.interval.jet import Jet, point
+from diffsmf.interval.jet import Jet, lead, move, point
 from diffsmf.interval.rules import RULES, BoolBox, Ctx, register
 from diffsmf.sets.interval import Interval
+from diffsmf.utils import tracing
 
 __all__ = ["EngineError", "Program", "capture", "inclusion"]
 
@@ -369,17 +371,54 @@ class Program:
                 pass
         self.steps.append((self._new(node, None), rule, ctx, args, kwargs))
 
+    def _steps(self, env: list) -> None:
+        for slot, rule, ctx, args, kwargs in self.steps:
+            env[slot] = rule(ctx, *_fill(args, env), **_fill(kwargs, env))
+
     def run(self, inputs: Sequence[Any]) -> Any:
         """Evaluate on ``inputs`` (one per placeholder: a Jet, a Tensor, in capture order)."""
         env = list(self._init)
         for i, value in zip(self._inputs, inputs, strict=True):
             env[i] = value
-        for slot, rule, ctx, args, kwargs in self.steps:
-            env[slot] = rule(ctx, *_fill(args, env), **_fill(kwargs, env))
+        if tracing() or not _small(inputs):
+            self._steps(env)
+        else:  # both bounds of an enclosure in one tensor, one NaN check for all products
+            prev = stacking(True)
+            checks: list[Tensor] = []
+            try:
+                with deferred_checks(checks):
+                    self._steps(env)
+            finally:
+                stacking(prev)
+            if not products_ok(checks):  # 0 * inf met: again, each product checked
+                env = list(self._init)
+                for i, value in zip(self._inputs, inputs, strict=True):
+                    env[i] = value
+                self._steps(env)
         out = _fill(self._output, env)
         if isinstance(out, BoolBox):
             raise EngineError(f"{self.name}: the model returns a comparison")
         return out
+
+
+#: boxes of at most this many elements are evaluated in stacked mode (fewer ops; for larger
+#: ones separate bounds are faster: no stacking copies)
+STACKED_MAX = 2048
+
+
+def stacks(lo: Tensor, hi: Tensor) -> bool:
+    """Whether an input box with these bounds is evaluated stacked (eagerly, small boxes)."""
+    return (not tracing() and lo.shape == hi.shape and hi is not lo
+            and lo.numel() <= STACKED_MAX)
+
+
+def _small(inputs: Sequence[Any]) -> bool:
+    for j in inputs:
+        if isinstance(j, Jet):
+            v = j.val
+            if (v.both if isinstance(v, Stacked) else v.lower).numel() > 2 * STACKED_MAX:
+                return False
+    return True
 
 
 def _getitem(ctx: Ctx, seq: Any, i: int) -> Any:
@@ -411,14 +450,26 @@ def _rank(node: Any) -> int:
 # ----------------------------------------------------------------------------- evaluation
 def seed(box: Interval, order: int, n_total: int, offset: int) -> Jet:
     """The jet of an input box ``[*E, 1, d]`` whose variables are ``offset .. offset + d``."""
-    lo = box.lower
+    if not isinstance(box, Stacked) and stacks(box.lower, box.upper):
+        box = Interval._pair(torch.stack([box.lower, box.upper]))  # both bounds in one op
+    lo = tensor_of(box)
+    rank = lo.dim() - isinstance(box, Stacked)
     d = lo.shape[-1]
     if order == 0:
         return Jet(box, None, None, 0, n_total)
-    eye = torch.zeros(n_total, d, dtype=lo.dtype, device=lo.device)
-    eye[offset:offset + d] = torch.eye(d, dtype=lo.dtype, device=lo.device)
-    g = eye.reshape(n_total, *([1] * (lo.dim() - 1)), d)
+    key = (n_total, d, offset, rank, lo.dtype, lo.device)
+    g = _SEEDS.get(key)
+    if g is None:
+        eye = torch.zeros(n_total, d, dtype=lo.dtype, device=lo.device)
+        eye[offset:offset + d] = torch.eye(d, dtype=lo.dtype, device=lo.device)
+        g = eye.reshape(n_total, *([1] * (rank - 1)), d)
+        if not tracing():
+            _SEEDS[key] = g
     return Jet(box, point(g), None, order, n_total)
+
+
+#: seed gradients (constants, made once per shape eagerly)
+_SEEDS: dict = {}
 
 
 def to_trailing(out: Any, order: int, like: Tensor, n: int, row: bool) -> Jet:
@@ -431,12 +482,11 @@ def to_trailing(out: Any, order: int, like: Tensor, n: int, row: bool) -> Jet:
     def sq(t: Interval | None) -> Interval | None:
         if t is None or not row:
             return t
-        return Interval._make(t.lower.squeeze(-2), t.upper.squeeze(-2))
+        return move(t, lambda x: x.squeeze(-2))
 
     val, grad, hess = sq(out.val), sq(out.grad), sq(out.hess)
     if grad is not None:
-        grad = Interval._make(grad.lower.movedim(0, -1), grad.upper.movedim(0, -1))
+        grad = lead(grad, lambda x, k: x.movedim(k, -1))
     if hess is not None:
-        hess = Interval._make(hess.lower.movedim((0, 1), (-2, -1)),
-                              hess.upper.movedim((0, 1), (-2, -1)))
+        hess = lead(hess, lambda x, k: x.movedim((k, k + 1), (-2, -1)))
     return Jet(val, grad, hess, order, n)

@@ -17,7 +17,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from diffsmf.interval.capture import EngineError, Program, capture, seed, to_trailing
+from diffsmf.interval.arith import shape_of, tensor_of
+from diffsmf.interval.capture import EngineError, Program, capture, seed, stacks, to_trailing
 from diffsmf.interval.jet import Jet, point
 from diffsmf.sets.interval import Interval
 
@@ -57,14 +58,14 @@ class Enclosure:
         self.val = jet.val
         self.n = jet.n
         self.order = jet.order
-        lo = jet.val.lower
+        like, vshape = tensor_of(jet.val), shape_of(jet.val)  # (no views of stacked bounds)
         if jet.order >= 1 and jet.grad is None:
-            z = torch.zeros((*lo.shape, jet.n), dtype=lo.dtype, device=lo.device)
+            z = torch.zeros((*vshape, jet.n), dtype=like.dtype, device=like.device)
             self.grad = point(z)
         else:
             self.grad = jet.grad
-            if self.grad is not None and self.grad.lower.shape[:-1] != lo.shape:
-                shape = (*torch.broadcast_shapes(self.grad.lower.shape[:-1], lo.shape), jet.n)
+            if self.grad is not None and shape_of(self.grad)[:-1] != vshape:
+                shape = (*torch.broadcast_shapes(shape_of(self.grad)[:-1], vshape), jet.n)
                 self.grad = Interval._make(self.grad.lower.expand(shape),
                                            self.grad.upper.expand(shape))
         self._hess = jet.hess
@@ -78,14 +79,14 @@ class Enclosure:
     def hess(self) -> Interval | None:
         if self.order < 2:
             return None
-        lo = self.val.lower
-        shape = (*lo.shape, self.n, self.n)
+        like = tensor_of(self.val)
+        shape = (*shape_of(self.val), self.n, self.n)
         if self._hess is None:
-            z = torch.zeros(shape, dtype=lo.dtype, device=lo.device)
+            z = torch.zeros(shape, dtype=like.dtype, device=like.device)
             return point(z)
         h = self._hess
-        if h.lower.shape != shape:
-            shape = torch.broadcast_shapes(h.lower.shape, shape)
+        if shape_of(h) != shape:
+            shape = torch.broadcast_shapes(shape_of(h), shape)
             h = Interval._make(h.lower.expand(shape), h.upper.expand(shape))
         return h
 
@@ -242,8 +243,7 @@ def enclose(fn: Callable[..., Tensor], box: Interval, order: int = 2,
         if prog.out_rank != 2:
             raise EngineError(f"{prog.name}: must map x [..., n] to [..., k] (keep the batch "
                               "dims)")
-        x = Interval._make(lo.unsqueeze(-2), box.upper.unsqueeze(-2))
-        out = prog.run([seed(x, order, n, 0), *[t.unsqueeze(-2) for t in fn.points()]])
+        out = prog.run([seed(_row(box), order, n, 0), *[t.unsqueeze(-2) for t in fn.points()]])
         return Enclosure(to_trailing(out, order, lo, n, row=True))
     if _is_row_model(fn):
         return enclose(StepModel(_RowCall(fn), None, None, name), box, order, name)
@@ -270,14 +270,22 @@ def enclose_dynamics(
     n, q = lo.shape[-1], theta.lower.shape[-1]
     sm = StepModel(f, u, theta.lower)
     prog = sm.program(torch.zeros(1, n, dtype=lo.dtype, device=lo.device))
-    x = Interval._make(lo.unsqueeze(-2), box.upper.unsqueeze(-2))
     th = Interval._make(theta.lower.unsqueeze(-2), theta.upper.unsqueeze(-2))
-    inputs = [seed(x, order, n + q, 0)]
+    inputs = [seed(_row(box), order, n + q, 0)]
     if u is not None:
         inputs.append(u.unsqueeze(-2))
     inputs.append(seed(th, order, n + q, n))
     out = prog.run(inputs)
     return Enclosure(to_trailing(out, order, lo, n + q, row=True))
+
+
+def _row(box: Interval) -> Interval:
+    """The box ``[..., n]`` with a batch row dim ``[..., 1, n]`` (stacked where the program
+    will run stacked: one op less)."""
+    lo, hi = box.lower, box.upper
+    if stacks(lo, hi):
+        return Interval._pair(torch.stack([lo, hi]).unsqueeze(-2))
+    return Interval._make(lo.unsqueeze(-2), hi.unsqueeze(-2))
 
 
 def _cache_of(owner: Any) -> dict:

@@ -33,9 +33,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.interval import arith
+from diffsmf.interval.arith import Stacked
 from diffsmf.sets.interval import Interval
+from diffsmf.utils import tracing
 
-__all__ = ["Jet", "chain", "hull", "move", "mul", "nonsmooth", "point"]
+__all__ = ["Jet", "chain", "hadd", "hull", "move", "mul", "nonsmooth", "point", "scaled"]
 
 
 class Jet:
@@ -66,7 +69,7 @@ class Jet:
 
     @property
     def shape(self) -> torch.Size:
-        return self.val.lower.shape
+        return arith.shape_of(self.val)
 
     def __repr__(self) -> str:
         return f"Jet(shape={tuple(self.shape)}, n={self.n}, order={self.order})"
@@ -78,10 +81,17 @@ def point(t: Tensor) -> Interval:
 
 
 def move(x: Any, fn: Callable[[Tensor], Tensor]) -> Any:
-    """Apply a value-moving op to both bounds of an Interval (or to a tensor / None)."""
+    """Apply a value-moving op to both bounds of an Interval (once for a point or for stacked
+    bounds: ``fn`` must then act on trailing dims only, or on dims counted from the end; or to a
+    tensor / None)."""
     if x is None:
         return None
+    if isinstance(x, Stacked):
+        return x._pair(fn(x.both))
     if isinstance(x, Interval):
+        if x.lower is x.upper:
+            t = fn(x.lower)
+            return Interval._make(t, t)
         return Interval._make(fn(x.lower), fn(x.upper))
     return fn(x)
 
@@ -91,49 +101,82 @@ def hull(a: Interval, b: Interval) -> Interval:
     return Interval._make(torch.minimum(a.lower, b.lower), torch.maximum(a.upper, b.upper))
 
 
-def _tangent(t: Interval, k: int) -> Interval:
-    """Insert ``k`` leading singleton dims (to broadcast a ``[*E, *s]`` factor against tangents)."""
-    if k == 0:
-        return t
-    idx = (None,) * k
-    return Interval._make(t.lower[idx], t.upper[idx])
+def lead(x: Interval, fn: Callable[[Tensor, int], Tensor]) -> Interval:
+    """Apply ``fn(t, k)`` to the bounds of ``x``, where the tangent dims start at dim ``k``
+    (1 for stacked bounds, else 0)."""
+    if isinstance(x, Stacked):
+        return x._pair(fn(x.both, 1))
+    return move(x, lambda t: fn(t, 0))
 
 
 def _outer(a: Interval, b: Interval) -> Interval:
     """``a_i b_j`` over the leading tangent dim -> ``[n, n, ...]``."""
-    left = Interval._make(a.lower.unsqueeze(1), a.upper.unsqueeze(1))
-    return left * Interval._make(b.lower.unsqueeze(0), b.upper.unsqueeze(0))
+    return arith.mul(lead(a, lambda t, k: t.unsqueeze(k + 1)),
+                     lead(b, lambda t, k: t.unsqueeze(k)))
 
 
-def _outer_sym(g: Interval) -> Interval:
-    """``g_i g_j`` with exact squares on the diagonal (tighter than products)."""
-    o = _outer(g, g)
+def _outer_sym(g: Interval, g2: Interval | None = None) -> Interval:
+    """``g_i g_j`` (or ``g2_i g_j`` for ``g2 = c g``, ``c >= 0``) with exact squares on the
+    diagonal (tighter than products)."""
+    o = _outer(g if g2 is None else g2, g)
+    if isinstance(o, Stacked):  # [2, n, n, ...]: the upper bounds of squares are >= 0 anyway
+        t = o.both
+        return o._pair(torch.where(_eye(t.shape[1], t.dim() - 3, t.device), t.clamp_min(0.0), t))
     n = g.lower.shape[0]
     eye = torch.eye(n, dtype=torch.bool, device=g.lower.device)
     eye = eye.reshape(n, n, *([1] * (g.lower.dim() - 1)))
     return Interval._make(torch.where(eye, o.lower.clamp_min(0.0), o.lower), o.upper)
 
 
+#: Derivative sums keep an exact zero sum exact (two ops more a sum; False: a zero sum is
+#: widened to the smallest subnormal, like a product)
+EXACT_SUMS = True
+
+
+def _eye(n: int, trailing: int, device: torch.device) -> Tensor:
+    """Boolean identity ``[n, n, 1, ..., 1]`` (``trailing`` ones; cached eagerly)."""
+    key = (n, trailing, device)
+    e = _EYES.get(key)
+    if e is None:
+        e = torch.eye(n, dtype=torch.bool, device=device).reshape(n, n, *([1] * trailing))
+        if not tracing():
+            _EYES[key] = e
+    return e
+
+
+_EYES: dict = {}
+
+
 def hadd(*hs: Interval | None) -> Interval | None:
-    """Sum of enclosures where ``None`` is the structural zero."""
+    """Sum of enclosures where ``None`` is the structural zero (a zero sum rounded outward
+    like any other: one op a bound)."""
     out = None
     for h in hs:
         if h is not None:
-            out = h if out is None else out + h
+            out = h if out is None else arith.add(out, h, exact_zero=EXACT_SUMS)
     return out
 
 
 def chain(a: Jet, v: Interval, d1: Interval | None, d2: Interval | None) -> Jet:
-    """``phi(a)`` from enclosures of ``phi``, ``phi'``, ``phi''`` over ``a.val``."""
+    """``phi(a)`` from enclosures of ``phi``, ``phi'``, ``phi''`` over ``a.val`` (the factors
+    ``[*E, *s]`` broadcast against the leading tangent dims)."""
     if a.grad is None or d1 is None:
         return a.like(v, None, None)
-    grad = a.grad * _tangent(d1, 1)
+    grad = arith.mul(a.grad, d1)
     hess = None
     if a.order >= 2:
-        h1 = None if a.hess is None else a.hess * _tangent(d1, 2)
-        h2 = None if d2 is None else _outer_sym(a.grad) * _tangent(d2, 2)
+        h1 = None if a.hess is None else arith.mul(a.hess, d1)
+        h2 = None if d2 is None else arith.mul(_outer_sym(a.grad), d2)
         hess = hadd(h1, h2)
     return a.like(v, grad, hess)
+
+
+def scaled(a: Jet, s: float) -> Jet:
+    """``s * a`` for a Python number ``s`` (two products per enclosure, not four)."""
+    def f(t: Interval | None) -> Interval | None:
+        return None if t is None else arith.scale(t, s)
+
+    return a.like(f(a.val), f(a.grad), f(a.hess))
 
 
 def mul(a: Jet | Tensor, b: Jet | Tensor) -> Jet:
@@ -141,36 +184,48 @@ def mul(a: Jet | Tensor, b: Jet | Tensor) -> Jet:
     if not isinstance(a, Jet):
         a, b = b, a
     if isinstance(b, (int, float)) and not isinstance(b, bool):  # two products, not four
-        return a.like(a.val * float(b), None if a.grad is None else a.grad * float(b),
-                      None if a.hess is None else a.hess * float(b))
+        return scaled(a, float(b))
     if not isinstance(b, Jet):  # jet times a constant tensor
         c = point(torch.as_tensor(b, dtype=a.val.lower.dtype, device=a.val.lower.device))
-        return a.like(a.val * c, _scaled(a.grad, c, 1), _scaled(a.hess, c, 2))
+        return a.like(arith.mul(a.val, c), _scaled(a.grad, c, 1), _scaled(a.hess, c, 2))
     if a is b:
-        return a.like(a.val.square(), *_square_derivs(a))
+        return a.like(arith.square(a.val), *_square_derivs(a))
     grad = hadd(_scaled(a.grad, b.val, 1), _scaled(b.grad, a.val, 1))
     hess = None
     if a.order >= 2:
         cross = None
         if a.grad is not None and b.grad is not None:
             o = _outer(a.grad, b.grad)
-            cross = o + Interval._make(o.lower.transpose(0, 1), o.upper.transpose(0, 1))
+            cross = arith.add(o, lead(o, lambda t, k: t.transpose(k, k + 1)),
+                              exact_zero=EXACT_SUMS)
         hess = hadd(_scaled(a.hess, b.val, 2), _scaled(b.hess, a.val, 2), cross)
-    return a.like(a.val * b.val, grad, hess)
+    return a.like(arith.mul(a.val, b.val), grad, hess)
 
 
 def _square_derivs(a: Jet) -> tuple[Interval | None, Interval | None]:
+    """``d(a^2) = 2 a da``, ``dd(a^2) = 2 (a dda + da da')`` (the factor 2 is exact)."""
     if a.grad is None:
         return None, None
-    grad = a.grad * _tangent(a.val, 1) * 2.0
+    g = a.grad
+    if g.lower is g.upper:  # a point gradient: 2 g is exact
+        g2 = point(g.lower * 2.0)
+        grad = arith.mul(g2, a.val)
+        hess = None
+        if a.order >= 2:
+            hess = hadd(arith.scale(_scaled(a.hess, a.val, 2), 2.0) if a.hess is not None
+                        else None, _outer_sym(g, g2))
+        return grad, hess
+    grad = arith.mul(g, arith.scale(a.val, 2.0))
     hess = None
     if a.order >= 2:
-        hess = hadd(_scaled(a.hess, a.val, 2), _outer_sym(a.grad)) * 2.0
+        hess = arith.scale(hadd(_scaled(a.hess, a.val, 2), _outer_sym(g)), 2.0)
     return grad, hess
 
 
 def _scaled(t: Interval | None, c: Interval, k: int) -> Interval | None:
-    return None if t is None else t * _tangent(c, k)
+    """``t * c`` for a derivative ``t [n]*k + [*E, *s]`` and a factor ``c [*E, *s]`` (tensors
+    broadcast from the right, and the ``k`` tangent dims lead: no reshaping)."""
+    return None if t is None else arith.mul(t, c)
 
 
 def nonsmooth(like: Interval) -> Interval:

@@ -2,12 +2,23 @@
 
 After an operation whose exact real result lies within ``k`` units in the last place of the
 computed float (``k = 1`` for the correctly rounded IEEE ``+ - * / sqrt``, ``k = 2`` for library
-transcendental functions), `down` / `up` move a lower / upper bound outward by the
-relative offset ``2 k eps |x|`` (``ulp(x) <= eps |x|`` for normal ``x``; the factor 2 absorbs the
-rounding of the offset's own addition), plus the smallest subnormal when ``absolute`` (results
-in the subnormal range or underflowed to 0). A few elementwise ops, cheaper than
-``torch.nextafter`` with inf guards. The offset is computed on detached values and added, so
-gradients of the bounds flow unchanged.
+transcendental functions), `down` / `up` move a lower / upper bound outward:
+
+* ``k = 1``: to the neighbouring float (``torch.nextafter``, one op). A correctly rounded
+  result is within half a spacing of the exact one on either side, so the neighbour bounds it;
+  an overflowed bound (a lower bound of +inf) becomes the largest finite float, 0 the smallest
+  subnormal;
+* ``k = 1`` for a sum (``absolute=False``): by ``eps |x|`` (at least one spacing: ``ulp(x) <=
+  eps |x|`` for normal ``x``; and nothing below the normal range, where a sum of floats is
+  exact, so a zero sum stays exact);
+* ``k >= 2``: to the neighbouring float, then by the relative offset ``2 (k - 1) eps |x|``
+  (``ulp(x) <= eps |x|`` for normal ``x``; the factor 2 absorbs the rounding of the offset's
+  own addition), plus the smallest subnormal when ``absolute`` (results in the subnormal range
+  or underflowed to 0).
+
+`outward` rounds bounds stacked as one tensor ``[2, ...]`` (lower, upper) in the same ops.
+Gradients of the bounds flow unchanged (``nextafter`` passes the gradient of its first
+argument; offsets are computed on detached values and added).
 """
 
 from __future__ import annotations
@@ -19,7 +30,8 @@ from torch import Tensor
 
 from diffsmf.utils import tracing
 
-__all__ = ["down", "eps", "nan_to_zero", "subnormal", "tiny", "up"]
+__all__ = ["down", "eps", "finite_inner", "nan_to_zero", "outward", "pair_signs", "subnormal",
+           "tiny", "up"]
 
 
 def eps(t: Tensor) -> float:
@@ -44,23 +56,38 @@ def nan_to_zero(t: Tensor) -> Tensor:
 
 
 def _step(x: Tensor, k: int, direction: float, absolute: bool) -> Tensor:
-    """Move ``x`` outward by at least ``k`` ulps towards ``direction`` (+-inf).
-
-    An overflowed bound (a lower bound of +inf, an upper bound of -inf) first becomes the largest
-    finite float, like ``nextafter``. On the CPU with autograd recording, a host check for
-    infinities is cheaper than a clamp node on every call; elsewhere (no grad, tracing,
-    accelerators: no host sync) the clamp is always applied.
-    """
+    """Move ``x`` outward by at least ``k`` ulps towards ``direction`` (+-inf): one
+    ``nextafter`` (an overflowed bound, a lower bound of +inf, becomes the largest finite
+    float), then for ``k >= 2`` the relative offset ``2 (k - 1) eps |x|`` (+ the smallest
+    subnormal when ``absolute``); a sum (``absolute=False``, ``k = 1``) by ``eps |x|``."""
     if k <= 0:
         return x
-    grad = x.requires_grad and torch.is_grad_enabled()
-    if not grad or tracing() or x.device.type != "cpu" or bool(torch.isinf(x.detach()).any()):
-        big = torch.finfo(x.dtype).max
+    if k == 1 and not absolute:  # a sum: eps |x| (one ulp or more; 0 below the normal range,
+        big = torch.finfo(x.dtype).max  # where a sum of floats is exact)
         x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
-    pad = (x.detach() if grad else x).abs() * (2.0 * k * eps(x))
+        return torch.add(x, _nograd(x).abs(), alpha=eps(x) if direction > 0 else -eps(x))
+    t = _TARGETS.get((direction, x.dtype, x.device))
+    if t is None:
+        t = torch.tensor(direction, dtype=x.dtype, device=x.device)
+        if not tracing():
+            _TARGETS[(direction, x.dtype, x.device)] = t
+    out = torch.nextafter(x, t)
+    if k == 1:
+        return out
+    # then k - 1 ulps more, relatively (the first step made an overflowed bound finite)
+    pad = _nograd(out).abs() * (2.0 * (k - 1) * eps(x))
     if absolute:
         pad = pad + subnormal(x)
-    return x + pad if direction > 0 else x - pad
+    return out + pad if direction > 0 else out - pad
+
+
+#: the 0-dim ``+-inf`` targets of ``nextafter`` per dtype and device (made once, eagerly)
+_TARGETS: dict = {}
+
+
+def _nograd(x: Tensor) -> Tensor:
+    """``x`` detached where it records a gradient (``detach`` is an op of its own)."""
+    return x.detach() if x.requires_grad else x
 
 
 def down(x: Tensor, k: int = 1, absolute: bool = True) -> Tensor:
@@ -71,3 +98,55 @@ def down(x: Tensor, k: int = 1, absolute: bool = True) -> Tensor:
 def up(x: Tensor, k: int = 1, absolute: bool = True) -> Tensor:
     """An upper bound ``x`` moved up by ``k`` ulps (see the module docstring)."""
     return _step(x, k, math.inf, absolute)
+
+
+def _target(x: Tensor, rank: int) -> Tensor:
+    """``[-inf, inf]`` shaped ``[2, 1, ..., 1]`` (``rank`` dims) in ``x``'s dtype and device."""
+    return _pair_const(x, rank, -math.inf, math.inf)
+
+
+def _pair_const(x: Tensor, rank: int, lo: float, hi: float) -> Tensor:
+    """``[lo, hi]`` shaped ``[2, 1, ..., 1]`` (``rank`` dims) like ``x`` (cached eagerly)."""
+    key = (lo, hi, rank, x.dtype, x.device)
+    t = _TARGETS.get(key)
+    if t is None:
+        t = torch.tensor([lo, hi], dtype=x.dtype, device=x.device).reshape(2, *([1] * (rank - 1)))
+        if not tracing():
+            _TARGETS[key] = t
+    return t
+
+
+def pair_signs(x: Tensor, rank: int) -> Tensor:
+    """``[-1, 1]`` shaped ``[2, 1, ..., 1]`` (``rank`` dims): the outward direction of stacked
+    bounds."""
+    return _pair_const(x, rank, -1.0, 1.0)
+
+
+def finite_inner(both: Tensor) -> Tensor:
+    """Stacked bounds ``[2, ...]`` whose lower bound overflowed to +inf (or upper to -inf) made
+    the largest finite float, like ``nextafter``; other bounds unchanged (one op)."""
+    big = torch.finfo(both.dtype).max
+    return torch.clamp(both, min=_pair_const(both, both.dim(), -math.inf, -big),
+                       max=_pair_const(both, both.dim(), big, math.inf))
+
+
+def outward(both: Tensor, k: int = 1, absolute: bool = True, point: bool = False) -> Tensor:
+    """Bounds stacked as ``both [2, ...]`` (lower, upper) moved outward like `down` / `up`, in
+    one op for ``k = 1``; ``point``: ``both`` is one tensor ``[...]`` (a point, the computed
+    value of both bounds) and the result is ``[2, ...]``."""
+    rank = both.dim() + 1 if point else both.dim()
+    if not absolute and k == 1:  # a sum: see _step
+        if point:
+            big = torch.finfo(both.dtype).max
+            t = both.clamp(-big, big)
+        else:
+            t = finite_inner(both)
+        e = eps(both)
+        return torch.addcmul(t, _pair_const(both, rank, -e, e), _nograd(t).abs())
+    out = torch.nextafter(both, _target(both, rank))
+    if k > 1:  # then k - 1 ulps more, relatively (see _step); the first step made inf finite
+        pad = _nograd(out).abs() * (2.0 * (k - 1) * eps(both))
+        if absolute:
+            pad = pad + subnormal(both)
+        out = torch.addcmul(out, pair_signs(both, rank), pad)
+    return out

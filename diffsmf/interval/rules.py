@@ -29,8 +29,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.interval import arith
+from diffsmf.interval.arith import Stacked, is_number
 from diffsmf.interval.errors import EngineError
-from diffsmf.interval.jet import Jet, chain, hadd, hull, move, mul, nonsmooth, point
+from diffsmf.interval.jet import EXACT_SUMS, Jet, chain, hadd, hull, move, mul, nonsmooth, point
 from diffsmf.interval.rounding import down, up
 from diffsmf.sets.interval import Interval
 
@@ -138,8 +140,8 @@ def _zeros_grad(j: Jet, tangent: int) -> Interval | None:
     if j.order < tangent:
         return None
     shape = (j.n,) * tangent + tuple(j.shape)
-    z = torch.zeros(shape, dtype=j.val.lower.dtype, device=j.val.lower.device)
-    return point(z)
+    like = arith.tensor_of(j.val)
+    return point(torch.zeros(shape, dtype=like.dtype, device=like.device))
 
 
 def _nan_where(j: Jet, bad: Tensor) -> Jet:
@@ -267,20 +269,36 @@ def _pad(ctx: Ctx, x: Any, pad: Sequence[int], value: float = 0.0) -> Any:
     return torch.nn.functional.pad(x, pad, value=value)
 
 
-def _common(items: Sequence[Any]) -> list[Any]:
-    """Lift tensors to jets and broadcast every part to common leading dims (for cat/stack)."""
+def _common(items: Sequence[Any], stacked_zeros: bool = False) -> list[Any]:
+    """Lift tensors to jets and broadcast every part to common leading dims (for cat/stack).
+
+    ``stacked_zeros``: where the other parts are stacked, a missing derivative is made as
+    stacked zeros (one op; see `_pair_zeros`)."""
     ref = _ref(items)
     if ref is None:
         return list(items)
     jets = [_lift(t, ref) for t in items]
-    need_g = any(j.grad is not None for j in jets)
-    need_h = any(j.hess is not None for j in jets)
+    need_g = [j.grad for j in jets if j.grad is not None]
+    need_h = [j.hess for j in jets if j.hess is not None]
     out = []
     for j in jets:
-        g = j.grad if j.grad is not None or not need_g else _zeros_grad(j, 1)
-        h = j.hess if j.hess is not None or not need_h else _zeros_grad(j, 2)
+        g = j.grad if j.grad is not None or not need_g else _zeros_like_part(j, 1, need_g,
+                                                                            stacked_zeros)
+        h = j.hess if j.hess is not None or not need_h else _zeros_like_part(j, 2, need_h,
+                                                                            stacked_zeros)
         out.append(j.like(j.val, g, h))
     return out
+
+
+def _zeros_like_part(j: Jet, tangent: int, others: list, stacked: bool) -> Interval | None:
+    """Zero derivative enclosure of ``j`` (stacked when ``stacked`` and another part is)."""
+    if j.order < tangent:
+        return None
+    if not stacked or not any(isinstance(o, Stacked) for o in others):
+        return _zeros_grad(j, tangent)
+    like = arith.tensor_of(j.val)
+    z = torch.zeros((2, *((j.n,) * tangent), *j.shape), dtype=like.dtype, device=like.device)
+    return Interval._pair(z)
 
 
 def _broadcast_except(parts: list[Tensor], d: int) -> list[Tensor]:
@@ -298,33 +316,58 @@ def _broadcast_except(parts: list[Tensor], d: int) -> list[Tensor]:
     return out
 
 
-@register(aten.cat, aten.concat, category="moving")
-def _cat(ctx: Ctx, tensors: Sequence[Any], dim: int = 0) -> Any:
-    r = ctx.out_rank
-    d = _neg_dim(dim, r)
-    items = _common(tensors)
+def _join(op: Callable[..., Tensor], parts: list[Tensor], d: int) -> Tensor:
+    """``op(parts, d)`` (torch.cat or torch.stack) after broadcasting the parts to one shape
+    except along ``d`` for cat (only the parts that differ are expanded)."""
+    if op is torch.stack:
+        s0 = parts[0].shape
+        if all(t.shape == s0 for t in parts):
+            return op(parts, d)
+        shape = torch.broadcast_shapes(*[t.shape for t in parts])
+        return op([t if t.shape == shape else t.expand(shape) for t in parts], d)
+    if all(t.shape[:d] + t.shape[d + 1:] == parts[0].shape[:d] + parts[0].shape[d + 1:]
+           for t in parts[1:]) and len({t.dim() for t in parts}) == 1:
+        return op(parts, d)
+    return op(_broadcast_except(parts, d), d)
+
+
+def _join_jets(op: Callable[..., Tensor], tensors: Sequence[Any], d: int) -> Any:
+    """cat / stack of jets and constants along the (negative) dim ``d``."""
+    items = _common(tensors, stacked_zeros=True)
     if not any(isinstance(t, Jet) for t in items):
-        return torch.cat(_broadcast_except([torch.as_tensor(t) for t in items], d), d)
+        return _join(op, [torch.as_tensor(t) for t in items], d)
 
-    def cat(parts: list[Tensor]) -> Tensor:
-        return torch.cat(_broadcast_except(parts, d), d)
-
-    def cat_iv(ivs: list[Interval | None]) -> Interval | None:
+    def join_iv(ivs: list[Interval | None]) -> Interval | None:
         if ivs[0] is None:
             return None
-        return Interval._make(cat([i.lower for i in ivs]), cat([i.upper for i in ivs]))
+        if any(isinstance(i, Stacked) for i in ivs) and all(
+                isinstance(i, Stacked) or i.lower is i.upper for i in ivs):
+            r = max(i.both.dim() - 1 if isinstance(i, Stacked) else i.lower.dim()
+                    for i in ivs)  # stacked: one join (points expanded)
+            parts = [i.both if isinstance(i, Stacked) else i.lower.expand(2, *i.lower.shape)
+                     for i in ivs]
+            parts = [t.reshape(2, *([1] * (r + 1 - t.dim())), *t.shape[1:]) if t.dim() <= r
+                     else t for t in parts]
+            return ivs[0]._pair(_join(op, parts, d)) if isinstance(ivs[0], Stacked) else \
+                Interval._pair(_join(op, parts, d))
+        lo = _join(op, [i.lower for i in ivs], d)
+        if all(i.lower is i.upper for i in ivs):
+            return point(lo)
+        return Interval._make(lo, _join(op, [i.upper for i in ivs], d))
 
     j0 = items[0]
-    return j0.like(cat_iv([j.val for j in items]), cat_iv([j.grad for j in items]),
-                   cat_iv([j.hess for j in items]))
+    return j0.like(join_iv([j.val for j in items]), join_iv([j.grad for j in items]),
+                   join_iv([j.hess for j in items]))
+
+
+@register(aten.cat, aten.concat, category="moving")
+def _cat(ctx: Ctx, tensors: Sequence[Any], dim: int = 0) -> Any:
+    return _join_jets(torch.cat, tensors, _neg_dim(dim, ctx.out_rank))
 
 
 @register(aten.stack, category="moving")
 def _stack(ctx: Ctx, tensors: Sequence[Any], dim: int = 0) -> Any:
-    r = ctx.out_rank
-    d = _neg_dim(dim, r)
-    pieces = [_map_piece(t, r - 1, lambda t_, p: t_.unsqueeze(d)) for t in tensors]
-    return _cat(Ctx(tuple(r for _ in tensors), r, "cat"), pieces, d)
+    return _join_jets(torch.stack, tensors, _neg_dim(dim, ctx.out_rank))
 
 
 @register(aten.split_with_sizes, aten.split, aten.split_with_sizes_copy, category="moving")
@@ -374,14 +417,41 @@ def _linear_combo(a: Any, b: Any, sa: float, sb: float) -> Any:
     ref = _ref([a, b])
     if ref is None:
         return sa * a + sb * b
+    if sa in (1, -1) and sb in (1, -1):  # a number added to a jet: a shift of its value
+        if not _is_jet(a) and is_number(a):
+            return _plus_const(b, sb, sa * a)
+        if not _is_jet(b) and is_number(b):
+            return _plus_const(a, sa, sb * b)
     A, B = _lift(a, ref), _lift(b, ref)
 
-    def comb(x: Interval | None, y: Interval | None) -> Interval | None:
-        xs = None if x is None else (x if sa == 1 else x * sa)
-        ys = None if y is None else (y if sb == 1 else y * sb)
-        return hadd(xs, ys)
+    def comb(x: Interval | None, y: Interval | None, exact_zero: bool) -> Interval | None:
+        if x is None or y is None:
+            return _times(y, sb) if x is None else _times(x, sa)
+        if sa == 1 and sb == -1:
+            return arith.sub(x, y, exact_zero)
+        return arith.add(_times(x, sa), _times(y, sb), exact_zero)
 
-    return ref.like(comb(A.val, B.val), comb(A.grad, B.grad), comb(A.hess, B.hess))
+    # a zero value sum stays exact; derivative sums as `diffsmf.interval.jet.EXACT_SUMS` says
+    return ref.like(comb(A.val, B.val, True), comb(A.grad, B.grad, EXACT_SUMS),
+                    comb(A.hess, B.hess, EXACT_SUMS))
+
+
+def _times(x: Interval | None, s: float) -> Interval | None:
+    """``s * x`` (``None`` stays None; ``s = +-1`` exact)."""
+    if x is None or s == 1:
+        return x
+    return arith.neg(x) if s == -1 else arith.scale(x, float(s))
+
+
+def _plus_const(j: Jet, s: float, c: float) -> Jet:
+    """``s * j + c`` for ``s = +-1`` and a Python number ``c``."""
+    if s == -1 and c != 0:
+        val = arith.rshift(j.val, float(c))
+    else:
+        val = _times(j.val, s)
+        if c != 0:
+            val = arith.shift(val, float(c))
+    return j.like(val, _times(j.grad, s), _times(j.hess, s))
 
 
 @register(aten.add, category="arithmetic")
@@ -403,8 +473,7 @@ def _rsub(ctx: Ctx, a: Any, b: Any, alpha: float = 1) -> Any:
 def _neg(ctx: Ctx, a: Any) -> Any:
     if not isinstance(a, Jet):
         return -a
-    return a.like(-a.val, move(a.grad, torch.neg) if a.grad is None else -a.grad,
-                  None if a.hess is None else -a.hess)
+    return a.like(arith.neg(a.val), _times(a.grad, -1), _times(a.hess, -1))
 
 
 @register(aten.mul, category="arithmetic")
