@@ -559,6 +559,8 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
     augmented columns cost 15 instead of 6 bases per set at n = 2.
     """
     n, m = G.shape[-2], G.shape[-1]
+    if n == 2 and 2 <= m and math.comb(m, 2) <= _max_bases(2):
+        return _outer_parallelogram(G)
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     with torch.no_grad():
         Gd = G.detach()
@@ -575,6 +577,83 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
     with torch.no_grad():
         basis = torch.where(ok.unsqueeze(-1), best, _fallback_basis(Gn))
     return _basis_T(Gaug, basis)
+
+
+#: Pair-table entries (batch x m x m) per eager chunk of `_outer_parallelogram`.
+_PAIR_CHUNK_ELEMS = 2_000_000
+
+
+def _outer_parallelogram(G: Tensor) -> Tensor:
+    """`_outer_parallelotope` in 2-D from the table of all pair determinants -> ``[..., 2, 2]``.
+
+    The same basis and the same ``T`` as the search over the C(m, 2) bases (Chisci 1996), in
+    closed form (Cramer's rule): with ``D_kl = det [g_k, g_l]`` and ``S_k = sum_l |D_kl|``, the
+    basis ``(i, j)`` has ``B^-1 g_l = (D_lj, D_il) / D_ij``, so ``s = (S_j, S_i) / |D_ij|`` and
+    ``|det T| = S_i S_j / |D_ij|``: one ``m x m`` table instead of a solve per basis. The
+    choice (least ``|det T|``, ties within `BASIS_TIE_RTOL` to the first pair in lexicographic
+    order, regular pairs ``|D_ij| > 1e-12 |g_i| |g_j|`` only) is made on the detached table;
+    the first near-least entry of the symmetric table in row-major order is that pair. ``s`` is
+    padded by the rounding of the table (``|fl(D_kl) - D_kl| <= 2 eps P_kl``, ``P_kl = |a_k
+    b_l| + |b_k a_l|``, counted twice) and a relative ``(m + 8) eps``. Elements without a
+    regular pair take `_outer_parallelotope`'s fallback. Eager batches are chunked
+    (`_PAIR_CHUNK_ELEMS` table entries per chunk).
+    """
+    m = G.shape[-1]
+    batch = G.shape[:-2]
+    nb = int(math.prod(batch))
+    rows = max(1, _PAIR_CHUNK_ELEMS // (m * m))
+    if tracing() or nb <= rows:
+        T, ok, all_ok = _pair_T(G)
+    else:
+        Gf = G.reshape(nb, 2, m)
+        parts = [_pair_T(Gf[s : s + rows]) for s in range(0, nb, rows)]
+        T = torch.cat([t for t, _, _ in parts]).reshape(*batch, 2, 2)
+        ok = torch.cat([k for _, k, _ in parts]).reshape(batch)
+        all_ok = all(a for _, _, a in parts)
+    if all_ok:
+        return T
+    # no regular pair (all generators parallel or zero): Chisci's T on [G, 1e-9 max|G| I]
+    # with the basis of `_fallback_basis` (an outer bound, not the least one)
+    with torch.no_grad():
+        scale = G.detach().abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
+        basis = _fallback_basis(G.detach() / scale)
+    eye = torch.eye(2, dtype=G.dtype, device=G.device)
+    Gaug = torch.cat([G, ((1e-9 * scale) * eye).expand(*batch, 2, 2)], -1)
+    return torch.where(ok.reshape(*ok.shape, 1, 1), T, _basis_T(Gaug, basis))
+
+
+def _pair_T(G: Tensor) -> tuple[Tensor, Tensor, bool]:
+    """`_outer_parallelogram` on one chunk: ``(T [..., 2, 2], ok [...], all_ok)``: ``ok``
+    False where no pair is regular (``T`` is then finite but not a bound), ``all_ok`` whether
+    every element is ok (eager; False while traced)."""
+    m = G.shape[-1]
+    with torch.no_grad():
+        scale = G.detach().abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
+    Gn = G / scale  # the choice and s are invariant to the scale; no over- or underflow
+    a, b = Gn[..., 0, :], Gn[..., 1, :]
+    p1 = a.unsqueeze(-1) * b.unsqueeze(-2)
+    p2 = b.unsqueeze(-1) * a.unsqueeze(-2)
+    Dabs = (p1 - p2).abs()  # |det [g_k, g_l]| [..., m, m], symmetric, zero diagonal
+    S = Dabs.sum(-1)
+    with torch.no_grad():
+        nrm = torch.hypot(a, b)
+        regular = Dabs > 1e-12 * (nrm.unsqueeze(-1) * nrm.unsqueeze(-2))
+        val = torch.where(regular, S.unsqueeze(-1) * S.unsqueeze(-2) / Dabs, math.inf)
+        flat = val.flatten(-2)
+        v = flat.amin(-1, keepdim=True)
+        k = (flat <= v * (1 + BASIS_TIE_RTOL)).to(torch.int8).argmax(-1, keepdim=True)
+        ij = torch.cat([k // m, k % m], -1)  # [..., 2], i < j
+    # rounding of the table: |fl(D_kl) - D_kl| <= 2 eps P_kl (operands of Gn exact to eps/2)
+    P = 4 * _EPS * (p1.abs() + p2.abs())
+    num = (S + P.sum(-1)).gather(-1, ij.flip(-1))  # (S_j, S_i) + pad
+    den = (Dabs - P).flatten(-2).gather(-1, k)  # |D_ij| - pad, > 0 for a regular pair
+    ok = torch.isfinite(v).squeeze(-1)
+    all_ok = not tracing() and bool(ok.all())
+    if not all_ok:  # no regular pair: a finite placeholder (no NaN in the gradients)
+        den = torch.where(ok.unsqueeze(-1), den, 1.0)
+    s = num / den * (1 + (m + 8) * _EPS)
+    B = torch.gather(G, -1, ij.unsqueeze(-2).expand(*G.shape[:-1], 2))
+    return B * s.unsqueeze(-2), ok, all_ok
 
 
 def _fallback_basis(G: Tensor) -> Tensor:
