@@ -151,13 +151,14 @@ class MSZM(SetFilter):
 
     def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (Z - c) (+) E (+) W`` then reduction (Alamo 2005 sec. 4)."""
-        from diffsmf.linearize import stirling_jacobian
+        from diffsmf.linearize.jacobians import stirling_value_jacobian
 
         Z = state.set
         c, G = Z.center, Z.generators
         fn = step_function(self.system, u)
         hull = Z.interval_hull()
-        F = stirling_jacobian(fn, c, stirling_steps(self, c, hull.radius))  # Wang 2022, eq. 12
+        # Wang 2022, eq. 12, and f(c) in one call of f
+        fc, F = stirling_value_jacobian(fn, c, stirling_steps(self, c, hull.radius))
         # remainder over the interval hull (Alamo 2005; Wang et al. 2022, sec. 4.1: the baselines
         # bound the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
         E, ev = prediction_remainder(  # not finite: flagged (events), never NaN
@@ -165,7 +166,7 @@ class MSZM(SetFilter):
             events=True,
         )
         FG = linalg.traced_matmul(F, G)
-        Zp = zonotope_prediction(self, fn(c), FG, E)  # W's own generators (Alamo 2005)
+        Zp = zonotope_prediction(self, fc, FG, E)  # W's own generators (Alamo 2005)
         return state.replace(set=self._fit(Zp)).flag(ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:

@@ -88,11 +88,21 @@ def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
     """
     from diffsmf.sets.zonotope import Zonotope
 
+    W0 = filt.system.process_noise
+    if (W0 is None or isinstance(W0, Interval)) and _plain_noise_set(filt):
+        # the box W itself (`SetFilter.process_noise_box`), without forming the Interval
+        return filt.process_noise_center, filt.process_noise, None
     W = filt.process_noise_set()
     if isinstance(W, Zonotope):
         return W.center, torch.zeros_like(W.center), W.generators
     box = W if isinstance(W, Interval) else W.interval_hull()
     return box.center, box.radius, None
+
+
+def _plain_noise_set(filt: SetFilter) -> bool:
+    """Whether ``filt`` keeps `SetFilter`'s own ``process_noise_set`` (a box W is then
+    ``process_noise_center +- process_noise``)."""
+    return type(filt).process_noise_set is SetFilter.process_noise_set
 
 
 def noise_ellipsoid(filt: SetFilter) -> ConvexSet | None:
@@ -119,9 +129,10 @@ def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) ->
     from diffsmf.sets.zonotope import Zonotope
 
     wc, wr, Gw = noise_generators(filt)
+    ec = E.center
     rad = E.radius + wr  # Theorem 2: sum of two boxes
-    rad = rad + rounding_margin(fc, E.center, FG.abs().sum(-1), rad)
+    rad = rad + rounding_margin(fc, ec, FG.abs().sum(-1), rad)
     parts = [FG, torch.diag_embed(rad)]
     if Gw is not None:
         parts.append(Gw.expand(*FG.shape[:-1], Gw.shape[-1]))
-    return Zonotope(fc + E.center + wc, torch.cat(parts, -1))
+    return Zonotope._make(fc + ec + wc, torch.cat(parts, -1))

@@ -254,8 +254,12 @@ class Zonotope(ConvexSet):
         """Internal constructor without validation (broadcasts the batch dims)."""
         batch = torch.broadcast_shapes(c.shape[:-1], G.shape[:-2])
         obj = object.__new__(cls)
-        object.__setattr__(obj, "_c", c.expand(*batch, c.shape[-1]))
-        object.__setattr__(obj, "generators", G.expand(*batch, *G.shape[-2:]))
+        if c.shape[:-1] != batch:
+            c = c.expand(*batch, c.shape[-1])
+        if G.shape[:-2] != batch:
+            G = G.expand(*batch, *G.shape[-2:])
+        object.__setattr__(obj, "_c", c)
+        object.__setattr__(obj, "generators", G)
         return obj
 
     def pad_generators(self, m: int) -> Zonotope:
@@ -390,7 +394,7 @@ class Zonotope(ConvexSet):
         A relative outward margin covers the rounding of the solve.
         """
         T = _outer_parallelotope(self.generators)
-        return family("Parallelotope")._make(self._c, T)
+        return family("Parallelotope")._from_tensors((self._c, T))  # T has the batch of c
 
     def to_ellipsoid(self) -> Ellipsoid:
         """Covering ellipsoid of the outer parallelotope ``c + T[-1,1]^n``
