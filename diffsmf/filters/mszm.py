@@ -56,7 +56,7 @@ from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.conversions import as_zonotope
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, is_int
+from diffsmf.utils import Positive, is_int, tracing
 
 __all__ = ["MSZM"]
 
@@ -138,6 +138,9 @@ class MSZM(SetFilter):
             return Z.pad_generators(q)
         with torch.no_grad():
             nonzero = (G != 0).any(-2)  # [..., M]
+        if not tracing() and bool(nonzero.all()):  # no zero columns: the same, sync-cheap
+            return Z.reduce(self.order, method=self.reduce_method)
+        with torch.no_grad():
             count = nonzero.sum(-1)  # [...]
             dest = _stable_partition(nonzero, count)
         Gc = torch.zeros_like(G).scatter(-1, dest.unsqueeze(-2).expand_as(G), G)

@@ -125,7 +125,8 @@ def stirling_jacobian(fn: Fn, x: Tensor, h: Tensor | float) -> Tensor:
         raise ValueError("h: the Stirling step must be positive")
     n = x.shape[-1]
     try:
-        hx = torch.broadcast_to(h, torch.broadcast_shapes(h.shape, x.shape))  # [..., n]
+        shape = torch.broadcast_shapes(h.shape, x.shape)
+        hx = h if h.shape == shape else torch.broadcast_to(h, shape)  # [..., n]
     except RuntimeError as exc:
         msg = f"h: shape {tuple(h.shape)} does not broadcast to x {tuple(x.shape)}"
         raise ValueError(msg) from exc

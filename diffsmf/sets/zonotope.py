@@ -446,11 +446,12 @@ class Zonotope(ConvexSet):
         with torch.no_grad():
             # scores of the generators in the coordinates normalised by the interval hull's
             # half-widths, so that the choice does not depend on the units of the states
-            Gs = G * _hull_weights(G).unsqueeze(-1)
+            A = G.abs()
+            As = A * _hull_weights(G, A).unsqueeze(-1)  # |diag(1 / r) G|
             if method == "combastel":
-                score = Gs.norm(dim=-2)
+                score = As.norm(dim=-2)
             else:
-                score = Gs.abs().sum(-2) - Gs.abs().amax(-2)
+                score = As.sum(-2) - As.amax(-2)
             perm = score.argsort(-1, descending=True)
         keep_k = target - n
         Gp = torch.gather(G, -1, perm.unsqueeze(-2).expand_as(G))
@@ -519,11 +520,14 @@ class Zonotope(ConvexSet):
 
 
 # ---------------------------------------------------------------------- helpers
-def _hull_weights(G: Tensor) -> Tensor:
-    """``1 / r [..., n]`` for the interval hull half-widths ``r = sum_j |G_ij|`` (1 where
-    ``r = 0``), detached: the row weights that make generator scores unit-free."""
-    r = G.detach().abs().sum(-1)
-    return torch.where(r > 0, 1.0 / r, torch.ones_like(r))
+def _hull_weights(G: Tensor, A: Tensor | None = None) -> Tensor:
+    """``1 / r [..., n]`` for the interval hull half-widths ``r = sum_j |G_ij|`` (``A``:
+    ``|G|`` if already at hand), detached: the row weights that make generator scores
+    unit-free. A zero row (``r = 0``, where every score term is 0 anyway) gets a finite
+    weight, ``1 / tiny``."""
+    with torch.no_grad():
+        r = (G.abs() if A is None else A).sum(-1)
+        return r.clamp_min(torch.finfo(r.dtype).tiny).reciprocal()
 
 
 def _uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | None) -> Tensor:
@@ -632,29 +636,29 @@ def _pair_T(G: Tensor) -> tuple[Tensor, Tensor, bool]:
     every element is ok (eager; False while traced)."""
     m = G.shape[-1]
     with torch.no_grad():
-        scale = G.detach().abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
+        scale = G.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
     Gn = G / scale  # the choice and s are invariant to the scale; no over- or underflow
-    a, b = Gn[..., 0, :], Gn[..., 1, :]
-    p1 = a.unsqueeze(-1) * b.unsqueeze(-2)
-    p2 = b.unsqueeze(-1) * a.unsqueeze(-2)
-    Dabs = (p1 - p2).abs()  # |det [g_k, g_l]| [..., m, m], symmetric, zero diagonal
+    # p[..., 0, k, l] = a_k b_l, p[..., 1, k, l] = b_k a_l (rows a, b of Gn)
+    p = Gn.unsqueeze(-1) * Gn.flip(-2).unsqueeze(-2)
+    Dabs = (p[..., 0, :, :] - p[..., 1, :, :]).abs()  # |det [g_k, g_l]|: symmetric, 0 diagonal
     S = Dabs.sum(-1)
     with torch.no_grad():
-        nrm = torch.hypot(a, b)
+        nrm = Gn.norm(dim=-2)
         regular = Dabs > 1e-12 * (nrm.unsqueeze(-1) * nrm.unsqueeze(-2))
         val = torch.where(regular, S.unsqueeze(-1) * S.unsqueeze(-2) / Dabs, math.inf)
         flat = val.flatten(-2)
         v = flat.amin(-1, keepdim=True)
         k = (flat <= v * (1 + BASIS_TIE_RTOL)).to(torch.int8).argmax(-1, keepdim=True)
         ij = torch.cat([k // m, k % m], -1)  # [..., 2], i < j
+        fin = v < math.inf  # False for inf and NaN
+        all_ok = not tracing() and bool(fin.all())
     # rounding of the table: |fl(D_kl) - D_kl| <= 2 eps P_kl (operands of Gn exact to eps/2)
-    P = 4 * _EPS * (p1.abs() + p2.abs())
+    P = (4 * _EPS) * p.abs().sum(-3)
     num = (S + P.sum(-1)).gather(-1, ij.flip(-1))  # (S_j, S_i) + pad
     den = (Dabs - P).flatten(-2).gather(-1, k)  # |D_ij| - pad, > 0 for a regular pair
-    ok = torch.isfinite(v).squeeze(-1)
-    all_ok = not tracing() and bool(ok.all())
+    ok = fin.squeeze(-1)
     if not all_ok:  # no regular pair: a finite placeholder (no NaN in the gradients)
-        den = torch.where(ok.unsqueeze(-1), den, 1.0)
+        den = torch.where(fin, den, 1.0)
     s = num / den * (1 + (m + 8) * _EPS)
     B = torch.gather(G, -1, ij.unsqueeze(-2).expand(*G.shape[:-1], 2))
     return B * s.unsqueeze(-2), ok, all_ok
