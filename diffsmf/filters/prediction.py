@@ -13,9 +13,9 @@ from torch import Tensor
 
 from diffsmf.filters.base import SetFilter
 from diffsmf.filters.remainders import (
+    ROUND_REL,
     add_remainder_margin,
     checked_remainder,
-    rounding_margin,
     sanitize_remainder,
 )
 from diffsmf.sets.base import ConvexSet
@@ -131,7 +131,8 @@ def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) ->
     wc, wr, Gw = noise_generators(filt)
     ec = E.center
     rad = E.radius + wr  # Theorem 2: sum of two boxes
-    rad = rad + rounding_margin(fc, ec, FG.abs().sum(-1), rad)
+    # `rounding_margin(fc, ec, sum_j |FG_ij|, rad)`, the last two terms being >= 0 already
+    rad = rad + ROUND_REL * (1.0 + fc.abs() + ec.abs() + FG.abs().sum(-1) + rad)
     parts = [FG, torch.diag_embed(rad)]
     if Gw is not None:
         parts.append(Gw.expand(*FG.shape[:-1], Gw.shape[-1]))

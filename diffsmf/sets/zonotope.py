@@ -386,12 +386,14 @@ class Zonotope(ConvexSet):
 
         Wang et al. 2022, eq. 22: for a basis B of n generators, ``T = B diag(sum_j |(B^-1 G)_ij|)``
         contains Z; pick the basis of least ``|det T|``. Batched over the C(m, n) bases
-        (chunked); singular bases (|det B| <= 1e-12 x Hadamard bound) are skipped. At most
+        (chunked; in 2-D all of them at once from the table of the pair determinants,
+        `_outer_parallelogram`); singular bases (|det B| <= 1e-12 x Hadamard bound) are
+        skipped. At most
         ``MAX_BASES`` bases per set: beyond, only bases of the L longest generators are
         tried (L largest with C(L, n) <= MAX_BASES) -- still an outer bound, maybe not the
         smallest. A rank-deficient Z (no regular basis) gets 1e-9-scaled axis generators
         appended first. The basis choice is made without gradient; T is differentiable.
-        A relative outward margin covers the rounding of the solve.
+        An outward margin covers the rounding of the solve (in 2-D, of the determinants).
         """
         T = _outer_parallelotope(self.generators)
         return family("Parallelotope")._from_tensors((self._c, T))  # T has the batch of c
