@@ -645,7 +645,7 @@ def _pair_T(G: Tensor) -> tuple[Tensor, Tensor, bool]:
     Dabs = (p[..., 0, :, :] - p[..., 1, :, :]).abs()  # |det [g_k, g_l]|: symmetric, 0 diagonal
     S = Dabs.sum(-1)
     with torch.no_grad():
-        nrm = Gn.norm(dim=-2)
+        nrm = torch.hypot(Gn[..., 0, :], Gn[..., 1, :])  # elementwise: a norm over dim -2 is slow
         regular = Dabs > 1e-12 * (nrm.unsqueeze(-1) * nrm.unsqueeze(-2))
         val = torch.where(regular, S.unsqueeze(-1) * S.unsqueeze(-2) / Dabs, math.inf)
         flat = val.flatten(-2)
@@ -655,9 +655,9 @@ def _pair_T(G: Tensor) -> tuple[Tensor, Tensor, bool]:
         fin = v < math.inf  # False for inf and NaN
         all_ok = not tracing() and bool(fin.all())
     # rounding of the table: |fl(D_kl) - D_kl| <= 2 eps P_kl (operands of Gn exact to eps/2)
-    P = (4 * _EPS) * p.abs().sum(-3)
-    num = (S + P.sum(-1)).gather(-1, ij.flip(-1))  # (S_j, S_i) + pad
-    den = (Dabs - P).flatten(-2).gather(-1, k)  # |D_ij| - pad, > 0 for a regular pair
+    P = p.abs().sum(-3)
+    num = torch.add(S, P.sum(-1), alpha=4 * _EPS).gather(-1, ij.flip(-1))  # (S_j, S_i) + pad
+    den = torch.sub(Dabs, P, alpha=4 * _EPS).flatten(-2).gather(-1, k)  # |D_ij| - pad, > 0
     ok = fin.squeeze(-1)
     if not all_ok:  # no regular pair: a finite placeholder (no NaN in the gradients)
         den = torch.where(fin, den, 1.0)
