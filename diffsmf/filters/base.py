@@ -345,14 +345,20 @@ class SetFilter(nn.Module):
         ``y`` is validated first (`_check_update_y`: exactly ``[B, m]``, no inf). Ends
         with the boundedness guard (`guard`)."""
         y = self._check_update_y(y, state)
+        cls = type(self)
+        if not self.skip_nan and cls._guarded_update is SetFilter._guarded_update and (
+            cls._check_update_y is SetFilter._check_update_y
+        ):  # a NaN row raised in `_check_update_y` already (eager): no rows to skip
+            return _flagging(cls._guarded_update, self, state, y, None)
         bad = torch.isnan(y).any(-1)
         if not tracing() and bool(bad.any()) and not self.skip_nan:
             raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
-        return _flagging(type(self)._guarded_update, self, state, y, bad)
+        return _flagging(cls._guarded_update, self, state, y, bad)
 
-    def _guarded_update(self, state: FilterState, y: Tensor, bad: Tensor) -> FilterState:
-        """`update` on a validated ``y`` (``bad [B]``: its NaN rows)."""
-        if not self.skip_nan or (not tracing() and not bool(bad.any())):
+    def _guarded_update(self, state: FilterState, y: Tensor, bad: Tensor | None) -> FilterState:
+        """`update` on a validated ``y`` (``bad [B]``: its NaN rows; None without
+        ``skip_nan``)."""
+        if not self.skip_nan or bad is None or (not tracing() and not bool(bad.any())):
             return self.guard(carry(state, self._update(state, y)))
         new = carry(state, self._update(
             state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y)
