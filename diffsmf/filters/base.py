@@ -387,10 +387,17 @@ class SetFilter(nn.Module):
         Branch-free while traced; eagerly, a batch that is all bounded skips the replacement.
         """
         S = state.set
-        finite = _finite_fields(S)
-        small = (_hull_radius(S) <= MAX_SET_RADIUS).all(-1)  # NaN: False
-        ok = finite & small
+        r = _hull_radius(S)
         was = state.bounded
+        if not tracing() and type(S) in (family("Zonotope"), family("Parallelotope")) and bool(
+            ((S.center * 0 + r) <= MAX_SET_RADIUS).all()  # False at a NaN / inf field
+        ):  # eager, every element finite and small: nothing to flag or replace
+            b = torch.ones_like(state.consistent) if was is None else was
+            new = _with_events(state).replace(bounded=b)
+            return new if was is None else new.replace(consistent=state.consistent | ~b)
+        finite = _finite_fields(S)
+        small = (r <= MAX_SET_RADIUS).all(-1)  # NaN: False
+        ok = finite & small
         lost = ~ok if was is None else was & ~ok
         # NON_FINITE (8) where a field is not finite, else DIVERGED (1), where the bound is lost
         ev = (int(FilterEvent.NON_FINITE) - 7 * finite) * lost
