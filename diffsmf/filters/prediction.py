@@ -100,9 +100,11 @@ def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
 
 
 def _plain_noise_set(filt: SetFilter) -> bool:
-    """Whether ``filt`` keeps `SetFilter`'s own ``process_noise_set`` (a box W is then
-    ``process_noise_center +- process_noise``)."""
-    return type(filt).process_noise_set is SetFilter.process_noise_set
+    """Whether ``filt`` keeps `SetFilter`'s own ``process_noise_set`` and
+    ``process_noise_box`` (a box W is then ``process_noise_center +- process_noise``)."""
+    cls = type(filt)
+    return (cls.process_noise_set is SetFilter.process_noise_set
+            and cls.process_noise_box is SetFilter.process_noise_box)
 
 
 def noise_ellipsoid(filt: SetFilter) -> ConvexSet | None:
