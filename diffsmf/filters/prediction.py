@@ -82,7 +82,9 @@ def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
     """Process noise for the zonotope-type predictions (HSNSMF, MSZM) -> ``(center [n],
     box half-widths [n], generators [n, q] or None)``.
 
-    A box W (the built-ins) is ``(c, r, None)`` as before (bit for bit); a zonotope or
+    A box W (the built-ins) is ``(c, r, None)``: the filter's ``process_noise_center`` and
+    ``process_noise`` themselves (for a zero centre, the bits of the box's centre and
+    half-widths; otherwise without their rounding); a zonotope or
     parallelotope W keeps its own generators (``(c, 0, G)``: exact Minkowski sum); an
     ellipsoid, which a zonotope cannot hold exactly, enters by its interval hull.
     """
