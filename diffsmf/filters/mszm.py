@@ -145,8 +145,11 @@ class MSZM(SetFilter):
             dest = _stable_partition(nonzero, count)
         Gc = torch.zeros_like(G).scatter(-1, dest.unsqueeze(-2).expand_as(G), G)
         small = Zonotope(Z.center, Gc[..., :q])  # exact where count <= q
+        over = count > q
+        if not tracing() and not bool(over.any()):  # nothing to reduce (eager)
+            return small
         red = Zonotope(Z.center, Gc).reduce(self.order, method=self.reduce_method)
-        return where(count > q, red.pad_generators(q), small)
+        return where(over, red.pad_generators(q), small)
 
     def _initial_state(self, batch: int | None = None) -> FilterState:
         S = self._fit(expand_state_set(self._x0, batch))
