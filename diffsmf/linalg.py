@@ -84,6 +84,8 @@ def traced_matmul(A: Tensor, B: Tensor, max_inner: int | None = SMALL_MATMUL_MAX
     fuse = max_inner is None or q <= max_inner
     if tracing() and fuse and B.shape[-2] == q:
         return _mul_sum(A, B)
+    if A.dim() == 3 and B.dim() == 3 and A.shape[0] == B.shape[0]:
+        return torch.bmm(A, B)  # the kernel of ``@``, without its expand / view calls
     return A @ B
 
 

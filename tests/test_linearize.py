@@ -24,6 +24,7 @@ from diffsmf.linearize import (
     parameter_deviation,
     stirling_jacobian,
 )
+from diffsmf.linearize.jacobians import stirling_value_jacobian
 from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
 
 GEN = torch.Generator().manual_seed(1234)
@@ -91,6 +92,16 @@ def test_stirling_exact_on_quadratics_for_any_step():
     analytic = torch.einsum("kij,...j->...ki", A + A.mT, x) + b  # [4, 2, 3]
     for h in (1e-3, 0.7, torch.tensor([0.1, 2.0, 5.0])):
         torch.testing.assert_close(stirling_jacobian(quad, x, h), analytic, atol=1e-9, rtol=1e-9)
+
+
+def test_stirling_value_jacobian_is_the_two_calls():
+    """The filters' one-call form: fn(x) and the Stirling slopes, bit for bit those of
+    ``fn(x)`` and `stirling_jacobian` (steps ``[n]`` or one per batch element)."""
+    x = torch.randn(3, 2, generator=GEN)  # the batch of the closure U [3, 1]
+    for h in (torch.tensor([0.1, 2.0]), torch.rand(3, 2, generator=GEN) + 0.1):
+        fx, J = stirling_value_jacobian(smooth, x, h)
+        assert torch.equal(fx, smooth(x))
+        assert torch.equal(J, stirling_jacobian(smooth, x, h))
 
 
 def test_stirling_differentiable_in_step_and_batched_steps():

@@ -574,3 +574,40 @@ def test_planar_volume_is_exact_for_many_generators():
     assert abs(big.volume().item() - area) <= 1e-10 * area
     empty = ds.Zonotope(torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 2, 4))
     assert empty.volume().shape == (0,)
+
+
+def test_outer_parallelogram_pair_table_matches_the_basis_search(monkeypatch):
+    """2-D: the closed form from the pair table (`_outer_parallelogram`) takes the basis of the
+    general search over C(m, 2) solves and its T within 1e-12 (relative), contains the
+    zonotope, is the least over bases (numpy brute force), does not depend on the batch
+    (chunked or not), and gives elements without a regular pair the fallback only."""
+    from diffsmf.sets import zonotope as zmod
+
+    g = torch.Generator().manual_seed(5)
+    G = torch.randn(40, 2, 7, generator=g, dtype=torch.float64)
+    G[3] = G[3, :, :1] * torch.arange(1.0, 8.0, dtype=torch.float64)  # rank 1
+    G[4] = 0.0
+    G[5, :, 2] = G[5, :, 4]  # a repeated generator (tied bases)
+    G[6] *= 1e-120
+    T = zmod._outer_parallelotope(G)
+    Gn = G / G.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
+    best, ok = zmod._best_basis(Gn)  # the general search (a solve per basis)
+    assert ok.sum() == 38 and not ok[3] and not ok[4]
+    torch.testing.assert_close(T[ok], zmod._basis_T(G, best)[ok], rtol=1e-12, atol=0)
+    Gn_np = Gn.numpy()
+    for b in range(40):  # least |det T| over the bases, every vertex contained
+        Zb = Zonotope(torch.zeros(2, dtype=torch.float64), G[b])
+        P = ds.Parallelotope(torch.zeros(2, dtype=torch.float64), T[b])
+        assert P.contains(Zb.vertices_2d(), atol=1e-300 if b == 6 else 1e-12).all()
+        if ok[b]:
+            vols = [
+                abs(np.linalg.det(Gn_np[b][:, S] @ np.diag(
+                    np.abs(np.linalg.solve(Gn_np[b][:, S], Gn_np[b])).sum(1))))
+                for S in itertools.combinations(range(7), 2)
+                if abs(np.linalg.det(Gn_np[b][:, S])) > 1e-12
+            ]
+            scale = float(G[b].abs().max()) ** 2
+            assert abs(np.linalg.det(T[b].numpy())) == pytest.approx(min(vols) * scale, rel=1e-9)
+        assert torch.equal(zmod._outer_parallelotope(G[b : b + 1])[0], T[b])  # batch-free
+    monkeypatch.setattr(zmod, "_PAIR_CHUNK_ELEMS", 3 * 49)  # chunks of 3 elements
+    assert torch.equal(zmod._outer_parallelotope(G), T)

@@ -30,7 +30,7 @@ from diffsmf.filters.state import (
     state_batch,
     state_from_flat,
 )
-from diffsmf.sets.base import ConvexSet, align, stack, where
+from diffsmf.sets.base import ConvexSet, align, family, stack, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System, check_system
 from diffsmf.utils import (
@@ -80,6 +80,30 @@ def carry(prev: FilterState, new: FilterState, update: bool = False) -> FilterSt
     if update and b is not None:
         consistent = consistent | ~b
     return FilterState(new.set, consistent, extras, b)
+
+
+def _finite_fields(S: ConvexSet) -> Tensor:
+    """``[*B]`` bool: every field of ``S`` finite (``t * 0`` is NaN exactly at a NaN or an
+    infinite entry, and a sum of zeros cannot overflow)."""
+    nb = len(S.batch_shape)
+    z = None
+    for t in S._tensors():
+        zt = (t * 0).sum(tuple(range(nb, t.dim()))) if t.dim() > nb else t * 0
+        z = zt if z is None else z + zt
+    return z == 0
+
+
+def _hull_radius(S: ConvexSet) -> Tensor:
+    """Half-widths ``[*B, n]`` of the interval hull of ``S`` (for a zonotope or a
+    parallelotope ``sum_j |G_ij|`` directly, else ``S.interval_hull().radius``)."""
+    if type(S) is family("Zonotope"):
+        return S.generators.abs().sum(-1)
+    if type(S) is family("Parallelotope"):
+        return S.T.abs().sum(-1)
+    if tracing():
+        return S.interval_hull().radius
+    with numerical_events():  # the hull of a non-finite set: NaN, flagged, never raised
+        return S.interval_hull().radius
 
 
 def _flagging(fn: Callable[..., FilterState], *args: Any) -> FilterState:
@@ -321,14 +345,20 @@ class SetFilter(nn.Module):
         ``y`` is validated first (`_check_update_y`: exactly ``[B, m]``, no inf). Ends
         with the boundedness guard (`guard`)."""
         y = self._check_update_y(y, state)
+        cls = type(self)
+        if not self.skip_nan and cls._guarded_update is SetFilter._guarded_update and (
+            cls._check_update_y is SetFilter._check_update_y
+        ):  # a NaN row raised in `_check_update_y` already (eager): no rows to skip
+            return _flagging(cls._guarded_update, self, state, y, None)
         bad = torch.isnan(y).any(-1)
         if not tracing() and bool(bad.any()) and not self.skip_nan:
             raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
-        return _flagging(type(self)._guarded_update, self, state, y, bad)
+        return _flagging(cls._guarded_update, self, state, y, bad)
 
-    def _guarded_update(self, state: FilterState, y: Tensor, bad: Tensor) -> FilterState:
-        """`update` on a validated ``y`` (``bad [B]``: its NaN rows)."""
-        if not self.skip_nan or (not tracing() and not bool(bad.any())):
+    def _guarded_update(self, state: FilterState, y: Tensor, bad: Tensor | None) -> FilterState:
+        """`update` on a validated ``y`` (``bad [B]``: its NaN rows; None without
+        ``skip_nan``)."""
+        if not self.skip_nan or bad is None or (not tracing() and not bool(bad.any())):
             return self.guard(carry(state, self._update(state, y)))
         new = carry(state, self._update(
             state, torch.where(bad.unsqueeze(-1), torch.zeros_like(y), y)
@@ -354,27 +384,34 @@ class SetFilter(nn.Module):
         above `MAX_SET_RADIUS` (event ``DIVERGED``). Its set is replaced by the initial
         set (a finite placeholder, so that no NaN reaches the rest of the batch), it stays
         flagged, and its ``consistent`` is True (no measurement contradicts R^n).
-        Branch-free.
+        Branch-free while traced; eagerly, a batch that is all bounded skips the replacement.
         """
         S = state.set
-        finite = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
-        for t in S._tensors():
-            finite = finite & torch.isfinite(t.detach()).flatten(len(S.batch_shape)).all(-1)
+        r = _hull_radius(S)
+        was = state.bounded
+        if not tracing() and type(S) in (family("Zonotope"), family("Parallelotope")) and bool(
+            ((S.center * 0 + r) <= MAX_SET_RADIUS).all()  # False at a NaN / inf field
+        ):  # eager, every element finite and small: nothing to flag or replace
+            b = torch.ones_like(state.consistent) if was is None else was
+            new = _with_events(state).replace(bounded=b)
+            return new if was is None else new.replace(consistent=state.consistent | ~b)
+        finite = _finite_fields(S)
+        small = (r <= MAX_SET_RADIUS).all(-1)  # NaN: False
+        ok = finite & small
+        lost = ~ok if was is None else was & ~ok
+        # NON_FINITE (8) where a field is not finite, else DIVERGED (1), where the bound is lost
+        ev = (int(FilterEvent.NON_FINITE) - 7 * finite) * lost
+        b = ok if was is None else was & ok
+        old = state.extras.get("events")
+        extras = {**state.extras, "events": ev if old is None else old | ev}
+        new = FilterState(S, state.consistent | ~b, extras, b)  # nothing contradicts R^n
+        if not tracing() and bool(b.all()):
+            return new
         init = self.initial_state(batch=int(finite.shape[0]) if finite.dim() else None)
         ref = init.set
         same = type(ref) is type(S) and ref.batch_shape == S.batch_shape
         if same:
             S_a, ref_a = align([S, ref])
-        # eager hulls check their fields, so take the hull of a NaN set's placeholder (the
-        # element is flagged by ``finite`` already); traced code has no checks and keeps S
-        hull = (where(finite, S_a, ref_a) if same and not tracing() else S).interval_hull()
-        small = (hull.radius.detach() <= MAX_SET_RADIUS).all(-1)
-        was = torch.ones_like(finite) if state.bounded is None else state.bounded
-        ev = torch.where(was & ~finite, int(FilterEvent.NON_FINITE), 0)
-        ev = ev | torch.where(was & finite & ~small, int(FilterEvent.DIVERGED), 0)
-        new = _with_events(state).flag(ev).and_bounded(finite & small)
-        b = new.bounded
-        new = new.replace(consistent=new.consistent | ~b)  # nothing contradicts R^n
         if not same:
             return new
         safe = where(b, S_a, ref_a)

@@ -93,16 +93,17 @@ class HSNSMF(SetFilter):
 
     def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """Theorem 1-2 (eq. 20-22): zonotope ``[F T, T_e + T_w]`` -> outer parallelotope."""
-        from diffsmf.linearize import stirling_jacobian
+        from diffsmf.linearize.jacobians import stirling_value_jacobian
 
         P = state.set
         c, T = P.center, P.T
         fn = step_function(self.system, u)
-        F = stirling_jacobian(fn, c, stirling_steps(self, c, P.interval_hull().radius))  # eq. 12
+        h = stirling_steps(self, c, P.interval_hull().radius)
+        fc, F = stirling_value_jacobian(fn, c, h)  # eq. 12 and f(c) in one call of f
         E, ev = prediction_remainder(  # not finite: flagged (events), never NaN
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin, events=True
         )  # eq. 14-18 (+ margin)
-        Z = zonotope_prediction(self, fn(c), linalg.traced_matmul(F, T), E)  # eq. 20-21
+        Z = zonotope_prediction(self, fc, linalg.traced_matmul(F, T), E)  # eq. 20-21
         return state.replace(set=Z.to_parallelotope()).flag(ev)  # eq. 22 (Chisci)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:

@@ -56,7 +56,7 @@ from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.conversions import as_zonotope
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, is_int
+from diffsmf.utils import Positive, is_int, tracing
 
 __all__ = ["MSZM"]
 
@@ -138,12 +138,18 @@ class MSZM(SetFilter):
             return Z.pad_generators(q)
         with torch.no_grad():
             nonzero = (G != 0).any(-2)  # [..., M]
+        if not tracing() and bool(nonzero.all()):  # no zero columns: the same, sync-cheap
+            return Z.reduce(self.order, method=self.reduce_method)
+        with torch.no_grad():
             count = nonzero.sum(-1)  # [...]
             dest = _stable_partition(nonzero, count)
         Gc = torch.zeros_like(G).scatter(-1, dest.unsqueeze(-2).expand_as(G), G)
         small = Zonotope(Z.center, Gc[..., :q])  # exact where count <= q
+        over = count > q
+        if not tracing() and not bool(over.any()):  # nothing to reduce (eager)
+            return small
         red = Zonotope(Z.center, Gc).reduce(self.order, method=self.reduce_method)
-        return where(count > q, red.pad_generators(q), small)
+        return where(over, red.pad_generators(q), small)
 
     def _initial_state(self, batch: int | None = None) -> FilterState:
         S = self._fit(expand_state_set(self._x0, batch))
@@ -151,13 +157,14 @@ class MSZM(SetFilter):
 
     def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (Z - c) (+) E (+) W`` then reduction (Alamo 2005 sec. 4)."""
-        from diffsmf.linearize import stirling_jacobian
+        from diffsmf.linearize.jacobians import stirling_value_jacobian
 
         Z = state.set
         c, G = Z.center, Z.generators
         fn = step_function(self.system, u)
         hull = Z.interval_hull()
-        F = stirling_jacobian(fn, c, stirling_steps(self, c, hull.radius))  # Wang 2022, eq. 12
+        # Wang 2022, eq. 12, and f(c) in one call of f
+        fc, F = stirling_value_jacobian(fn, c, stirling_steps(self, c, hull.radius))
         # remainder over the interval hull (Alamo 2005; Wang et al. 2022, sec. 4.1: the baselines
         # bound the linearisation error over the outer box, HS-NSMF over the parallelotope vertices)
         E, ev = prediction_remainder(  # not finite: flagged (events), never NaN
@@ -165,7 +172,7 @@ class MSZM(SetFilter):
             events=True,
         )
         FG = linalg.traced_matmul(F, G)
-        Zp = zonotope_prediction(self, fn(c), FG, E)  # W's own generators (Alamo 2005)
+        Zp = zonotope_prediction(self, fc, FG, E)  # W's own generators (Alamo 2005)
         return state.replace(set=self._fit(Zp)).flag(ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:

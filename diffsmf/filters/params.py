@@ -90,8 +90,9 @@ def stirling_steps(filt: torch.nn.Module, c: Tensor, radius: Tensor) -> Tensor:
     radius cannot reach the gradients of the others."""
     if not getattr(filt, "stirling_relative", False):
         return filt.stirling_step
-    r = torch.maximum(radius.detach(), 1e-8 * c.detach().abs()).clamp(min=1e-150)
-    r = torch.where(torch.isfinite(r), r, torch.ones_like(r))  # a diverged element
+    with torch.no_grad():
+        r = torch.maximum(radius, 1e-8 * c.abs()).clamp(min=1e-150)
+        r = r.nan_to_num(nan=1.0, posinf=1.0)  # a diverged element: 1 (r >= 1e-150)
     return filt.stirling_step * r
 
 

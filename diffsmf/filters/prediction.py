@@ -13,9 +13,9 @@ from torch import Tensor
 
 from diffsmf.filters.base import SetFilter
 from diffsmf.filters.remainders import (
+    ROUND_REL,
     add_remainder_margin,
     checked_remainder,
-    rounding_margin,
     sanitize_remainder,
 )
 from diffsmf.sets.base import ConvexSet
@@ -82,17 +82,31 @@ def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
     """Process noise for the zonotope-type predictions (HSNSMF, MSZM) -> ``(center [n],
     box half-widths [n], generators [n, q] or None)``.
 
-    A box W (the built-ins) is ``(c, r, None)`` as before (bit for bit); a zonotope or
+    A box W (the built-ins) is ``(c, r, None)``: the filter's ``process_noise_center`` and
+    ``process_noise`` themselves (for a zero centre, the bits of the box's centre and
+    half-widths; otherwise without their rounding); a zonotope or
     parallelotope W keeps its own generators (``(c, 0, G)``: exact Minkowski sum); an
     ellipsoid, which a zonotope cannot hold exactly, enters by its interval hull.
     """
     from diffsmf.sets.zonotope import Zonotope
 
+    W0 = filt.system.process_noise
+    if (W0 is None or isinstance(W0, Interval)) and _plain_noise_set(filt):
+        # the box W itself (`SetFilter.process_noise_box`), without forming the Interval
+        return filt.process_noise_center, filt.process_noise, None
     W = filt.process_noise_set()
     if isinstance(W, Zonotope):
         return W.center, torch.zeros_like(W.center), W.generators
     box = W if isinstance(W, Interval) else W.interval_hull()
     return box.center, box.radius, None
+
+
+def _plain_noise_set(filt: SetFilter) -> bool:
+    """Whether ``filt`` keeps `SetFilter`'s own ``process_noise_set`` and
+    ``process_noise_box`` (a box W is then ``process_noise_center +- process_noise``)."""
+    cls = type(filt)
+    return (cls.process_noise_set is SetFilter.process_noise_set
+            and cls.process_noise_box is SetFilter.process_noise_box)
 
 
 def noise_ellipsoid(filt: SetFilter) -> ConvexSet | None:
@@ -119,9 +133,11 @@ def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) ->
     from diffsmf.sets.zonotope import Zonotope
 
     wc, wr, Gw = noise_generators(filt)
+    ec = E.center
     rad = E.radius + wr  # Theorem 2: sum of two boxes
-    rad = rad + rounding_margin(fc, E.center, FG.abs().sum(-1), rad)
+    # `rounding_margin(fc, ec, sum_j |FG_ij|, rad)`, the last two terms being >= 0 already
+    rad = rad + ROUND_REL * (1.0 + fc.abs() + ec.abs() + FG.abs().sum(-1) + rad)
     parts = [FG, torch.diag_embed(rad)]
     if Gw is not None:
         parts.append(Gw.expand(*FG.shape[:-1], Gw.shape[-1]))
-    return Zonotope(fc + E.center + wc, torch.cat(parts, -1))
+    return Zonotope._make(fc + ec + wc, torch.cat(parts, -1))

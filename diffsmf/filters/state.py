@@ -75,8 +75,8 @@ class FilterState:
         ``MEASUREMENT_SKIPPED`` (the update was skipped). Branch-free."""
         ev = events.to(torch.int64)
         if not unbounded:  # a measurement that could not be bounded: skipped, not a lost bound
-            skipped = (ev & LOSES_BOUND) != 0
-            ev = (ev & ~LOSES_BOUND) | torch.where(skipped, int(FilterEvent.MEASUREMENT_SKIPPED), 0)
+            skipped = ((ev & LOSES_BOUND) != 0) * int(FilterEvent.MEASUREMENT_SKIPPED)
+            ev = (ev & ~LOSES_BOUND) | skipped
         old = self.extras.get("events")
         new = self.replace(extras={**self.extras, "events": ev if old is None else old | ev})
         return new.and_bounded((ev & LOSES_BOUND) == 0) if unbounded else new

@@ -17,7 +17,9 @@ from torch import Tensor
 
 from diffsmf.utils import tracing
 
-__all__ = ["hessian", "jacobian", "stirling_jacobian", "value_and_jacobian"]
+__all__ = [
+    "hessian", "jacobian", "stirling_jacobian", "stirling_value_jacobian", "value_and_jacobian",
+]
 
 Fn = Callable[[Tensor], Tensor]
 
@@ -168,22 +170,43 @@ def stirling_jacobian(fn: Fn, x: Tensor, h: Tensor | float) -> Tensor:
     """
     x = _check_x(x)
     h = torch.as_tensor(h, dtype=x.dtype, device=x.device)
-    if not tracing() and (torch.isnan(h.detach()).any() or (h.detach() <= 0).any()):
+    if not tracing() and not bool((h.detach() > 0).all()):  # NaN and <= 0 alike
         raise ValueError("h: the Stirling step must be positive")
     n = x.shape[-1]
     try:
-        hx = torch.broadcast_to(h, torch.broadcast_shapes(h.shape, x.shape))  # [..., n]
+        shape = torch.broadcast_shapes(h.shape, x.shape)
+        hx = h if h.shape == shape else torch.broadcast_to(h, shape)  # [..., n]
     except RuntimeError as exc:
         msg = f"h: shape {tuple(h.shape)} does not broadcast to x {tuple(x.shape)}"
         raise ValueError(msg) from exc
     y0 = fn(x)  # one plain evaluation tells the output batch shape (closures over batches)
     batch = torch.broadcast_shapes(hx.shape[:-1], y0.shape[:-1])
-    hx = hx.expand(*batch, n)
-    x = x.expand(*batch, n)
+    if hx.shape[:-1] != batch:
+        hx = hx.expand(*batch, n)
+    if x.shape[:-1] != batch:
+        x = x.expand(*batch, n)
     delta = torch.diag_embed(hx).movedim(-2, 0)  # [n, ..., n]: row j = h_j e_j
-    pts = torch.cat([x + delta, x - delta], dim=0)  # [2n, ..., n]
-    out = fn(pts)  # [2n, ..., k]
-    hcol = (2 * hx).movedim(-1, 0).unsqueeze(-1)  # [n, ..., 1]
-    hcol = hcol.reshape(n, *([1] * (out.dim() - hcol.dim())), *hcol.shape[1:])
-    diff = (out[:n] - out[n:]) / hcol  # [n, ..., k]
-    return diff.movedim(0, -1)
+    out = fn(torch.cat([x + delta, x - delta], dim=0))  # [2n, ..., k]
+    return _central_slopes(out[:n], out[n:], hx)
+
+
+def stirling_value_jacobian(fn: Fn, x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    """``(fn(x) [..., k], stirling_jacobian(fn, x, h) [..., k, n])`` from one call of ``fn``
+    on the 2n + 1 points ``x``, ``x + h_j e_j``, ``x - h_j e_j`` (stacked in a leading dim).
+
+    The filters' form of `stirling_jacobian` (Wang et al. 2022, eq. 12-13, and the model at
+    the centre, eq. 20): ``x`` must already carry every batch dim of the tensors that ``fn``
+    closes over (the filters' centres ``[B, n]`` do), and ``h [..., n]`` (broadcastable to
+    ``x``) must be positive; neither is checked. The same values as the two separate calls.
+    """
+    n = x.shape[-1]
+    hx = h if h.shape == x.shape else h.expand_as(x)
+    delta = torch.diag_embed(hx).movedim(-2, 0)  # [n, ..., n]: row j = h_j e_j
+    out = fn(torch.cat([x.unsqueeze(0), x + delta, x - delta], dim=0))  # [2n + 1, ..., k]
+    return out[0], _central_slopes(out[1 : n + 1], out[n + 1 :], hx)
+
+
+def _central_slopes(plus: Tensor, minus: Tensor, hx: Tensor) -> Tensor:
+    """``(plus - minus) / (2 h)`` with the stencil dim ``[n, ..., k]`` moved last ->
+    ``[..., k, n]`` (``hx [..., n]``, whose batch dims those of ``plus`` end with)."""
+    return (plus - minus).movedim(0, -1) / (2 * hx).unsqueeze(-2)

@@ -254,8 +254,12 @@ class Zonotope(ConvexSet):
         """Internal constructor without validation (broadcasts the batch dims)."""
         batch = torch.broadcast_shapes(c.shape[:-1], G.shape[:-2])
         obj = object.__new__(cls)
-        object.__setattr__(obj, "_c", c.expand(*batch, c.shape[-1]))
-        object.__setattr__(obj, "generators", G.expand(*batch, *G.shape[-2:]))
+        if c.shape[:-1] != batch:
+            c = c.expand(*batch, c.shape[-1])
+        if G.shape[:-2] != batch:
+            G = G.expand(*batch, *G.shape[-2:])
+        object.__setattr__(obj, "_c", c)
+        object.__setattr__(obj, "generators", G)
         return obj
 
     def pad_generators(self, m: int) -> Zonotope:
@@ -382,15 +386,17 @@ class Zonotope(ConvexSet):
 
         Wang et al. 2022, eq. 22: for a basis B of n generators, ``T = B diag(sum_j |(B^-1 G)_ij|)``
         contains Z; pick the basis of least ``|det T|``. Batched over the C(m, n) bases
-        (chunked); singular bases (|det B| <= 1e-12 x Hadamard bound) are skipped. At most
+        (chunked; in 2-D all of them at once from the table of the pair determinants,
+        `_outer_parallelogram`); singular bases (|det B| <= 1e-12 x Hadamard bound) are
+        skipped. At most
         ``MAX_BASES`` bases per set: beyond, only bases of the L longest generators are
         tried (L largest with C(L, n) <= MAX_BASES) -- still an outer bound, maybe not the
         smallest. A rank-deficient Z (no regular basis) gets 1e-9-scaled axis generators
         appended first. The basis choice is made without gradient; T is differentiable.
-        A relative outward margin covers the rounding of the solve.
+        An outward margin covers the rounding of the solve (in 2-D, of the determinants).
         """
         T = _outer_parallelotope(self.generators)
-        return family("Parallelotope")._make(self._c, T)
+        return family("Parallelotope")._from_tensors((self._c, T))  # T has the batch of c
 
     def to_ellipsoid(self) -> Ellipsoid:
         """Covering ellipsoid of the outer parallelotope ``c + T[-1,1]^n``
@@ -442,11 +448,12 @@ class Zonotope(ConvexSet):
         with torch.no_grad():
             # scores of the generators in the coordinates normalised by the interval hull's
             # half-widths, so that the choice does not depend on the units of the states
-            Gs = G * _hull_weights(G).unsqueeze(-1)
+            A = G.abs()
+            As = A * _hull_weights(G, A).unsqueeze(-1)  # |diag(1 / r) G|
             if method == "combastel":
-                score = Gs.norm(dim=-2)
+                score = As.norm(dim=-2)
             else:
-                score = Gs.abs().sum(-2) - Gs.abs().amax(-2)
+                score = As.sum(-2) - As.amax(-2)
             perm = score.argsort(-1, descending=True)
         keep_k = target - n
         Gp = torch.gather(G, -1, perm.unsqueeze(-2).expand_as(G))
@@ -515,11 +522,14 @@ class Zonotope(ConvexSet):
 
 
 # ---------------------------------------------------------------------- helpers
-def _hull_weights(G: Tensor) -> Tensor:
-    """``1 / r [..., n]`` for the interval hull half-widths ``r = sum_j |G_ij|`` (1 where
-    ``r = 0``), detached: the row weights that make generator scores unit-free."""
-    r = G.detach().abs().sum(-1)
-    return torch.where(r > 0, 1.0 / r, torch.ones_like(r))
+def _hull_weights(G: Tensor, A: Tensor | None = None) -> Tensor:
+    """``1 / r [..., n]`` for the interval hull half-widths ``r = sum_j |G_ij|`` (``A``:
+    ``|G|`` if already at hand), detached: the row weights that make generator scores
+    unit-free. A zero row (``r = 0``, where every score term is 0 anyway) gets a finite
+    weight, ``1 / tiny``."""
+    with torch.no_grad():
+        r = (G.abs() if A is None else A).sum(-1)
+        return r.clamp_min(torch.finfo(r.dtype).tiny).reciprocal()
 
 
 def _uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | None) -> Tensor:
@@ -559,6 +569,8 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
     augmented columns cost 15 instead of 6 bases per set at n = 2.
     """
     n, m = G.shape[-2], G.shape[-1]
+    if n == 2 and 2 <= m and math.comb(m, 2) <= _max_bases(2):
+        return _outer_parallelogram(G)
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     with torch.no_grad():
         Gd = G.detach()
@@ -575,6 +587,83 @@ def _outer_parallelotope(G: Tensor) -> Tensor:
     with torch.no_grad():
         basis = torch.where(ok.unsqueeze(-1), best, _fallback_basis(Gn))
     return _basis_T(Gaug, basis)
+
+
+#: Pair-table entries (batch x m x m) per eager chunk of `_outer_parallelogram`.
+_PAIR_CHUNK_ELEMS = 2_000_000
+
+
+def _outer_parallelogram(G: Tensor) -> Tensor:
+    """`_outer_parallelotope` in 2-D from the table of all pair determinants -> ``[..., 2, 2]``.
+
+    The same basis and the same ``T`` as the search over the C(m, 2) bases (Chisci 1996), in
+    closed form (Cramer's rule): with ``D_kl = det [g_k, g_l]`` and ``S_k = sum_l |D_kl|``, the
+    basis ``(i, j)`` has ``B^-1 g_l = (D_lj, D_il) / D_ij``, so ``s = (S_j, S_i) / |D_ij|`` and
+    ``|det T| = S_i S_j / |D_ij|``: one ``m x m`` table instead of a solve per basis. The
+    choice (least ``|det T|``, ties within `BASIS_TIE_RTOL` to the first pair in lexicographic
+    order, regular pairs ``|D_ij| > 1e-12 |g_i| |g_j|`` only) is made on the detached table;
+    the first near-least entry of the symmetric table in row-major order is that pair. ``s`` is
+    padded by the rounding of the table (``|fl(D_kl) - D_kl| <= 2 eps P_kl``, ``P_kl = |a_k
+    b_l| + |b_k a_l|``, counted twice) and a relative ``(m + 8) eps``. Elements without a
+    regular pair take `_outer_parallelotope`'s fallback. Eager batches are chunked
+    (`_PAIR_CHUNK_ELEMS` table entries per chunk).
+    """
+    m = G.shape[-1]
+    batch = G.shape[:-2]
+    nb = int(math.prod(batch))
+    rows = max(1, _PAIR_CHUNK_ELEMS // (m * m))
+    if tracing() or nb <= rows:
+        T, ok, all_ok = _pair_T(G)
+    else:
+        Gf = G.reshape(nb, 2, m)
+        parts = [_pair_T(Gf[s : s + rows]) for s in range(0, nb, rows)]
+        T = torch.cat([t for t, _, _ in parts]).reshape(*batch, 2, 2)
+        ok = torch.cat([k for _, k, _ in parts]).reshape(batch)
+        all_ok = all(a for _, _, a in parts)
+    if all_ok:
+        return T
+    # no regular pair (all generators parallel or zero): Chisci's T on [G, 1e-9 max|G| I]
+    # with the basis of `_fallback_basis` (an outer bound, not the least one)
+    with torch.no_grad():
+        scale = G.detach().abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
+        basis = _fallback_basis(G.detach() / scale)
+    eye = torch.eye(2, dtype=G.dtype, device=G.device)
+    Gaug = torch.cat([G, ((1e-9 * scale) * eye).expand(*batch, 2, 2)], -1)
+    return torch.where(ok.reshape(*ok.shape, 1, 1), T, _basis_T(Gaug, basis))
+
+
+def _pair_T(G: Tensor) -> tuple[Tensor, Tensor, bool]:
+    """`_outer_parallelogram` on one chunk: ``(T [..., 2, 2], ok [...], all_ok)``: ``ok``
+    False where no pair is regular (``T`` is then finite but not a bound), ``all_ok`` whether
+    every element is ok (eager; False while traced)."""
+    m = G.shape[-1]
+    with torch.no_grad():
+        scale = G.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
+    Gn = G / scale  # the choice and s are invariant to the scale; no over- or underflow
+    # p[..., 0, k, l] = a_k b_l, p[..., 1, k, l] = b_k a_l (rows a, b of Gn)
+    p = Gn.unsqueeze(-1) * Gn.flip(-2).unsqueeze(-2)
+    Dabs = (p[..., 0, :, :] - p[..., 1, :, :]).abs()  # |det [g_k, g_l]|: symmetric, 0 diagonal
+    S = Dabs.sum(-1)
+    with torch.no_grad():
+        nrm = torch.hypot(Gn[..., 0, :], Gn[..., 1, :])  # elementwise: a norm over dim -2 is slow
+        regular = Dabs > 1e-12 * (nrm.unsqueeze(-1) * nrm.unsqueeze(-2))
+        val = torch.where(regular, S.unsqueeze(-1) * S.unsqueeze(-2) / Dabs, math.inf)
+        flat = val.flatten(-2)
+        v = flat.amin(-1, keepdim=True)
+        k = (flat <= v * (1 + BASIS_TIE_RTOL)).to(torch.int8).argmax(-1, keepdim=True)
+        ij = torch.cat([k // m, k % m], -1)  # [..., 2], i < j
+        fin = v < math.inf  # False for inf and NaN
+        all_ok = not tracing() and bool(fin.all())
+    # rounding of the table: |fl(D_kl) - D_kl| <= 2 eps P_kl (operands of Gn exact to eps/2)
+    P = p.abs().sum(-3)
+    num = torch.add(S, P.sum(-1), alpha=4 * _EPS).gather(-1, ij.flip(-1))  # (S_j, S_i) + pad
+    den = torch.sub(Dabs, P, alpha=4 * _EPS).flatten(-2).gather(-1, k)  # |D_ij| - pad, > 0
+    ok = fin.squeeze(-1)
+    if not all_ok:  # no regular pair: a finite placeholder (no NaN in the gradients)
+        den = torch.where(fin, den, 1.0)
+    s = num / den * (1 + (m + 8) * _EPS)
+    B = torch.gather(G, -1, ij.unsqueeze(-2).expand(*G.shape[:-1], 2))
+    return B * s.unsqueeze(-2), ok, all_ok
 
 
 def _fallback_basis(G: Tensor) -> Tensor:
