@@ -289,14 +289,15 @@ def mul(a: Iv, b: Iv) -> Any:
 
     A point operand costs two products, two points one. Eagerly, the products are first
     combined by NaN-propagating min/max; only where that meets a NaN (``0 * inf`` or a NaN
-    operand; one host read of the lower bounds' sum: an eager-only shortcut that saves about
-    ten ops a product) is the general rule taken, which it always is while tracing.
+    operand; one host read of the lower bounds' sum: an eager-only shortcut on the CPU that
+    saves about ten ops a product) is the general rule taken, which it always is while
+    tracing and on an accelerator (no host sync there).
     """
     pa, pb = is_point(a), is_point(b)
     if pa and pb:
         p = a.lower * b.lower
         return a._pair(outward(p, point=True)) if _M.stack else a._make(down(p), up(p))
-    if tracing():
+    if tracing() or a.lower.device.type != "cpu":
         return _mul_general(a, b)
     st = _stacked_pair(a, b, outer=True)
     if st is not None:

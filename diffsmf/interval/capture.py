@@ -407,9 +407,10 @@ STACKED_MAX = 2048
 
 
 def stacks(lo: Tensor, hi: Tensor) -> bool:
-    """Whether an input box with these bounds is evaluated stacked (eagerly, small boxes)."""
+    """Whether an input box with these bounds is evaluated stacked (eagerly, small boxes, on
+    the CPU: its deferred product check reads the host once per evaluation)."""
     return (not tracing() and lo.shape == hi.shape and hi is not lo
-            and lo.numel() <= STACKED_MAX)
+            and lo.numel() <= STACKED_MAX and lo.device.type == "cpu")
 
 
 def _small(inputs: Sequence[Any]) -> bool:
