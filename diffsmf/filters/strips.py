@@ -202,14 +202,16 @@ def _degenerate(
     strip is degenerate).
     """
     zero = (normal == 0).all(-1)
-    bad = ~torch.isfinite(normal).all(-1) | ~torch.isfinite(offset) | torch.isnan(half)
-    degen = zero | bad
-    inf = torch.isinf(half) & ~bad
-    skip = degen | inf
-    atol = rounding_margin(torch.where(bad, 0.0, offset), torch.where(skip, 0.0, half)).detach()
+    # finite normal and offset (x - x is 0 exactly for a finite x, NaN otherwise: two calls
+    # where isfinite takes four), half-width not NaN
+    fin = ((normal - normal).sum(-1) + (offset - offset) == 0) & (half == half)
+    degen = zero | ~fin
+    skip = degen | (half == torch.inf)
+    # the consistency margin (only used where the strip is not skipped, and for zero normals)
+    atol = rounding_margin(offset, half).detach()
     # a zero normal: the strip is R^n (|d| <= w) or empty -- checked, never intersected
-    zero_ok = torch.where(zero & ~bad & ~inf, offset.abs() <= half + atol, True)
-    ev = torch.where(degen.any(-1), int(FilterEvent.DEGENERATE_STRIP), 0)
+    zero_ok = ~(zero & fin & (offset.abs() > half + atol))
+    ev = degen.any(-1) * int(FilterEvent.DEGENERATE_STRIP)
     return degen, skip, zero_ok, atol, ev
 
 
@@ -239,10 +241,10 @@ def sequential_strip_update(
     d = torch.where(skip, 0.0, offset)
     w = torch.where(skip, 1.0, half)
     cur = S
-    for i in range(normal.shape[-2]):
-        strip = Strip._make(a[..., i, :], d[..., i], w[..., i])
-        sk = skip[..., i]
-        ok = ok & (sk | cur.intersects_strip(strip, atol=atol[..., i]))
+    rows = zip(a.unbind(-2), d.unbind(-1), w.unbind(-1), skip.unbind(-1), atol.unbind(-1))
+    for ai, di, wi, sk, tol in rows:
+        strip = Strip._make(ai, di, wi)
+        ok = ok & (sk | cur.intersects_strip(strip, atol=tol))
         nxt = intersect(cur, strip)
         a_, b_ = align([nxt, cur])
         cur = where(sk, b_, a_)
