@@ -94,7 +94,8 @@ def _strips(
     (``H`` itself), offset, halfwidth ``[B, m]`` and the remainder's events ``[B]``."""
     hc = h(c)
     E, ev = checked_remainder(remainder(h, S, c, H))
-    offset, half = _offset_half(hc, E.center, E.radius, c, H, y, vbox, system)
+    Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
+    offset, half = _offset_half(hc, E.center, E.radius, Hc, y, vbox, system)
     ok = ev == 0
     if system is not None and system.angle_outputs:
         ok = ok.unsqueeze(-1) & ~angle_ambiguous(system, S, c, H, E, vbox)
@@ -109,17 +110,15 @@ def _offset_half(
     hc: Tensor,
     e_mid: Tensor | None,
     e_rad: Tensor,
-    c: Tensor,
-    H: Tensor,
+    Hc: Tensor,
     y: Tensor,
     vbox: Interval,
     system: System | None,
 ) -> tuple[Tensor, Tensor]:
     """Offset ``y - v_c - h(c) + H c - e_mid`` and half-width ``eps_v + e_rad`` ``[B, m]``
-    of eq. 23-29 (the innovation wrapped for angle outputs), the half-width padded by the
-    float64 rounding margin of the terms; ``e_mid = None`` stands for a remainder centred
-    at 0 (the same values as ``e_mid = 0``, two calls fewer)."""
-    Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
+    of eq. 23-29 (the innovation wrapped for angle outputs; ``Hc = H c [B, m]``), the
+    half-width padded by the float64 rounding margin of the terms; ``e_mid = None`` stands
+    for a remainder centred at 0 (the same values as ``e_mid = 0``, two calls fewer)."""
     nu = y - hc if system is None else system.innovation(y, hc)
     offset = nu - vbox.center + Hc
     half = vbox.radius + e_rad
@@ -150,7 +149,8 @@ def _affine_strips(
     scale = hc.abs() + 2.0 * (H.abs() * mag.unsqueeze(-2)).sum(-1)
     eps = torch.finfo(hc.dtype)
     tol = (_AFFINE_PAD_ULPS * eps.eps) * scale.detach() + eps.tiny  # [B, m]
-    offset, half = _offset_half(hc, None, tol, c, H, y, vbox, system)
+    Hc = (H * c.unsqueeze(-2)).sum(-1)
+    offset, half = _offset_half(hc, None, tol, Hc, y, vbox, system)
     if system.angle_outputs:
         E = Interval._make(-tol, tol)
         amb = angle_ambiguous(system, S, c, H, E, vbox)

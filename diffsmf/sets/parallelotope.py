@@ -290,22 +290,20 @@ class Parallelotope(ConvexSet):
         # step 3, eq. 38-39: i* = argmax_j p_bar t_bar_j over j = 1..n+1 (p_bar t_bar_{n+1} = 1)
         pbt = (p_bar.unsqueeze(-1) * T_bar).sum(-2)  # [..., n]
         idx = torch.arange(n, device=pbt.device)
-        istar, replace = _tie_rule(T_bar, pbt, idx)
-        replace = replace & ~empty
+        istar, replace = _tie_rule(T_bar, pbt, idx, ~empty.unsqueeze(-1))  # [..., 1]
         # eq. 41: replace strip i* by the measurement strip
-        t_star = torch.gather(T_bar, -1, istar.reshape(*batch, 1, 1).expand(*batch, n, 1))
-        d = torch.gather(pbt, -1, istar.unsqueeze(-1))  # p_bar t_bar_i*  [..., 1]
-        d = torch.where(replace.unsqueeze(-1), d, 1.0)
+        t_star = torch.gather(T_bar, -1, istar.unsqueeze(-1).expand(*batch, n, 1))
+        d = torch.gather(pbt, -1, istar)  # p_bar t_bar_i*  [..., 1]
+        d = torch.where(replace, d, 1.0)
         T_new = T_bar - t_star * (pbt / d).unsqueeze(-2)
-        onehot = (idx == istar.unsqueeze(-1)).unsqueeze(-2)
+        onehot = (idx == istar).unsqueeze(-2)
         T_new = torch.where(onehot, t_star / d.unsqueeze(-1), T_new)
         q = (c_bar - (p_bar * xc_bar).sum(-1)).unsqueeze(-1) / d
         xc_new = xc_bar + t_star.squeeze(-1) * q
         # eq. 40: keep P_bar when i* = n + 1; empty -> the input unchanged
-        r2 = replace.unsqueeze(-1)
-        T_out = torch.where(r2.unsqueeze(-1), T_new, T_bar)
+        T_out = torch.where(replace.unsqueeze(-1), T_new, T_bar)
         T_out = torch.where(empty.reshape(*batch, 1, 1), T0, torch.where(neg, -T_out, T_out))
-        x_out = torch.where(r2, xc_new, xc_bar)
+        x_out = torch.where(replace, xc_new, xc_bar)
         x_out = torch.where(empty.unsqueeze(-1), xc, x_out)
         return Parallelotope._make(x_out, T_out)
 
@@ -323,33 +321,36 @@ def _expand(t: Tensor, shape: tuple[int, ...]) -> Tensor:
     return t if t.shape == shape else t.expand(shape)
 
 
-def _tie_rule(T_bar: Tensor, pbt: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
+def _tie_rule(T_bar: Tensor, pbt: Tensor, idx: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
     """Wang et al. 2022, eq. 38-39 with the tie rule of `Parallelotope.intersect_strip`:
-    ``(i* [...], replace [...])``, the column ``i*`` whose replacement by the measurement
-    strip gives the least volume and whether to replace it at all (False: keep P_bar).
+    ``(i* [..., 1], replace [..., 1])``, the column ``i*`` whose replacement by the
+    measurement strip gives the least volume and whether to replace it at all (False: keep
+    P_bar; always False where ``keep [..., 1]`` is False).
 
     ``T_bar [..., n, n]`` the tightened edges, ``pbt [..., n]`` their ``p_bar t_bar_j``,
     ``idx`` ``arange(n)``. Without gradient (a discrete choice); all candidates at once:
     candidate i has column i ``t_i / pbt_i`` and column j ``t_j - t_i pbt_j / pbt_i``.
     """
+    n = idx.shape[0]
     with torch.no_grad():
-        top = pbt.amax(-1)
+        top = pbt.amax(-1, keepdim=True)
         keep_tied = top <= 1 + TIE_RTOL  # keeping P_bar (value 1) is among the least
-        tied = pbt * (1 + TIE_RTOL) >= top.clamp_min(1).unsqueeze(-1)  # within TIE_RTOL
+        tied = pbt * (1 + TIE_RTOL) >= top.clamp_min(1)  # within TIE_RTOL
         ps = torch.where(pbt > 0, pbt, 1.0)
         # rows weighted by 1 / (P_bar's hull half-width): the widths relative to P_bar's,
         # so that the choice does not depend on the units of the states
         Ta = T_bar.abs()
-        rw = Ta.sum(-1)
-        rw = torch.where(rw > 0, 1.0 / rw, 1.0).unsqueeze(-1)  # [..., n, 1]
+        rw = Ta.sum(-1, keepdim=True)
+        rw = torch.where(rw > 0, rw.reciprocal(), 1.0)  # [..., n, 1]
         A = Ta * rw
         # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]
         ratio = (pbt.unsqueeze(-2) / ps.unsqueeze(-1)).unsqueeze(-2)  # pbt_j / pbt_i
         D = T_bar.unsqueeze(-3) - T_bar.mT.unsqueeze(-1) * ratio
         hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + A.sum(-2) / ps  # [..., n]
         hull = torch.where(tied, hull, torch.inf)
-        hmin = hull.amin(-1)
-        best = tied & (hull <= hmin.unsqueeze(-1) * (1 + TIE_RTOL))
-        istar = torch.where(best, idx, idx.shape[0]).amin(-1).clamp_max(idx.shape[0] - 1)
-        replace = ~keep_tied | (hmin * (1 + TIE_RTOL) < A.sum((-1, -2)))
+        hmin = hull.amin(-1, keepdim=True)
+        best = tied & (hull <= hmin * (1 + TIE_RTOL))
+        istar = torch.where(best, idx, n).amin(-1, keepdim=True).clamp_max(n - 1)  # lowest
+        keep_hull = A.sum((-1, -2)).unsqueeze(-1)
+        replace = (~keep_tied | (hmin * (1 + TIE_RTOL) < keep_hull)) & keep
     return istar, replace
