@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.linalg import small_sum
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.utils import checking
@@ -255,15 +256,15 @@ class Parallelotope(ConvexSet):
         a, y, sig = _expand(a, (*batch, n)), _expand(y, batch), _expand(sig, batch)
         tiny = torch.finfo(T0.dtype).tiny
         # a zero halfwidth is widened by 1e-15 of the strip's scale (outward, keeps p finite)
-        scale = (a.abs() * (xc.abs() + T0.abs().sum(-1))).sum(-1).detach()
+        scale = small_sum(a.abs() * (xc.abs() + small_sum(T0.abs(), -1)), -1).detach()
         sig = torch.maximum(sig, 1e-15 * scale + tiny)
         p, c = a / sig.unsqueeze(-1), y / sig  # eq. 24-25 normalisation
         # direction convention (eq. before 33): p t_i >= 0 (column i negated where p t_i < 0)
-        pt = (p.unsqueeze(-1) * T0).sum(-2)  # [..., n]
+        pt = small_sum(p.unsqueeze(-1) * T0, -2)  # [..., n]
         neg = (pt < 0).unsqueeze(-2)
         T, pt = torch.where(neg, -T0, T0), pt.abs()
-        mid = (p * xc).sum(-1) - c
-        spread = pt.sum(-1)
+        mid = small_sum(p * xc, -1) - c
+        spread = small_sum(pt, -1)
         eps0p, eps0m = mid + spread, mid - spread  # eq. 31-32
         empty = (eps0p < -1) | (eps0m > 1)
         # double-where: an empty element computes with a harmless full-overlap range so that
@@ -286,19 +287,18 @@ class Parallelotope(ConvexSet):
         rip, rim = torch.where(nz.unsqueeze(-2), r2, 1.0).unbind(-2)
         half = ((rip + rim) / 2).clamp_min(1e-12)
         T_bar = T * half.unsqueeze(-2)
-        xc_bar = xc + (T * ((rip - rim) / 2).unsqueeze(-2)).sum(-1)
+        xc_bar = xc + small_sum(T * ((rip - rim) / 2).unsqueeze(-2), -1)
         # step 3, eq. 38-39: i* = argmax_j p_bar t_bar_j over j = 1..n+1 (p_bar t_bar_{n+1} = 1)
-        pbt = (p_bar.unsqueeze(-1) * T_bar).sum(-2)  # [..., n]
-        idx = torch.arange(n, device=pbt.device)
-        istar, replace = _tie_rule(T_bar, pbt, idx, ~empty.unsqueeze(-1))  # [..., 1]
+        pbt = small_sum(p_bar.unsqueeze(-1) * T_bar, -2)  # [..., n]
+        istar, replace = _tie_rule(T_bar, pbt, ~empty.unsqueeze(-1))  # [..., 1]
         # eq. 41: replace strip i* by the measurement strip
-        t_star = torch.gather(T_bar, -1, istar.unsqueeze(-1).expand(*batch, n, 1))
+        col = istar.unsqueeze(-1).expand(*batch, n, 1)
+        t_star = torch.gather(T_bar, -1, col)
         d = torch.gather(pbt, -1, istar)  # p_bar t_bar_i*  [..., 1]
         d = torch.where(replace, d, 1.0)
         T_new = T_bar - t_star * (pbt / d).unsqueeze(-2)
-        onehot = (idx == istar).unsqueeze(-2)
-        T_new = torch.where(onehot, t_star / d.unsqueeze(-1), T_new)
-        q = (c_bar - (p_bar * xc_bar).sum(-1)).unsqueeze(-1) / d
+        T_new = T_new.scatter(-1, col, t_star / d.unsqueeze(-1))  # column i*: t_i* / d
+        q = (c_bar - small_sum(p_bar * xc_bar, -1)).unsqueeze(-1) / d
         xc_new = xc_bar + t_star.squeeze(-1) * q
         # eq. 40: keep P_bar when i* = n + 1; empty -> the input unchanged
         T_out = torch.where(replace.unsqueeze(-1), T_new, T_bar)
@@ -311,8 +311,8 @@ class Parallelotope(ConvexSet):
         """Exact test that P meets ``strip``: bool ``[...]`` (`ConvexSet.intersects_strip`:
         ``|normal.c - offset| <= ||T' normal||_1 + halfwidth + atol``, the same values)."""
         a = strip.normal
-        mid = (a * self._c).sum(-1)
-        rad = (mid + (a.unsqueeze(-1) * self.T).sum(-2).abs().sum(-1)) - mid
+        mid = small_sum(a * self._c, -1)
+        rad = (mid + small_sum(small_sum(a.unsqueeze(-1) * self.T, -2).abs(), -1)) - mid
         return (mid - strip.offset).abs() <= rad + strip.halfwidth + atol
 
 
@@ -321,17 +321,17 @@ def _expand(t: Tensor, shape: tuple[int, ...]) -> Tensor:
     return t if t.shape == shape else t.expand(shape)
 
 
-def _tie_rule(T_bar: Tensor, pbt: Tensor, idx: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
+def _tie_rule(T_bar: Tensor, pbt: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
     """Wang et al. 2022, eq. 38-39 with the tie rule of `Parallelotope.intersect_strip`:
     ``(i* [..., 1], replace [..., 1])``, the column ``i*`` whose replacement by the
     measurement strip gives the least volume and whether to replace it at all (False: keep
     P_bar; always False where ``keep [..., 1]`` is False).
 
-    ``T_bar [..., n, n]`` the tightened edges, ``pbt [..., n]`` their ``p_bar t_bar_j``,
-    ``idx`` ``arange(n)``. Without gradient (a discrete choice); all candidates at once:
-    candidate i has column i ``t_i / pbt_i`` and column j ``t_j - t_i pbt_j / pbt_i``.
+    ``T_bar [..., n, n]`` the tightened edges, ``pbt [..., n]`` their ``p_bar t_bar_j``.
+    Without gradient (a discrete choice); all candidates at once: candidate i has column i
+    ``t_i / pbt_i`` and column j ``t_j - t_i pbt_j / pbt_i``. Where no candidate is tied,
+    ``replace`` is False and ``i*`` any index.
     """
-    n = idx.shape[0]
     with torch.no_grad():
         top = pbt.amax(-1, keepdim=True)
         keep_tied = top <= 1 + TIE_RTOL  # keeping P_bar (value 1) is among the least
@@ -340,17 +340,17 @@ def _tie_rule(T_bar: Tensor, pbt: Tensor, idx: Tensor, keep: Tensor) -> tuple[Te
         # rows weighted by 1 / (P_bar's hull half-width): the widths relative to P_bar's,
         # so that the choice does not depend on the units of the states
         Ta = T_bar.abs()
-        rw = Ta.sum(-1, keepdim=True)
+        rw = small_sum(Ta, -1, keepdim=True)
         rw = torch.where(rw > 0, rw.reciprocal(), 1.0)  # [..., n, 1]
         A = Ta * rw
         # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]
         ratio = (pbt.unsqueeze(-2) / ps.unsqueeze(-1)).unsqueeze(-2)  # pbt_j / pbt_i
         D = T_bar.unsqueeze(-3) - T_bar.mT.unsqueeze(-1) * ratio
-        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + A.sum(-2) / ps  # [..., n]
+        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + small_sum(A, -2) / ps  # [..., n]
         hull = torch.where(tied, hull, torch.inf)
         hmin = hull.amin(-1, keepdim=True)
         best = tied & (hull <= hmin * (1 + TIE_RTOL))
-        istar = torch.where(best, idx, n).amin(-1, keepdim=True).clamp_max(n - 1)  # lowest
+        istar = best.to(torch.uint8).argmax(-1, keepdim=True)  # the lowest such index
         keep_hull = A.sum((-1, -2)).unsqueeze(-1)
         replace = (~keep_tied | (hmin * (1 + TIE_RTOL) < keep_hull)) & keep
     return istar, replace
