@@ -6,6 +6,7 @@ of a set with the strips with its consistency flag and events.
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Callable
 
 import torch
@@ -15,6 +16,7 @@ from diffsmf.filters.base import SetFilter
 from diffsmf.filters.events import FilterEvent
 from diffsmf.filters.params import stirling_steps
 from diffsmf.filters.remainders import checked_remainder, rounding_margin
+from diffsmf.linearize.jets import JetError, jet_eval
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
 from diffsmf.sets.strip import Strip
@@ -32,6 +34,9 @@ __all__ = [
 #: magnitudes involved (the same padding as the remainder of an affine function,
 #: `diffsmf.linearize.dc_remainder`).
 _AFFINE_PAD_ULPS = 64.0
+
+#: Output functions probed by `_affine` (weak keys: the function objects), value: affine.
+_AFFINE_H: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def measurement_strips(
@@ -158,15 +163,25 @@ def _affine_strips(
     return H, offset, half
 
 
-def _affine(h: Callable[[Tensor], Tensor]) -> bool:
-    """Whether ``h`` is known to be affine on all of R^n (its interval Hessian was
-    structurally zero when a remainder of it was first bounded); False while tracing (host
-    state: the traced graph takes the general path)."""
+def _affine(h: Callable[[Tensor], Tensor], S: ConvexSet) -> bool:
+    """Whether ``h`` is affine on all of R^n: its interval jet over the hull of ``S`` has a
+    structurally zero Hessian (a property of the function, not of the set). Probed once per
+    function, on its first eager update, and remembered (weakly, by identity), so that the
+    first update and every later one take the same path; False while tracing (host state:
+    the traced graph takes the general path) and for a function the engine cannot enclose."""
     if tracing():
         return False
-    from diffsmf.linearize.remainders import _known_affine
-
-    return _known_affine(h)
+    try:
+        known = _AFFINE_H.get(h)
+    except TypeError:  # unhashable callable
+        return False
+    if known is None:
+        try:
+            known = jet_eval(h, S.interval_hull(), order=2).hess_is_zero
+        except JetError:
+            known = False
+        _AFFINE_H[h] = known
+    return known
 
 
 def angle_ambiguous(
@@ -264,7 +279,7 @@ def stirling_strip_update(
     `FilterEvent` codes ``[B]``: ``DOMAIN`` / ``DIVERGED`` of the remainder of ``h``, whose
     update is then skipped, and ``DEGENERATE_STRIP``; none of them loses the guarantee).
 
-    An ``h`` known to be affine (eager only) takes its exact slopes instead (the Stirling
+    An affine ``h`` (`_affine`, eager only) takes its exact slopes instead (the Stirling
     slopes of an affine function, up to rounding) and a remainder that is the float padding
     alone (`_affine_strips`): the same strips to rounding, without the Stirling points and
     the remainder's machinery.
@@ -274,7 +289,7 @@ def stirling_strip_update(
     c = S.center
     h, system = filt.system.h, filt.system
     vbox = filt.measurement_noise_box()
-    if _affine(h):
+    if _affine(h, region):
         a, d, w = _affine_strips(h, region, c, jacobian(h, c), y, vbox, system)
         new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
         return new, ok, ev
