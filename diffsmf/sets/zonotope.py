@@ -522,11 +522,6 @@ class Zonotope(ConvexSet):
 
 
 # ---------------------------------------------------------------------- helpers
-def _expand_to(t: Tensor, shape: tuple[int, ...]) -> Tensor:
-    """``t`` expanded to ``shape`` (itself, no call, when it has that shape already)."""
-    return t if t.shape == shape else t.expand(shape)
-
-
 def _hull_weights(G: Tensor) -> Tensor:
     """``1 / r [..., n]`` for the interval hull half-widths ``r = sum_j |G_ij|`` (1 where
     ``r = 0``), detached: the row weights that make generator scores unit-free."""
@@ -716,6 +711,11 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
     if cols is not None:
         basis = torch.gather(cols, -1, basis)
     return basis, torch.isfinite(best_val)
+
+
+def _expand_to(t: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """``t`` expanded to ``shape`` (itself, no call, when it has that shape already)."""
+    return t if t.shape == shape else t.expand(shape)
 
 
 def _alamo_lambda(
