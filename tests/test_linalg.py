@@ -216,3 +216,16 @@ def test_traced_matmul_max_inner_picks_the_fused_product(
         out = linalg.traced_matmul(A, B, max_inner=max_inner)
     assert len(calls) == int(fused)
     torch.testing.assert_close(out, A @ B, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("k", [2, 3, 4, 5])
+@pytest.mark.parametrize("dim", [-1, -2])
+def test_small_sum_same_bits_as_sum(k: int, dim: int) -> None:
+    g = torch.Generator().manual_seed(k)
+    scales = torch.logspace(-8, 8, k, dtype=torch.float64)
+    for batch in (1, 3000):  # the plain sum, then the unrolled adds
+        x = torch.randn(batch, k, k, generator=g, dtype=torch.float64) * scales
+        for keep in (False, True):
+            ref = x.sum(dim, keepdim=keep)
+            out = linalg.small_sum(x, dim, keepdim=keep)
+            assert out.shape == ref.shape and torch.equal(out, ref)

@@ -114,3 +114,69 @@ def test_validation_names_argument():
         Strip.from_bounds(torch.ones(2), 1.0, 0.0)
     with pytest.raises(ValueError, match="A"):
         _strip().linear_map(torch.randn(2, 3))
+
+
+def _sd_parallelotope(batch=3):
+    g = torch.Generator().manual_seed(3)
+    c = torch.tensor([0.2, 0.3], dtype=torch.float64) + 0.05 * torch.randn(batch, 2, generator=g)
+    T = 0.1 * torch.eye(2, dtype=torch.float64) + 0.03 * torch.randn(batch, 2, 2, generator=g)
+    return ds.sets.Parallelotope(c, T)
+
+
+def test_sequential_update_degenerate_rows_one_rule():
+    """A zero normal is checked for consistency (``|offset| <= halfwidth``) and skipped; a
+    non-finite normal or offset and a NaN half-width are skipped; all flag
+    DEGENERATE_STRIP, and the set is only cut by the regular strips."""
+    from diffsmf.filters.events import FilterEvent
+    from diffsmf.filters.strips import measurement_strips, sequential_strip_update
+
+    P = _sd_parallelotope()
+    cut = lambda S, st: S.intersect_strip(st)  # noqa: E731
+    a = torch.tensor([[[0.0, 0.0], [1.0, 0.0]]] * 3, dtype=torch.float64)
+    d = torch.tensor([[0.5, 0.2], [2.0, 0.2], [0.5, 0.2]], dtype=torch.float64)
+    w = torch.tensor([[1.0, 0.05], [1.0, 0.05], [float("nan"), 0.05]], dtype=torch.float64)
+    new, ok, ev = sequential_strip_update(P, a, d, w, cut)
+    one = P.intersect_strip(Strip(a[:, 1], d[:, 1], w[:, 1]))
+    assert ok.tolist() == [True, False, True]  # |2| > 1: no state meets the zero row
+    assert ((ev & FilterEvent.DEGENERATE_STRIP) != 0).all()
+    for b in (0, 2):
+        assert torch.equal(new.T[b], one.T[b]) and torch.equal(new.center[b], one.center[b])
+    assert torch.equal(new.T[1], P.T[1])  # inconsistent: the input set
+    a2 = a.clone()
+    a2[0, 1, 0] = float("inf")
+    new, ok, ev = sequential_strip_update(P, a2, d, torch.ones_like(d), cut)
+    assert torch.equal(new.T[0], P.T[0]) and bool(ok[0]) and int(ev[0]) != 0
+    # measurement_strips: the same rule, a degenerate row becomes all of R^n
+    vbox = ds.sets.Interval(torch.tensor([-1e-3]), torch.tensor([1e-3]))
+    H = torch.zeros(3, 1, 2, dtype=torch.float64)
+    n_, o_, h_, ev = measurement_strips(
+        lambda x: x[..., :1] ** 2, lambda *args: ds.sets.Interval(torch.zeros(3, 1),
+                                                               torch.zeros(3, 1)),
+        P, P.center, H, torch.zeros(3, 1), vbox, events=True,
+    )
+    assert torch.isinf(h_).all() and (n_[..., 0] == 1).all() and (o_ == 0).all()
+    assert ((ev & FilterEvent.DEGENERATE_STRIP) != 0).all()
+
+
+def test_affine_strips_match_the_general_path_and_contain_the_states():
+    """An affine h: the strips from its exact slopes with the padding alone equal the Stirling
+    strips with the DC remainder to rounding, and contain every state consistent with y."""
+    from diffsmf.filters.strips import _affine_strips, _strips
+    from diffsmf.linearize import dc_remainder, jacobian, stirling_jacobian
+
+    s = ds.systems.get("spring_damper")
+    P = _sd_parallelotope(batch=4)
+    c = P.center
+    g = torch.Generator().manual_seed(5)
+    x = P.sample(64, generator=g)  # [4, 64, 2]
+    vbox = ds.sets.Interval(torch.tensor([-1e-3]), torch.tensor([1e-3]))
+    v = torch.where(torch.rand(4, 1, generator=g) < 0.5, -1e-3, 1e-3).to(torch.float64)
+    y = s.h(x[:, 0]) + v  # the first sample's measurement
+    a1, d1, w1 = _affine_strips(s.h, P, c, jacobian(s.h, c), y, vbox, s)
+    H = stirling_jacobian(s.h, c, 1e-3)
+    a2, d2, w2, _ = _strips(s.h, dc_remainder, P, c, H, y, vbox, s)
+    torch.testing.assert_close(a1, a2, rtol=1e-14, atol=0)
+    torch.testing.assert_close(d1, d2, rtol=1e-13, atol=1e-16)
+    torch.testing.assert_close(w1, w2, rtol=1e-12, atol=0)
+    strip = Strip(a1[:, 0], d1[:, 0], w1[:, 0])
+    assert strip.contains(x[:, 0], atol=0.0).all()

@@ -6,6 +6,7 @@ of a set with the strips with its consistency flag and events.
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Callable
 
 import torch
@@ -15,10 +16,12 @@ from diffsmf.filters.base import SetFilter
 from diffsmf.filters.events import FilterEvent
 from diffsmf.filters.params import stirling_steps
 from diffsmf.filters.remainders import checked_remainder, rounding_margin
+from diffsmf.linearize.jets import JetError, jet_eval
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
 from diffsmf.sets.strip import Strip
 from diffsmf.systems.system import System
+from diffsmf.utils import tracing
 
 __all__ = [
     "angle_ambiguous",
@@ -26,6 +29,14 @@ __all__ = [
     "sequential_strip_update",
     "stirling_strip_update",
 ]
+
+#: Padding of the float evaluation of an affine ``h`` about ``c``, in units of eps times the
+#: magnitudes involved (the same padding as the remainder of an affine function,
+#: `diffsmf.linearize.dc_remainder`).
+_AFFINE_PAD_ULPS = 64.0
+
+#: Output functions probed by `_affine` (weak keys: the function objects), value: affine.
+_AFFINE_H: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def measurement_strips(
@@ -53,35 +64,124 @@ def measurement_strips(
     where it does not, the strip is all of R^n (half-width inf: guaranteed, the measurement
     just cannot shrink the set).
 
+    A degenerate strip (a slope row that is 0 or not finite, e.g. a set so large that the
+    model saturates or overflows at the Stirling points, or a non-finite offset) is all of
+    R^n: half-width inf, normal ``e_1``, offset 0, with the event ``DEGENERATE_STRIP``
+    (`sequential_strip_update`'s rule for such rows, which also checks a zero row for
+    consistency).
+
     Returns normal ``[B, m, n]``, offset ``[B, m]``, halfwidth ``[B, m]`` and, with
     ``events=True``, the `FilterEvent` codes ``[B]`` of the remainder of ``h`` (``DOMAIN`` /
     ``DIVERGED``: its strips then have an infinite half-width, all of R^n: the measurement
-    is skipped, the guarantee holds).
+    is skipped, the guarantee holds) and of the degenerate strips.
     """
+    H, offset, half, ev = _strips(h, remainder, S, c, H, y, vbox, system)
+    degen, _, _, _, ev_d = _degenerate(H, offset, half)
+    e0 = torch.zeros_like(H)
+    e0[..., 0] = 1.0
+    H = torch.where(degen.unsqueeze(-1), e0, H)
+    offset = torch.where(degen, torch.zeros_like(offset), offset)
+    half = torch.where(degen, torch.full_like(half, torch.inf), half)
+    return (H, offset, half, ev | ev_d) if events else (H, offset, half)
+
+
+def _strips(
+    h: Callable[[Tensor], Tensor],
+    remainder: Callable[..., Interval],
+    S: ConvexSet,
+    c: Tensor,
+    H: Tensor,
+    y: Tensor,
+    vbox: Interval,
+    system: System | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """`measurement_strips` before the degenerate rows are replaced: normal ``[B, m, n]``
+    (``H`` itself), offset, halfwidth ``[B, m]`` and the remainder's events ``[B]``."""
     hc = h(c)
     E, ev = checked_remainder(remainder(h, S, c, H))
-    ok = ev == 0
     Hc = (H @ c.unsqueeze(-1)).squeeze(-1)
-    nu = y - hc if system is None else system.innovation(y, hc)
-    offset = nu - vbox.center + Hc - E.center
-    half = vbox.radius + E.radius
-    half = half + rounding_margin(y, hc, Hc, E.center, half)
+    offset, half = _offset_half(hc, E.center, E.radius, Hc, y, vbox, system)
+    ok = ev == 0
     if system is not None and system.angle_outputs:
         ok = ok.unsqueeze(-1) & ~angle_ambiguous(system, S, c, H, E, vbox)
     # unbounded remainder of h over S: the strip is all of R^n (half-width inf, skipped by
     # sequential_strip_update) -- guaranteed, the measurement just cannot shrink the set
     ok = ok.unsqueeze(-1) if ok.dim() < half.dim() else ok
-    # a slope row that is 0 or not finite (a set so large that the model saturates or
-    # overflows at the Stirling points) gives no strip: all of R^n, with a placeholder normal
-    flat = ~(H.abs().sum(-1) > 0) | ~torch.isfinite(H).all(-1)  # [B, m]
-    ev = ev | torch.where(flat.any(-1), int(FilterEvent.DEGENERATE_STRIP), 0)
-    ok = ok & ~flat
-    e0 = torch.zeros_like(H)
-    e0[..., 0] = 1.0
-    H = torch.where(flat.unsqueeze(-1), e0, H)
-    offset = torch.where(flat, torch.zeros_like(offset), offset)
     half = torch.where(ok, half, torch.full_like(half, torch.inf))
-    return (H, offset, half, ev) if events else (H, offset, half)
+    return H, offset, half, ev
+
+
+def _offset_half(
+    hc: Tensor,
+    e_mid: Tensor | None,
+    e_rad: Tensor,
+    Hc: Tensor,
+    y: Tensor,
+    vbox: Interval,
+    system: System | None,
+) -> tuple[Tensor, Tensor]:
+    """Offset ``y - v_c - h(c) + H c - e_mid`` and half-width ``eps_v + e_rad`` ``[B, m]``
+    of eq. 23-29 (the innovation wrapped for angle outputs; ``Hc = H c [B, m]``), the
+    half-width padded by the float64 rounding margin of the terms; ``e_mid = None`` stands
+    for a remainder centred at 0 (the same values as ``e_mid = 0``, two calls fewer)."""
+    nu = y - hc if system is None else system.innovation(y, hc)
+    offset = nu - vbox.center + Hc
+    half = vbox.radius + e_rad
+    if e_mid is None:
+        return offset, half + rounding_margin(y, hc, Hc, half)
+    return offset - e_mid, half + rounding_margin(y, hc, Hc, e_mid, half)
+
+
+def _affine_strips(
+    h: Callable[[Tensor], Tensor],
+    S: ConvexSet,
+    c: Tensor,
+    H: Tensor,
+    y: Tensor,
+    vbox: Interval,
+    system: System,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """`measurement_strips` of an affine ``h`` with its exact slopes ``H [B, m, n]`` (its
+    autograd Jacobian): the remainder ``h(x) - h(c) - H (x - c)`` is 0 but for the float
+    evaluation of ``h`` and of its slopes, enclosed by ``+-64 eps (|h(c)| + 2 |H| max(|lo|,
+    |hi|))`` over the hull ``[lo, hi]`` of ``S`` (the padding with which
+    `diffsmf.linearize.dc_remainder` bounds an affine function about its Stirling slopes,
+    ``|J_exact| + |J|``; it cannot be unbounded, so no remainder events) -> normal, offset,
+    halfwidth ``[B, m]``."""
+    hc = h(c)
+    hull = S.interval_hull()
+    mag = torch.maximum(hull.lower.abs(), hull.upper.abs())
+    scale = hc.abs() + 2.0 * (H.abs() * mag.unsqueeze(-2)).sum(-1)
+    eps = torch.finfo(hc.dtype)
+    tol = (_AFFINE_PAD_ULPS * eps.eps) * scale.detach() + eps.tiny  # [B, m]
+    Hc = (H * c.unsqueeze(-2)).sum(-1)
+    offset, half = _offset_half(hc, None, tol, Hc, y, vbox, system)
+    if system.angle_outputs:
+        E = Interval._make(-tol, tol)
+        amb = angle_ambiguous(system, S, c, H, E, vbox)
+        half = torch.where(amb, torch.full_like(half, torch.inf), half)
+    return H, offset, half
+
+
+def _affine(h: Callable[[Tensor], Tensor], S: ConvexSet) -> bool:
+    """Whether ``h`` is affine on all of R^n: its interval jet over the hull of ``S`` has a
+    structurally zero Hessian (a property of the function, not of the set). Probed once per
+    function, on its first eager update, and remembered (weakly, by identity), so that the
+    first update and every later one take the same path; False while tracing (host state:
+    the traced graph takes the general path) and for a function the engine cannot enclose."""
+    if tracing():
+        return False
+    try:
+        known = _AFFINE_H.get(h)
+    except TypeError:  # unhashable callable
+        return False
+    if known is None:
+        try:
+            known = jet_eval(h, S.interval_hull(), order=2).hess_is_zero
+        except JetError:
+            known = False
+        _AFFINE_H[h] = known
+    return known
 
 
 def angle_ambiguous(
@@ -99,6 +199,35 @@ def angle_ambiguous(
     spread = spread + torch.maximum(vbox.lower.abs(), vbox.upper.abs())
     mask = system.angle_mask.to(device=spread.device)
     return mask & ~(spread < math.pi)  # NaN spread: ambiguous
+
+
+def _degenerate(
+    normal: Tensor, offset: Tensor, half: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The one rule for degenerate strips ``|normal . x - offset| <= half`` (``normal
+    [..., m, n]``, ``offset``, ``half [..., m]``): a zero or non-finite normal, a non-finite
+    offset or a NaN half-width (the linearised output does not depend on the state there, or
+    overflowed).
+
+    Returns ``degen [..., m]`` (such a strip is skipped: all of R^n, never a lost guarantee),
+    ``skip [..., m]`` (``degen`` or an infinite half-width), ``zero_ok [..., m]`` (False only
+    for a zero normal with a finite offset and half-width that no state meets, ``|offset| >
+    half`` beyond the rounding margin: inconsistent data), the rounding margin ``atol [...,
+    m]`` of the consistency checks and the events ``[...]`` (``DEGENERATE_STRIP`` where some
+    strip is degenerate).
+    """
+    zero = (normal == 0).all(-1)
+    # finite normal and offset (x - x is 0 exactly for a finite x, NaN otherwise: two calls
+    # where isfinite takes four), half-width not NaN
+    fin = ((normal - normal).sum(-1) + (offset - offset) == 0) & (half == half)
+    degen = zero | ~fin
+    skip = degen | (half == torch.inf)
+    # the consistency margin (only used where the strip is not skipped, and for zero normals)
+    atol = rounding_margin(offset, half).detach()
+    # a zero normal: the strip is R^n (|d| <= w) or empty -- checked, never intersected
+    zero_ok = ~(zero & fin & (offset.abs() > half + atol))
+    ev = degen.any(-1) * int(FilterEvent.DEGENERATE_STRIP)
+    return degen, skip, zero_ok, atol, ev
 
 
 def sequential_strip_update(
@@ -120,28 +249,20 @@ def sequential_strip_update(
     offset is still checked for consistency (``|offset| <= halfwidth``). Skipping a strip
     never loses the guarantee (the set is only not shrunk by it). Branch-free.
     """
-    ok = torch.ones(S.batch_shape, dtype=torch.bool, device=S.device)
-    ev = torch.zeros(S.batch_shape, dtype=torch.int64, device=S.device)
+    degen, skip, ok, atol, ev = _degenerate(normal, offset, half)
+    ok = ok.all(-1)
+    # skipped strips become the finite placeholder |1 . x| <= 1 (intersected, then dropped)
+    a = torch.where(degen.unsqueeze(-1), 1.0, normal)
+    d = torch.where(skip, 0.0, offset)
+    w = torch.where(skip, 1.0, half)
     cur = S
-    for i in range(normal.shape[-2]):
-        a, w, d = normal[..., i, :], half[..., i], offset[..., i]
-        zero = (a == 0).all(-1)
-        bad = ~torch.isfinite(a).all(-1) | ~torch.isfinite(d) | torch.isnan(w)
-        degen = zero | bad
-        inf = torch.isinf(w) & ~bad
-        skip = inf | degen
-        ev = ev | torch.where(degen & ~inf, int(FilterEvent.DEGENERATE_STRIP), 0)
-        atol = rounding_margin(torch.where(bad, 0.0, d), torch.where(skip, 0.0, w)).detach()
-        # a zero normal: the strip is R^n (|d| <= w) or empty -- checked, never intersected
-        zero_ok = torch.where(zero & ~bad & ~inf, d.abs() <= w + atol, True)
-        a = torch.where(degen.unsqueeze(-1), torch.ones_like(a), a)
-        w = torch.where(skip, torch.ones_like(w), w)
-        d = torch.where(skip, torch.zeros_like(d), d)
-        strip = Strip(a, d, w)
-        ok = ok & zero_ok & (skip | cur.intersects_strip(strip, atol=atol))
+    rows = zip(a.unbind(-2), d.unbind(-1), w.unbind(-1), skip.unbind(-1), atol.unbind(-1))
+    for ai, di, wi, sk, tol in rows:
+        strip = Strip._make(ai, di, wi)
+        ok = ok & (sk | cur.intersects_strip(strip, atol=tol))
         nxt = intersect(cur, strip)
         a_, b_ = align([nxt, cur])
-        cur = where(skip, b_, a_)
+        cur = where(sk, b_, a_)
     return where(ok, cur, _like(S, cur)), ok, ev
 
 
@@ -157,15 +278,23 @@ def stirling_strip_update(
     (eq. 23-29), strips intersected one by one with ``intersect`` -> (set, consistent ``[B]``,
     `FilterEvent` codes ``[B]``: ``DOMAIN`` / ``DIVERGED`` of the remainder of ``h``, whose
     update is then skipped, and ``DEGENERATE_STRIP``; none of them loses the guarantee).
+
+    An affine ``h`` (`_affine`, eager only) takes its exact slopes instead (the Stirling
+    slopes of an affine function, up to rounding) and a remainder that is the float padding
+    alone (`_affine_strips`): the same strips to rounding, without the Stirling points and
+    the remainder's machinery.
     """
-    from diffsmf.linearize import stirling_jacobian
+    from diffsmf.linearize import jacobian, stirling_jacobian
 
     c = S.center
-    H = stirling_jacobian(filt.system.h, c, stirling_steps(filt, c, region.interval_hull().radius))
-    a, d, w, ev_h = measurement_strips(
-        filt.system.h, filt.remainder_fn, region, c, H, y, filt.measurement_noise_box(),
-        filt.system, events=True,
-    )
+    h, system = filt.system.h, filt.system
+    vbox = filt.measurement_noise_box()
+    if _affine(h, region):
+        a, d, w = _affine_strips(h, region, c, jacobian(h, c), y, vbox, system)
+        new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
+        return new, ok, ev
+    H = stirling_jacobian(h, c, stirling_steps(filt, c, region.interval_hull().radius))
+    a, d, w, ev_h = _strips(h, filt.remainder_fn, region, c, H, y, vbox, system)
     new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
     return new, ok, ev | ev_h
 

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.linalg import small_sum
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.utils import checking
@@ -74,8 +75,8 @@ class Parallelotope(ConvexSet):
         batch = torch.broadcast_shapes(c.shape[:-1], T.shape[:-2])
         n = c.shape[-1]
         obj = object.__new__(cls)
-        object.__setattr__(obj, "_c", c.expand(*batch, n))
-        object.__setattr__(obj, "T", T.expand(*batch, n, n))
+        object.__setattr__(obj, "_c", _expand(c, (*batch, n)))
+        object.__setattr__(obj, "T", _expand(T, (*batch, n, n)))
         return obj
 
     @property
@@ -251,82 +252,105 @@ class Parallelotope(ConvexSet):
         a, y, sig = strip_fields(strip, self)
         n = self.dim
         batch = strip_batch(self.batch_shape, a, y, sig)
-        xc, T = self._c.expand(*batch, n), self.T.expand(*batch, n, n)
-        a, y, sig = a.expand(*batch, n), y.expand(batch), sig.expand(batch)
-        tiny = torch.finfo(T.dtype).tiny
+        xc, T0 = _expand(self._c, (*batch, n)), _expand(self.T, (*batch, n, n))
+        a, y, sig = _expand(a, (*batch, n)), _expand(y, batch), _expand(sig, batch)
+        tiny = torch.finfo(T0.dtype).tiny
         # a zero halfwidth is widened by 1e-15 of the strip's scale (outward, keeps p finite)
-        scale = (a.abs() * (xc.abs() + T.abs().sum(-1))).sum(-1).detach()
+        scale = small_sum(a.abs() * (xc.abs() + small_sum(T0.abs(), -1)), -1).detach()
         sig = torch.maximum(sig, 1e-15 * scale + tiny)
         p, c = a / sig.unsqueeze(-1), y / sig  # eq. 24-25 normalisation
-        # direction convention (eq. before 33): p t_i >= 0
-        pt = (p.unsqueeze(-1) * T).sum(-2)  # [..., n]
-        sgn = torch.where(pt.detach() < 0, -1.0, 1.0).to(T.dtype)
-        T, pt = T * sgn.unsqueeze(-2), pt * sgn
-        mid = (p * xc).sum(-1) - c
-        spread = pt.sum(-1)
+        # direction convention (eq. before 33): p t_i >= 0 (column i negated where p t_i < 0)
+        pt = small_sum(p.unsqueeze(-1) * T0, -2)  # [..., n]
+        neg = (pt < 0).unsqueeze(-2)
+        T, pt = torch.where(neg, -T0, T0), pt.abs()
+        mid = small_sum(p * xc, -1) - c
+        spread = small_sum(pt, -1)
         eps0p, eps0m = mid + spread, mid - spread  # eq. 31-32
         empty = (eps0p < -1) | (eps0m > 1)
         # double-where: an empty element computes with a harmless full-overlap range so that
         # the unused branch gives no inf/NaN in the backward pass (its output is the input)
-        eps0p = torch.where(empty, torch.ones_like(eps0p), eps0p)
-        eps0m = torch.where(empty, -torch.ones_like(eps0m), eps0m)
+        eps0p = torch.where(empty, 1.0, eps0p)
+        eps0m = torch.where(empty, -1.0, eps0m)
         marg = 16 * _EPS * (1 + mid.abs() + spread)  # outward rounding margin
         # step 1, eq. 33-36: tightened strip |p_bar x - c_bar| <= 1
-        rp = torch.minimum(torch.ones_like(eps0p), eps0p) + marg
-        rm = torch.minimum(torch.ones_like(eps0m), -eps0m) + marg
-        wsum = (rp + rm).clamp_min(tiny)
-        p_bar = (2 / wsum).unsqueeze(-1) * p
-        c_bar = 2 / wsum * (c + (rp - rm) / 2)
+        rp = eps0p.clamp(max=1.0) + marg
+        rm = (-eps0m).clamp(max=1.0) + marg
+        g = 2 / (rp + rm).clamp_min(tiny)
+        p_bar = g.unsqueeze(-1) * p
+        c_bar = g * (c + (rp - rm) / 2)
         # step 2, eq. 37: tighten eta_i in [-r_i-, r_i+]; no tightening where p t_i = 0
         nz = pt > 0
-        ptd = torch.where(nz, pt, torch.ones_like(pt))
-        one = torch.ones_like(pt)
-        mi = marg.unsqueeze(-1) / ptd
-        rip = torch.where(nz, torch.minimum(one, (1 - eps0m).unsqueeze(-1) / ptd - 1 + mi), one)
-        rim = torch.where(nz, torch.minimum(one, (1 + eps0p).unsqueeze(-1) / ptd - 1 + mi), one)
+        ptd = torch.where(nz, pt, 1.0)
+        mi = (marg.unsqueeze(-1) / ptd).unsqueeze(-2)
+        num = torch.stack([1 - eps0m, 1 + eps0p], -1).unsqueeze(-1)  # [..., 2, 1]
+        r2 = (num / ptd.unsqueeze(-2) - 1 + mi).clamp(max=1.0)
+        rip, rim = torch.where(nz.unsqueeze(-2), r2, 1.0).unbind(-2)
         half = ((rip + rim) / 2).clamp_min(1e-12)
         T_bar = T * half.unsqueeze(-2)
-        xc_bar = xc + (T * ((rip - rim) / 2).unsqueeze(-2)).sum(-1)
+        xc_bar = xc + small_sum(T * ((rip - rim) / 2).unsqueeze(-2), -1)
         # step 3, eq. 38-39: i* = argmax_j p_bar t_bar_j over j = 1..n+1 (p_bar t_bar_{n+1} = 1)
-        pbt = (p_bar.unsqueeze(-1) * T_bar).sum(-2)  # [..., n]
-        with torch.no_grad():  # discrete choice, no gradient; tie rule in the docstring
-            top = pbt.amax(-1)
-            keep_tied = top <= 1 + TIE_RTOL  # keeping P_bar (value 1) is among the least
-            tied = pbt * (1 + TIE_RTOL) >= top.clamp_min(1).unsqueeze(-1)  # within TIE_RTOL
-            # summed hull half-widths of each candidate i (eq. 41; its column i is t_i / pbt_i,
-            # the others' column i cancels exactly); a loop over the static n, O(n^2) memory
-            ps = torch.where(pbt > 0, pbt, torch.ones_like(pbt))
-            # rows weighted by 1 / (P_bar's hull half-width): the widths relative to P_bar's,
-            # so that the choice does not depend on the units of the states
-            rw = T_bar.abs().sum(-1)
-            rw = torch.where(rw > 0, 1.0 / rw, torch.ones_like(rw)).unsqueeze(-1)  # [..., n, 1]
-            hull = torch.stack([
-                ((T_bar - T_bar[..., i : i + 1] * (pbt / ps[..., i : i + 1]).unsqueeze(-2))
-                 .abs() * rw).sum((-1, -2)) + (T_bar[..., i].abs() * rw[..., 0]).sum(-1)
-                / ps[..., i]
-                for i in range(n)
-            ], -1)  # [..., n]
-            hull = torch.where(tied, hull, torch.full_like(hull, torch.inf))
-            hmin = hull.amin(-1)
-            best = tied & (hull <= hmin.unsqueeze(-1) * (1 + TIE_RTOL))
-            idx = torch.arange(n, device=pbt.device).expand_as(pbt)
-            istar = torch.where(best, idx, n).amin(-1).clamp_max(n - 1)  # lowest such index
-            keep_hull = (T_bar.abs() * rw).sum((-1, -2))
-            replace = (~keep_tied | (hmin * (1 + TIE_RTOL) < keep_hull)) & ~empty
+        pbt = small_sum(p_bar.unsqueeze(-1) * T_bar, -2)  # [..., n]
+        istar, replace = _tie_rule(T_bar, pbt, ~empty.unsqueeze(-1))  # [..., 1]
         # eq. 41: replace strip i* by the measurement strip
-        t_star = torch.gather(T_bar, -1, istar.reshape(*batch, 1, 1).expand(*batch, n, 1))
-        d = torch.gather(pbt, -1, istar.reshape(*batch, 1))  # p_bar t_bar_i*  [..., 1]
-        d = torch.where(replace.unsqueeze(-1), d, torch.ones_like(d))
+        col = istar.unsqueeze(-1).expand(*batch, n, 1)
+        t_star = torch.gather(T_bar, -1, col)
+        d = torch.gather(pbt, -1, istar)  # p_bar t_bar_i*  [..., 1]
+        d = torch.where(replace, d, 1.0)
         T_new = T_bar - t_star * (pbt / d).unsqueeze(-2)
-        onehot = torch.nn.functional.one_hot(istar, n).to(T.dtype).unsqueeze(-2).bool()
-        T_new = torch.where(onehot, t_star / d.unsqueeze(-1), T_new)
-        xc_new = xc_bar + t_star.squeeze(-1) * (
-            (c_bar - (p_bar * xc_bar).sum(-1)) / d.squeeze(-1)
-        ).unsqueeze(-1)
+        T_new = T_new.scatter(-1, col, t_star / d.unsqueeze(-1))  # column i*: t_i* / d
+        q = (c_bar - small_sum(p_bar * xc_bar, -1)).unsqueeze(-1) / d
+        xc_new = xc_bar + t_star.squeeze(-1) * q
         # eq. 40: keep P_bar when i* = n + 1; empty -> the input unchanged
-        r3, r2 = replace.reshape(*batch, 1, 1), replace.unsqueeze(-1)
-        T_out = torch.where(r3, T_new, T_bar)
-        x_out = torch.where(r2, xc_new, xc_bar)
-        T_out = torch.where(empty.reshape(*batch, 1, 1), T, T_out) * sgn.unsqueeze(-2)
+        T_out = torch.where(replace.unsqueeze(-1), T_new, T_bar)
+        T_out = torch.where(empty.reshape(*batch, 1, 1), T0, torch.where(neg, -T_out, T_out))
+        x_out = torch.where(replace, xc_new, xc_bar)
         x_out = torch.where(empty.unsqueeze(-1), xc, x_out)
         return Parallelotope._make(x_out, T_out)
+
+    def intersects_strip(self, strip: Any, atol: float = 0.0) -> Tensor:
+        """Exact test that P meets ``strip``: bool ``[...]`` (`ConvexSet.intersects_strip`:
+        ``|normal.c - offset| <= ||T' normal||_1 + halfwidth + atol``, the same values)."""
+        a = strip.normal
+        mid = small_sum(a * self._c, -1)
+        rad = (mid + small_sum(small_sum(a.unsqueeze(-1) * self.T, -2).abs(), -1)) - mid
+        return (mid - strip.offset).abs() <= rad + strip.halfwidth + atol
+
+
+def _expand(t: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """``t`` expanded to ``shape`` (itself, no call, when it has that shape already)."""
+    return t if t.shape == shape else t.expand(shape)
+
+
+def _tie_rule(T_bar: Tensor, pbt: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
+    """Wang et al. 2022, eq. 38-39 with the tie rule of `Parallelotope.intersect_strip`:
+    ``(i* [..., 1], replace [..., 1])``, the column ``i*`` whose replacement by the
+    measurement strip gives the least volume and whether to replace it at all (False: keep
+    P_bar; always False where ``keep [..., 1]`` is False).
+
+    ``T_bar [..., n, n]`` the tightened edges, ``pbt [..., n]`` their ``p_bar t_bar_j``.
+    Without gradient (a discrete choice); all candidates at once: candidate i has column i
+    ``t_i / pbt_i`` and column j ``t_j - t_i pbt_j / pbt_i``. Where no candidate is tied,
+    ``replace`` is False and ``i*`` any index.
+    """
+    with torch.no_grad():
+        top = pbt.amax(-1, keepdim=True)
+        keep_tied = top <= 1 + TIE_RTOL  # keeping P_bar (value 1) is among the least
+        tied = pbt * (1 + TIE_RTOL) >= top.clamp_min(1)  # within TIE_RTOL
+        ps = torch.where(pbt > 0, pbt, 1.0)
+        # rows weighted by 1 / (P_bar's hull half-width): the widths relative to P_bar's,
+        # so that the choice does not depend on the units of the states
+        Ta = T_bar.abs()
+        rw = small_sum(Ta, -1, keepdim=True)
+        rw = torch.where(rw > 0, rw.reciprocal(), 1.0)  # [..., n, 1]
+        A = Ta * rw
+        # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]
+        ratio = (pbt.unsqueeze(-2) / ps.unsqueeze(-1)).unsqueeze(-2)  # pbt_j / pbt_i
+        D = T_bar.unsqueeze(-3) - T_bar.mT.unsqueeze(-1) * ratio
+        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + small_sum(A, -2) / ps  # [..., n]
+        hull = torch.where(tied, hull, torch.inf)
+        hmin = hull.amin(-1, keepdim=True)
+        best = tied & (hull <= hmin * (1 + TIE_RTOL))
+        istar = best.to(torch.uint8).argmax(-1, keepdim=True)  # the lowest such index
+        keep_hull = A.sum((-1, -2)).unsqueeze(-1)
+        replace = (~keep_tied | (hmin * (1 + TIE_RTOL) < keep_hull)) & keep
+    return istar, replace

@@ -59,6 +59,21 @@ class Strip(ConvexSet):
         )
 
     @classmethod
+    def _make(cls, normal: Tensor, offset: Tensor, halfwidth: Tensor) -> Strip:
+        """Internal constructor without validation (broadcasts the batch dims; no call where
+        they agree already)."""
+        batch = torch.broadcast_shapes(normal.shape[:-1], offset.shape, halfwidth.shape)
+        n = normal.shape[-1]
+        obj = object.__new__(cls)
+        object.__setattr__(obj, "normal", normal if normal.shape[:-1] == batch
+                           else normal.expand(*batch, n))
+        object.__setattr__(obj, "offset", offset if offset.shape == batch
+                           else offset.expand(batch))
+        object.__setattr__(obj, "halfwidth", halfwidth if halfwidth.shape == batch
+                           else halfwidth.expand(batch))
+        return obj
+
+    @classmethod
     def from_bounds(cls, normal: Any, lower: Any, upper: Any) -> Strip:
         """Strip ``{x : lower <= normal . x <= upper}``."""
         lo = as_tensor("lower", lower)

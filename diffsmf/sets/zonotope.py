@@ -501,24 +501,31 @@ class Zonotope(ConvexSet):
         p, y, sig = strip_fields(strip, self)
         c, G = self._c, self.generators
         batch = strip_batch(self.batch_shape, p, y, sig)
-        c = c.expand(*batch, self.dim)
-        G = G.expand(*batch, *G.shape[-2:])
-        p, y, sig = p.expand(*batch, self.dim), y.expand(batch), sig.expand(batch)
-        lam = _alamo_lambda(c, G, p, y, sig, method)
+        c, G = _expand_to(c, (*batch, self.dim)), _expand_to(G, (*batch, *G.shape[-2:]))
+        p, y, sig = _expand_to(p, (*batch, self.dim)), _expand_to(y, batch), _expand_to(sig, batch)
+        Gp = (p.unsqueeze(-1) * G).sum(-2)  # p'G [..., m]
+        r = y - (p * c).sum(-1)  # y - p'c
+        lam = _alamo_lambda(c, G, p, y, sig, method, Gp)
         with torch.no_grad():
-            pc = (p * c).sum(-1)
-            rad = (p.unsqueeze(-1) * G).sum(-2).abs().sum(-1)
-            inside = (pc - y).abs() + rad <= sig
-            empty = (pc - y).abs() > rad + sig
+            dist, rad = r.abs(), Gp.abs().sum(-1)
+            inside = dist + rad <= sig
+            empty = dist > rad + sig
             zero = (inside | empty).unsqueeze(-1)
-        lam = torch.where(zero, torch.zeros_like(lam), lam)
+        lam = torch.where(zero, 0.0, lam)
         # Alamo 2005 Property: c(lam) = c + lam (y - p'c), G(lam) = [(I - lam p')G, sigma lam]
-        cn = c + lam * (y - (p * c).sum(-1)).unsqueeze(-1)
-        pG = (p.unsqueeze(-1) * G).sum(-2)  # [..., m]
+        cn = c + lam * r.unsqueeze(-1)
         Gn = torch.cat(
-            [G - lam.unsqueeze(-1) * pG.unsqueeze(-2), (sig.unsqueeze(-1) * lam).unsqueeze(-1)], -1
+            [G - lam.unsqueeze(-1) * Gp.unsqueeze(-2), (sig.unsqueeze(-1) * lam).unsqueeze(-1)], -1
         )
         return Zonotope._make(cn, Gn)
+
+    def intersects_strip(self, strip: Any, atol: float = 0.0) -> Tensor:
+        """Exact test that Z meets ``strip``: bool ``[...]`` (`ConvexSet.intersects_strip`:
+        ``|normal.c - offset| <= sum_j |normal.g_j| + halfwidth + atol``, the same values)."""
+        a = strip.normal
+        mid = (a * self._c).sum(-1)
+        rad = (mid + (a.unsqueeze(-1) * self.generators).sum(-2).abs().sum(-1)) - mid
+        return (mid - strip.offset).abs() <= rad + strip.halfwidth + atol
 
 
 # ---------------------------------------------------------------------- helpers
@@ -795,9 +802,16 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
     return basis, torch.isfinite(best_val)
 
 
-def _alamo_lambda(c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, method: str) -> Tensor:
-    """lambda ``[..., n]`` of the Alamo 2005 family (see `Zonotope.intersect_strip`)."""
-    Gp = (G * p.unsqueeze(-1)).sum(-2)  # p'G [..., m]
+def _expand_to(t: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """``t`` expanded to ``shape`` (itself, no call, when it has that shape already)."""
+    return t if t.shape == shape else t.expand(shape)
+
+
+def _alamo_lambda(
+    c: Tensor, G: Tensor, p: Tensor, y: Tensor, sig: Tensor, method: str, Gp: Tensor
+) -> Tensor:
+    """lambda ``[..., n]`` of the Alamo 2005 family (see `Zonotope.intersect_strip`);
+    ``Gp = p'G [..., m]``."""
     GGp = (G * Gp.unsqueeze(-2)).sum(-1)  # G G' p [..., n]
     denom = (Gp * Gp).sum(-1) + sig * sig
     # Alamo 2005 (F-radius): lambda* = G G' p / (p' G G' p + sigma^2)
