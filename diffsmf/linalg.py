@@ -31,6 +31,8 @@ filters' boundedness guard).
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -38,7 +40,8 @@ from diffsmf.utils import tracing
 
 __all__ = [
     "CLOSED_FORM_MAX_N", "SMALL_MATMUL_ELEMS", "SMALL_MATMUL_MAX", "cholesky", "cholesky_solve",
-    "det", "eigh", "eigvalsh", "matmul", "solve", "solve_lower", "traced_matmul",
+    "det", "eigh", "eigvalsh", "matmul", "small_dot", "small_reduce", "small_sum", "solve",
+    "solve_lower", "traced_matmul",
 ]
 
 #: Largest size with a closed form: ``det`` up to 3, the others up to 2.
@@ -277,3 +280,41 @@ def small_sum(x: Tensor, dim: int, keepdim: bool = False) -> Tensor:
     for t in parts[2:]:
         out = out + t
     return out.unsqueeze(dim) if keepdim else out
+
+
+#: A short dot product over the last dim is unrolled into slices when its output has at least
+#: this many elements (torch's reduction over a trailing dim of size 2-4 costs ~100 ns per
+#: output); smaller ones are a product and a sum (two ops).
+SMALL_REDUCE_MIN_OUTPUTS = 1 << 14
+SMALL_REDUCE_MAX_N = 4
+
+
+def small_dot(a: Tensor, b: Tensor) -> Tensor:
+    """``sum_j a[..., j] b[..., j]`` (broadcast) -> ``[...]``, cheaper for a large batch.
+
+    Small outputs: a product and a sum (two ops). Large ones: the first product, then
+    ``addcmul_`` in place (no temporary per term: a fresh large tensor costs its page
+    faults). The two may differ in the last bits (order of the additions, a fused
+    multiply-add), within the ``n eps sum |terms|`` that every caller's padding covers.
+    """
+    n = a.shape[-1]
+    shape = torch.broadcast_shapes(a.shape, b.shape)
+    if n > SMALL_REDUCE_MAX_N or math.prod(shape[:-1]) < SMALL_REDUCE_MIN_OUTPUTS:
+        return (a * b).sum(-1)
+    out = a[..., 0] * b[..., 0]
+    for j in range(1, n):
+        out.addcmul_(a[..., j], b[..., j])
+    return out
+
+
+def small_reduce(t: Tensor, op: str) -> Tensor:
+    """``t.sum(-1)`` / ``t.amin(-1)`` / ``t.any(-1)`` (``op``); unrolled into slices for a
+    short last dim and a large output, like `small_dot` (the same floats for ``n <= 2``)."""
+    n = t.shape[-1]
+    if n > SMALL_REDUCE_MAX_N or math.prod(t.shape[:-1]) < SMALL_REDUCE_MIN_OUTPUTS:
+        return getattr(t, op)(-1)
+    f = {"sum": torch.add, "amin": torch.minimum, "any": torch.logical_or}[op]
+    out = t[..., 0]
+    for j in range(1, n):
+        out = f(out, t[..., j])
+    return out

@@ -15,7 +15,6 @@ by ``fn``. ``fn`` must be batch-elementwise (see `diffsmf.linearize.jacobians`).
 from __future__ import annotations
 
 import itertools
-import math
 import weakref
 from collections.abc import Callable
 
@@ -124,44 +123,6 @@ def _nograd(t: Tensor) -> Tensor:
     return t.detach() if t.requires_grad else t
 
 
-#: A short dot product over the last dim is unrolled into slices when its output has at least
-#: this many elements (torch's reduction over a trailing dim of size 2-4 costs ~100 ns per
-#: output); smaller ones are a product and a sum (two ops).
-_UNROLL_ELEMS = 1 << 14
-_UNROLL_MAX_N = 4
-
-
-def _dot(a: Tensor, b: Tensor) -> Tensor:
-    """``sum_j a[..., j] b[..., j]`` (broadcast) -> ``[...]``.
-
-    Small outputs: a product and a sum (two ops). Large ones: the first product, then
-    ``addcmul_`` in place (no temporary per term: a fresh large tensor costs its page
-    faults). The two may differ in the last bits (order of the additions, a fused
-    multiply-add), within the ``n eps sum |terms|`` that every caller's padding covers.
-    """
-    n = a.shape[-1]
-    shape = torch.broadcast_shapes(a.shape, b.shape)
-    if n > _UNROLL_MAX_N or math.prod(shape[:-1]) < _UNROLL_ELEMS:
-        return (a * b).sum(-1)
-    out = a[..., 0] * b[..., 0]
-    for j in range(1, n):
-        out.addcmul_(a[..., j], b[..., j])
-    return out
-
-
-def _reduce_last(t: Tensor, op: str) -> Tensor:
-    """``t.sum(-1)`` / ``t.amin(-1)`` / ``t.any(-1)`` (``op``); unrolled into slices for a
-    short last dim and a large output, like `_dot` (the same floats for ``n <= 2``)."""
-    n = t.shape[-1]
-    if n > _UNROLL_MAX_N or math.prod(t.shape[:-1]) < _UNROLL_ELEMS:
-        return getattr(t, op)(-1)
-    f = {"sum": torch.add, "amin": torch.minimum, "any": torch.logical_or}[op]
-    out = t[..., 0]
-    for j in range(1, n):
-        out = f(out, t[..., j])
-    return out
-
-
 def _hull_with(S: ConvexSet, c: Tensor) -> Interval:
     """Interval hull of ``S`` and ``c`` (so the segments [c, x] lie inside), padded outward."""
     box = S.interval_hull()
@@ -268,13 +229,13 @@ def _lower_order(
     Jl, Ju = (gu, gl) if J is None else (J, J)  # J = None: [J_fn] - [J_fn]
     a = (gl - Jl).masked_fill(inf_g, 0.0)  # [..., k, n]: [a, b] = [J_fn] - J
     b = (gu - Ju).masked_fill(inf_g, 0.0)
-    lo = _reduce_last(torch.minimum(a * du, b * dl), "sum")  # [..., k]
-    hi = _reduce_last(torch.maximum(a * dl, b * du), "sum")
+    lo = linalg.small_reduce(torch.minimum(a * du, b * dl), "sum")  # [..., k]
+    hi = linalg.small_reduce(torch.maximum(a * dl, b * du), "sum")
     jv = _abs_max(jet.val) if jv is None else jv  # the caller's, when it has it
     scale = jv + _nograd(hi - lo) * 2.0
     if J is not None:  # the float evaluation of J (x - c)
         mag = torch.maximum(-dl, du) if mag is None else mag.unsqueeze(-2)
-        scale = scale + _nograd(_dot(J.abs(), mag))
+        scale = scale + _nograd(linalg.small_dot(J.abs(), mag))
     R1 = _padded(lo, hi, scale)
     if not tracing() and bool(finite.all()):
         return R.intersect(R1)
@@ -326,11 +287,11 @@ def _curvature(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
     non-finite ``lam`` / ``w``.
     """
     n = lo.shape[-1]
-    off = _reduce_last(torch.maximum(lo.abs(), hi.abs()).masked_fill(_eye(n, lo.device), 0.0),
-                       "sum")  # [..., n]
+    mag = torch.maximum(lo.abs(), hi.abs()).masked_fill(_eye(n, lo.device), 0.0)
+    off = linalg.small_reduce(mag, "sum")  # [..., n]
     diag = torch.stack([torch.diagonal(lo, dim1=-2, dim2=-1),
                         -torch.diagonal(hi, dim1=-2, dim2=-1)])  # [2, ..., n]
-    gersh = _reduce_last(diag - off, "amin")  # [2, ...]
+    gersh = linalg.small_reduce(diag - off, "amin")  # [2, ...]
     Hcr = torch.stack([0.5 * (lo + hi), 0.5 * (hi - lo)])  # [2, ..., n, n]: midpoint, radius
     if n == 2:
         weyl, norm = _weyl2(Hcr)
@@ -465,7 +426,7 @@ def _convexifying_weights(H: Interval, box: Interval) -> tuple[Tensor, Tensor]:
     # finite weights are mapped back, so no inf * 0 reaches the gradients
     drop = ~(W < torch.inf) | unbounded.unsqueeze(-1)  # W >= 0 or NaN
     Wf = W.masked_fill(drop, 0.0) * (1.0 / (s * s)).unsqueeze(-2)
-    return Wf, _reduce_last(drop, "any")
+    return Wf, linalg.small_reduce(drop, "any")
 
 
 def _dc_bounds(
@@ -500,9 +461,11 @@ def _dc_bounds(
         sl = slice(p0, min(p0 + step, P))  # the tangent points only (dP has all 1 + N)
         diff = materialize(dv.unsqueeze(0) - dP[sl].unsqueeze(1))  # [p, N, ..., n]: x_v - p
         # the tangent plane of r at p, at the vertices: [p, N, ..., k]
-        L = materialize(_dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2)) + rP[sl].unsqueeze(1))
+        L = materialize(
+            linalg.small_dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2)) + rP[sl].unsqueeze(1)
+        )
         # Q = sum_j W_j (x_vj - p_j)^2 for the four forms: [p, N, 4, ..., k]
-        Q = _dot(W, materialize(diff * diff).unsqueeze(-2).unsqueeze(2))
+        Q = linalg.small_dot(W, materialize(diff * diff).unsqueeze(-2).unsqueeze(2))
         if V4 is None:  # eq. 15 with q at the vertices (p = c): max_v (q(v) +- r(v))
             V4 = torch.addcmul(Q[0], rv.unsqueeze(1), neg, value=-1.0).amax(0)  # [4, ..., k]
         # Q - L (forms of r) and Q + L (forms of -r), in place: -max_v is the tangent
@@ -595,7 +558,8 @@ def dc_remainder(
     Jc = Jall[0]  # [..., k, n]
     J = materialize(Jc if J is None else J)
     dP = materialize(pts - c)  # [1 + N, ..., n]: exactly 0 at c
-    rP = fall - fall[0] - _dot(J, dP.unsqueeze(-2))  # r at c (exactly 0) and the vertices
+    # r at c (exactly 0) and the vertices
+    rP = fall - fall[0] - linalg.small_dot(J, dP.unsqueeze(-2))
     gP = materialize(Jall - J)  # [P, ..., k, n]: gradients of r at the tangent points
     lower, upper = _dc_bounds(rP, gP, dP, W, bad)  # [..., k]
     # rounding scale: magnitudes of every term summed above (|r| at the points, the tangent
@@ -609,7 +573,7 @@ def dc_remainder(
     dl, du = box.lower - c, box.upper - c
     mag = torch.maximum(du, dl.neg())  # [..., n] >= |x - c| on the hull
     G = gP.abs().amax(0) + J.abs() + W.amax(0) * mag.unsqueeze(-2)  # [..., k, n]
-    scale = fall.abs().amax(0) * 2.0 + jv + _dot(G, mag.unsqueeze(-2)) * 4.0
+    scale = fall.abs().amax(0) * 2.0 + jv + linalg.small_dot(G, mag.unsqueeze(-2)) * 4.0
     out = _padded(lower, upper, scale)
     if with_lagrange:
         out = out.intersect(_lagrange(jet, box, S, c, J, Jc - J))
