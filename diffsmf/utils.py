@@ -235,7 +235,20 @@ class Positive:
         if obj is None:
             return self
         raw = getattr(obj, f"raw_{self.name}")
-        return getattr(obj, f"{self.name}_scale").reshape(raw.shape) * F.softplus(raw)
+        scale = getattr(obj, f"{self.name}_scale")
+        if torch.is_grad_enabled() and raw.requires_grad or not _cacheable(raw, scale):
+            return _positive_value(raw, scale)
+        # without a graph to record the value is a constant of (raw, scale): computed once and
+        # reused until either changes (an optimiser step, a setter, load_state_dict, .to())
+        key = (raw._version, scale._version, raw.untyped_storage(), scale.untyped_storage())
+        cache = obj.__dict__.setdefault("_positive_cache", {})
+        hit = cache.get(self.name)
+        if hit is not None and _same_key(hit[0], key):
+            return hit[1]
+        with torch.no_grad():
+            value = _positive_value(raw, scale)
+        cache[self.name] = (key, value)
+        return value
 
     def __set__(self, obj: Any, value: Any) -> None:
         scale = getattr(obj, f"{self.name}_scale")
@@ -243,6 +256,32 @@ class Positive:
         with torch.no_grad():
             scale.copy_(v.expand_as(scale))
             getattr(obj, f"raw_{self.name}").fill_(_SOFTPLUS_ONE)
+
+
+def _positive_value(raw: Tensor, scale: Tensor) -> Tensor:
+    """``scale * softplus(raw)`` with the shape of ``raw`` (a scalar's scale is ``[1]``)."""
+    if scale.shape != raw.shape:
+        scale = scale.reshape(raw.shape)
+    return scale * F.softplus(raw)
+
+
+def _cacheable(raw: Tensor, scale: Tensor) -> bool:
+    """Whether a `Positive` value may be reused: plain eager tensors (not while traced,
+    not inside ``inference_mode`` or a ``torch.func`` transform)."""
+    return (
+        not tracing()
+        and not torch.is_inference_mode_enabled()
+        and type(raw) in (Tensor, nn.Parameter)
+        and type(scale) is Tensor
+        and not torch._C._functorch.is_functorch_wrapped_tensor(raw)
+    )
+
+
+def _same_key(a: tuple, b: tuple) -> bool:
+    """Equal version counters and the same storages (held by the key, so never reused)."""
+    return a[0] == b[0] and a[1] == b[1] and a[2]._cdata == b[2]._cdata and (
+        a[3]._cdata == b[3]._cdata
+    )
 
 
 class StrictlyPositive(Positive):
