@@ -135,8 +135,10 @@ def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) ->
     wc, wr, Gw = noise_generators(filt)
     ec = E.center
     rad = E.radius + wr  # Theorem 2: sum of two boxes
-    # `rounding_margin(fc, ec, sum_j |FG_ij|, rad)`, the last two terms being >= 0 already
-    rad = rad + ROUND_REL * (1.0 + fc.abs() + ec.abs() + FG.abs().sum(-1) + rad)
+    # `rounding_margin(fc, ec, sum_j |FG_ij|, rad)`: rad + ROUND_REL (1 + |fc| + |ec| +
+    # sum_j |FG_ij| + rad), the absolute values summed by one 1-norm over [FG, fc, ec, rad]
+    t = torch.linalg.vector_norm(torch.cat([FG, torch.stack([fc, ec, rad], -1)], -1), 1, -1)
+    rad = torch.add(rad + ROUND_REL, t, alpha=ROUND_REL)
     parts = [FG, torch.diag_embed(rad)]
     if Gw is not None:
         parts.append(Gw.expand(*FG.shape[:-1], Gw.shape[-1]))
