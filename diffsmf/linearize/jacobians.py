@@ -10,6 +10,7 @@ interact).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -163,15 +164,17 @@ def stirling_jacobian(fn: Fn, x: Tensor, h: Tensor | float) -> Tensor:
     """Stirling (central-difference) slope matrix at ``x [..., n]`` -> ``[..., k, n]``.
 
     Wang et al. 2022, eq. 12-13: column j is ``(fn(x + h_j e_j) - fn(x - h_j e_j)) / (2 h_j)``.
-    ``h`` is a positive scalar or a tensor broadcastable to ``[..., n]`` (per-coordinate
-    steps); the result is differentiable in ``h`` and ``x``. Exact for quadratic ``fn``.
+    ``h`` is a positive finite scalar or a tensor broadcastable to ``[..., n]``
+    (per-coordinate steps); the result is differentiable in ``h`` and ``x``. Exact for
+    quadratic ``fn``.
     The 2n stencil points are stacked in a new *leading* dim so that closures over batched
     tensors broadcast correctly.
     """
     x = _check_x(x)
     h = torch.as_tensor(h, dtype=x.dtype, device=x.device)
-    if not tracing() and not bool((h.detach() > 0).all()):  # NaN and <= 0 alike
-        raise ValueError("h: the Stirling step must be positive")
+    hd = h.detach()
+    if not tracing() and not bool(((hd > 0) & (hd < math.inf)).all()):  # NaN, inf, <= 0
+        raise ValueError("h: the Stirling step must be positive and finite")
     n = x.shape[-1]
     try:
         shape = torch.broadcast_shapes(h.shape, x.shape)
@@ -185,8 +188,7 @@ def stirling_jacobian(fn: Fn, x: Tensor, h: Tensor | float) -> Tensor:
         hx = hx.expand(*batch, n)
     if x.shape[:-1] != batch:
         x = x.expand(*batch, n)
-    delta = torch.diag_embed(hx).movedim(-2, 0)  # [n, ..., n]: row j = h_j e_j
-    out = fn(torch.cat([x + delta, x - delta], dim=0))  # [2n, ..., k]
+    out = fn(_stencil_points(x, hx, center=False))  # [2n, ..., k]
     return _central_slopes(out[:n], out[n:], hx)
 
 
@@ -200,10 +202,30 @@ def stirling_value_jacobian(fn: Fn, x: Tensor, h: Tensor) -> tuple[Tensor, Tenso
     ``x``) must be positive; neither is checked. The same values as the two separate calls.
     """
     n = x.shape[-1]
-    hx = h if h.shape == x.shape else h.expand_as(x)
-    delta = torch.diag_embed(hx).movedim(-2, 0)  # [n, ..., n]: row j = h_j e_j
-    out = fn(torch.cat([x.unsqueeze(0), x + delta, x - delta], dim=0))  # [2n + 1, ..., k]
-    return out[0], _central_slopes(out[1 : n + 1], out[n + 1 :], hx)
+    out = fn(_stencil_points(x, h, center=True))  # [2n + 1, ..., k]
+    return out[0], _central_slopes(out[1 : n + 1], out[n + 1 :], h)
+
+
+#: Stencil sign tables of `_stencil_points`, per (n, batch dims, center, dtype, device).
+_STENCILS: dict[tuple, Tensor] = {}
+
+
+def _stencil_points(x: Tensor, h: Tensor, center: bool) -> Tensor:
+    """The Stirling points ``[(1 +) 2n, ..., n]``: (``x``,) ``x + h_j e_j`` for j < n, then
+    ``x - h_j e_j``, as ``x + E h`` with a constant sign table ``E`` (entries 0, +1, -1: the
+    same values as adding ``+-h_j`` to coordinate j alone; ``h`` finite, ``[..., n]``
+    broadcastable to ``x``)."""
+    n, nb = x.shape[-1], x.dim() - 1
+    key = (n, nb, center, x.dtype, x.device)
+    E = None if tracing() else _STENCILS.get(key)
+    if E is None:
+        with torch.no_grad():
+            eye = torch.eye(n, dtype=x.dtype, device=x.device)
+            rows = [eye, -eye] if not center else [eye.new_zeros(1, n), eye, -eye]
+            E = torch.cat(rows).reshape(-1, *([1] * nb), n)
+        if not tracing():
+            _STENCILS[key] = E
+    return x + E * h
 
 
 def _central_slopes(plus: Tensor, minus: Tensor, hx: Tensor) -> Tensor:
