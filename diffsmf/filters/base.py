@@ -69,16 +69,17 @@ def carry(prev: FilterState, new: FilterState, update: bool = False) -> FilterSt
     bits accumulate (a filter's step may build its state afresh); after an update, a
     measurement is never inconsistent against an unbounded set (``consistent |= ~bounded``)."""
     b = new.bounded
-    if prev.bounded is not None:
+    if prev.bounded is not None and b is not prev.bounded:  # (b & b is b)
         b = prev.bounded if b is None else prev.bounded & b
     ev = prev.extras.get("events")
     extras = new.extras
     if ev is not None:
         now = extras.get("events")
-        extras = {**extras, "events": ev if now is None else ev | now}
+        if now is not ev:
+            extras = {**extras, "events": ev if now is None else ev | now}
     consistent = new.consistent
     if update and b is not None:
-        consistent = consistent | ~b
+        consistent = b <= consistent  # consistent | ~b, one op on bools
     return FilterState(new.set, consistent, extras, b)
 
 
@@ -97,9 +98,9 @@ def _hull_radius(S: ConvexSet) -> Tensor:
     """Half-widths ``[*B, n]`` of the interval hull of ``S`` (for a zonotope or a
     parallelotope ``sum_j |G_ij|`` directly, else ``S.interval_hull().radius``)."""
     if type(S) is family("Zonotope"):
-        return S.generators.abs().sum(-1)
+        return torch.linalg.vector_norm(S.generators, 1, -1)
     if type(S) is family("Parallelotope"):
-        return S.T.abs().sum(-1)
+        return torch.linalg.vector_norm(S.T, 1, -1)
     if tracing():
         return S.interval_hull().radius
     with numerical_events():  # the hull of a non-finite set: NaN, flagged, never raised
@@ -389,12 +390,14 @@ class SetFilter(nn.Module):
         S = state.set
         r = _hull_radius(S)
         was = state.bounded
-        if not tracing() and type(S) in (family("Zonotope"), family("Parallelotope")) and bool(
-            ((S.center * 0 + r) <= MAX_SET_RADIUS).all()  # False at a NaN / inf field
+        if not tracing() and type(S) in (family("Zonotope"), family("Parallelotope")) and (
+            r.numel() > 0  # r + 0 c: NaN at a NaN / inf centre; the max propagates NaN
+            and float(torch.add(r, S.center, alpha=0).max()) <= MAX_SET_RADIUS
         ):  # eager, every element finite and small: nothing to flag or replace
             b = torch.ones_like(state.consistent) if was is None else was
             new = _with_events(state).replace(bounded=b)
-            return new if was is None else new.replace(consistent=state.consistent | ~b)
+            # consistent | ~b, one op on bools
+            return new if was is None else new.replace(consistent=b <= state.consistent)
         finite = _finite_fields(S)
         small = (r <= MAX_SET_RADIUS).all(-1)  # NaN: False
         ok = finite & small

@@ -24,7 +24,12 @@ from diffsmf.filters.params import (
     stirling_steps,
 )
 from diffsmf.filters.prediction import prediction_remainder, step_function, zonotope_prediction
-from diffsmf.filters.state import check_initial_set, expand_state_set
+from diffsmf.filters.state import (
+    check_initial_set,
+    expand_state_set,
+    predicted_state,
+    updated_state,
+)
 from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.conversions import as_parallelotope
@@ -104,10 +109,10 @@ class HSNSMF(SetFilter):
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin, events=True
         )  # eq. 14-18 (+ margin)
         Z = zonotope_prediction(self, fc, linalg.traced_matmul(F, T), E)  # eq. 20-21
-        return state.replace(set=Z.to_parallelotope()).flag(ev)  # eq. 22 (Chisci)
+        return predicted_state(state, Z.to_parallelotope(), ev)  # eq. 22 (Chisci)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Theorem 3 strips (eq. 23-29) intersected one by one (eq. 30-41)."""
         P = state.set  # remainder of h at the parallelotope's vertices
         new, ok, ev = stirling_strip_update(self, P, P, y, lambda S, st: S.intersect_strip(st))
-        return state.replace(set=new, consistent=ok).flag(ev, unbounded=False)
+        return updated_state(state, new, ok, ev)

@@ -51,7 +51,12 @@ from diffsmf.filters.params import (
     stirling_steps,
 )
 from diffsmf.filters.prediction import prediction_remainder, step_function, zonotope_prediction
-from diffsmf.filters.state import check_initial_set, expand_state_set
+from diffsmf.filters.state import (
+    check_initial_set,
+    expand_state_set,
+    predicted_state,
+    updated_state,
+)
 from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.conversions import as_zonotope
@@ -173,7 +178,7 @@ class MSZM(SetFilter):
         )
         FG = linalg.traced_matmul(F, G)
         Zp = zonotope_prediction(self, fc, FG, E)  # W's own generators (Alamo 2005)
-        return state.replace(set=self._fit(Zp)).flag(ev)
+        return predicted_state(state, self._fit(Zp), ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Strips (Wang et al. 2022, eq. 23-29) intersected with Alamo 2005 Property 2, then
@@ -184,7 +189,7 @@ class MSZM(SetFilter):
             lambda S, st: S.intersect_strip(st, method=self.strip_method),
         )
         new = where(ok, self._fit(new), Z)  # inconsistent: keep the predicted set exactly
-        return state.replace(set=new, consistent=ok).flag(ev, unbounded=False)
+        return updated_state(state, new, ok, ev)
 
 
 def _stable_partition(keep: Tensor, count: Tensor) -> Tensor:

@@ -26,9 +26,34 @@ __all__ = [
     "flat_state",
     "flat_step",
     "flat_steps",
+    "measurement_events",
+    "predicted_state",
     "state_batch",
     "state_from_flat",
+    "updated_state",
 ]
+
+
+#: `measurement_events` of every code ``0 .. 2 MAX - 1`` (eager lookup tables, per device).
+_MEASUREMENT_TABLES: dict[torch.device, Tensor] = {}
+
+
+def measurement_events(ev: Tensor) -> Tensor:
+    """`FilterEvent` codes ``ev [B]`` (int64) of a measurement update as the state records
+    them: the bits that would lose the bound (``LOSES_BOUND``) become ``MEASUREMENT_SKIPPED``
+    (the update was skipped; the set keeps its guarantee), the others stay. Eagerly one
+    lookup in a table of all codes, while traced the same bit arithmetic."""
+    from diffsmf.utils import tracing
+
+    if tracing():
+        skipped = ((ev & LOSES_BOUND) != 0) * int(FilterEvent.MEASUREMENT_SKIPPED)
+        return (ev & ~LOSES_BOUND) | skipped
+    table = _MEASUREMENT_TABLES.get(ev.device)
+    if table is None:
+        codes = torch.arange(2 * max(FilterEvent), dtype=torch.int64, device=ev.device)
+        skipped = ((codes & LOSES_BOUND) != 0) * int(FilterEvent.MEASUREMENT_SKIPPED)
+        table = _MEASUREMENT_TABLES[ev.device] = (codes & ~LOSES_BOUND) | skipped
+    return table[ev]
 
 
 @dataclass(frozen=True)
@@ -75,8 +100,7 @@ class FilterState:
         ``MEASUREMENT_SKIPPED`` (the update was skipped). Branch-free."""
         ev = events.to(torch.int64)
         if not unbounded:  # a measurement that could not be bounded: skipped, not a lost bound
-            skipped = ((ev & LOSES_BOUND) != 0) * int(FilterEvent.MEASUREMENT_SKIPPED)
-            ev = (ev & ~LOSES_BOUND) | skipped
+            ev = measurement_events(ev)
         old = self.extras.get("events")
         new = self.replace(extras={**self.extras, "events": ev if old is None else old | ev})
         return new.and_bounded((ev & LOSES_BOUND) == 0) if unbounded else new
@@ -94,6 +118,24 @@ class FilterState:
         -inf / +inf, ``volume`` inf there)."""
         return mark_unbounded(self.set, self.bounded)
 
+
+
+def predicted_state(state: FilterState, S: ConvexSet, ev: Tensor) -> FilterState:
+    """The state a ``_predict`` hook returns: set ``S``, events ``ev [B]`` (int64 remainder
+    codes, `checked_remainder`: ``DOMAIN`` / ``DIVERGED``, each of which loses the bound) and
+    ``bounded = (ev == 0)`` of this step alone. `SetFilter.predict` then ORs in the
+    events and ANDs in ``bounded`` that ``state`` had met (`carry`): the same state as
+    ``state.replace(set=S).flag(ev)`` after that, in fewer ops."""
+    return state.replace(set=S, extras={**state.extras, "events": ev}, bounded=ev == 0)
+
+
+def updated_state(state: FilterState, S: ConvexSet, ok: Tensor, ev: Tensor) -> FilterState:
+    """The state an ``_update`` hook returns: set ``S``, ``consistent = ok [B]`` and the
+    measurement events ``ev [B]`` of this step alone (`measurement_events`; ``bounded`` is
+    ``state``'s). `SetFilter.update` then ORs in the events ``state`` had met (`carry`): the
+    same state as ``state.replace(set=S, consistent=ok).flag(ev, unbounded=False)``."""
+    events = measurement_events(ev.to(torch.int64))
+    return state.replace(set=S, consistent=ok, extras={**state.extras, "events": events})
 
 
 @dataclass(frozen=True)
