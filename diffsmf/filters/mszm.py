@@ -143,10 +143,17 @@ class MSZM(SetFilter):
             return Z.pad_generators(q)
         with torch.no_grad():
             nonzero = (G != 0).any(-2)  # [..., M]
-        if not tracing() and bool(nonzero.all()):  # no zero columns: the same, sync-cheap
-            return Z.reduce(self.order, method=self.reduce_method)
-        with torch.no_grad():
             count = nonzero.sum(-1)  # [...]
+        if not tracing() and count.numel() > 0:  # eager: one host read of min and max count
+            lo, hi = torch.stack(torch.aminmax(count)).tolist()
+            if lo == G.shape[-1]:  # no zero columns: the same, sync-cheap
+                return Z.reduce(self.order, method=self.reduce_method)
+            if hi <= q:  # nothing to reduce: the stable partition's first q columns
+                with torch.no_grad():
+                    perm = torch.argsort(nonzero, dim=-1, descending=True, stable=True)[..., :q]
+                idx = perm.unsqueeze(-2).expand(*G.shape[:-1], q)
+                return Zonotope._make(Z.center, torch.gather(G, -1, idx))
+        with torch.no_grad():
             dest = _stable_partition(nonzero, count)
         Gc = torch.zeros_like(G).scatter(-1, dest.unsqueeze(-2).expand_as(G), G)
         small = Zonotope(Z.center, Gc[..., :q])  # exact where count <= q
