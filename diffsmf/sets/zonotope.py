@@ -625,7 +625,7 @@ def _outer_parallelogram(G: Tensor) -> Tensor:
         Gf = G.reshape(nb, 2, m)
         parts = [_pair_T(Gf[s : s + rows]) for s in range(0, nb, rows)]
         T = torch.cat([t for t, _, _ in parts]).reshape(*batch, 2, 2)
-        ok = torch.cat([k for _, k, _ in parts]).reshape(batch)
+        ok = torch.cat([k.reshape(-1) for _, k, _ in parts]).reshape(batch)
         all_ok = all(a for _, _, a in parts)
     if all_ok:
         return T
@@ -642,35 +642,36 @@ def _outer_parallelogram(G: Tensor) -> Tensor:
 def _pair_T(G: Tensor) -> tuple[Tensor, Tensor, bool]:
     """`_outer_parallelogram` on one chunk: ``(T [..., 2, 2], ok [...], all_ok)``: ``ok``
     False where no pair is regular (``T`` is then finite but not a bound), ``all_ok`` whether
-    every element is ok (eager; False while traced)."""
+    every element is ok (eager; False while traced; when True, ``ok`` is not read and keeps a
+    trailing dim of 1)."""
     m = G.shape[-1]
-    with torch.no_grad():
-        scale = G.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
+    with torch.no_grad():  # max |G_ij|
+        scale = torch.linalg.vector_norm(G, math.inf, (-2, -1), keepdim=True).clamp_min(1e-150)
     Gn = G / scale  # the choice and s are invariant to the scale; no over- or underflow
-    # p[..., 0, k, l] = a_k b_l, p[..., 1, k, l] = b_k a_l (rows a, b of Gn)
-    p = Gn.unsqueeze(-1) * Gn.flip(-2).unsqueeze(-2)
-    Dabs = (p[..., 0, :, :] - p[..., 1, :, :]).abs()  # |det [g_k, g_l]|: symmetric, 0 diagonal
+    a, b = Gn.unbind(-2)  # the rows of Gn
+    p = a.unsqueeze(-1) * b.unsqueeze(-2)  # p_kl = a_k b_l; b_k a_l is p_lk (the same bits)
+    Dabs = (p - p.mT).abs()  # |det [g_k, g_l]|: symmetric, 0 diagonal
     S = Dabs.sum(-1)
     with torch.no_grad():
-        nrm = torch.hypot(Gn[..., 0, :], Gn[..., 1, :])  # elementwise: a norm over dim -2 is slow
+        nrm = torch.hypot(a, b)  # elementwise: a norm over dim -2 is slow
         regular = Dabs > 1e-12 * (nrm.unsqueeze(-1) * nrm.unsqueeze(-2))
         val = torch.where(regular, S.unsqueeze(-1) * S.unsqueeze(-2) / Dabs, math.inf)
         flat = val.flatten(-2)
         v = flat.amin(-1, keepdim=True)
-        k = (flat <= v * (1 + BASIS_TIE_RTOL)).to(torch.int8).argmax(-1, keepdim=True)
+        k = (flat <= v * (1 + BASIS_TIE_RTOL)).max(-1, keepdim=True).indices  # the first
         ij = torch.cat([k // m, k % m], -1)  # [..., 2], i < j
         fin = v < math.inf  # False for inf and NaN
         all_ok = not tracing() and bool(fin.all())
     # rounding of the table: |fl(D_kl) - D_kl| <= 2 eps P_kl (operands of Gn exact to eps/2)
-    P = p.abs().sum(-3)
+    pa = p.abs()
+    P = pa + pa.mT  # |a_k b_l| + |b_k a_l|
     num = torch.add(S, P.sum(-1), alpha=4 * _EPS).gather(-1, ij.flip(-1))  # (S_j, S_i) + pad
     den = torch.sub(Dabs, P, alpha=4 * _EPS).flatten(-2).gather(-1, k)  # |D_ij| - pad, > 0
-    ok = fin.squeeze(-1)
     if not all_ok:  # no regular pair: a finite placeholder (no NaN in the gradients)
         den = torch.where(fin, den, 1.0)
     s = num / den * (1 + (m + 8) * _EPS)
     B = torch.gather(G, -1, ij.unsqueeze(-2).expand(*G.shape[:-1], 2))
-    return B * s.unsqueeze(-2), ok, all_ok
+    return B * s.unsqueeze(-2), fin.squeeze(-1) if not all_ok else fin, all_ok
 
 
 def _fallback_basis(G: Tensor) -> Tensor:
