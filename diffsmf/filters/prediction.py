@@ -136,8 +136,9 @@ def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) ->
     ec = E.center
     rad = E.radius + wr  # Theorem 2: sum of two boxes
     # `rounding_margin(fc, ec, sum_j |FG_ij|, rad)`: rad + ROUND_REL (1 + |fc| + |ec| +
-    # sum_j |FG_ij| + rad), the absolute values summed by one 1-norm over [FG, fc, ec, rad]
-    t = torch.linalg.vector_norm(torch.cat([FG, torch.stack([fc, ec, rad], -1)], -1), 1, -1)
+    # sum_j |FG_ij| + rad), the absolute values summed at once over [FG, fc, ec, rad] (a
+    # 1-norm is one op but far slower on short rows)
+    t = torch.cat([FG, torch.stack([fc, ec, rad], -1)], -1).abs().sum(-1)
     rad = torch.add(rad + ROUND_REL, t, alpha=ROUND_REL)
     parts = [FG, torch.diag_embed(rad)]
     if Gw is not None:

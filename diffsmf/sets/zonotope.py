@@ -645,8 +645,8 @@ def _pair_T(G: Tensor) -> tuple[Tensor, Tensor, bool]:
     every element is ok (eager; False while traced; when True, ``ok`` is not read and keeps a
     trailing dim of 1)."""
     m = G.shape[-1]
-    with torch.no_grad():  # max |G_ij|
-        scale = torch.linalg.vector_norm(G, math.inf, (-2, -1), keepdim=True).clamp_min(1e-150)
+    with torch.no_grad():
+        scale = G.abs().amax((-1, -2), keepdim=True).clamp_min(1e-150)
     Gn = G / scale  # the choice and s are invariant to the scale; no over- or underflow
     a, b = Gn.unbind(-2)  # the rows of Gn
     p = a.unsqueeze(-1) * b.unsqueeze(-2)  # p_kl = a_k b_l; b_k a_l is p_lk (the same bits)
