@@ -107,6 +107,23 @@ def _hull_radius(S: ConvexSet) -> Tensor:
         return S.interval_hull().radius
 
 
+def _noise_box(filt: nn.Module, name: str, c: Tensor, r: Tensor) -> Interval:
+    """``Interval(c - r, c + r)``; without autograd recording, eagerly, the box of the last call
+    again while ``r`` is the same tensor (`Positive` reuses its value) and ``c`` unchanged."""
+    if r.requires_grad or tracing() or torch.is_inference_mode_enabled():
+        return Interval(c - r, c + r)
+    cache = filt.__dict__.setdefault("_noise_box_cache", {})
+    key = (r, c._version, c.untyped_storage())
+    hit = cache.get(name)
+    if hit is not None and hit[0][0] is r and hit[0][1] == key[1] and (
+        hit[0][2]._cdata == key[2]._cdata
+    ):
+        return hit[1]
+    box = Interval(c - r, c + r)
+    cache[name] = (key, box)
+    return box
+
+
 def _flagging(fn: Callable[..., FilterState], *args: Any) -> FilterState:
     """``fn(*args)`` inside `diffsmf.utils.numerical_events` (a numerical event is
     flagged per element, never raised); traced code has no value checks anyway."""
@@ -256,8 +273,7 @@ class SetFilter(nn.Module):
     # ------------------------------------------------------------------ noise sets
     def process_noise_box(self) -> Interval:
         """Current process-noise box W ``[n]`` (differentiable in ``process_noise``)."""
-        c, r = self.process_noise_center, self.process_noise
-        return Interval(c - r, c + r)
+        return _noise_box(self, "process_noise", self.process_noise_center, self.process_noise)
 
     def process_noise_set(self) -> ConvexSet:
         """The process-noise set W as given by the system, scaled per component, ``[n]``.
@@ -305,8 +321,9 @@ class SetFilter(nn.Module):
 
     def measurement_noise_box(self) -> Interval:
         """Current measurement-noise box V ``[m]`` (differentiable in ``measurement_noise``)."""
-        c, r = self.measurement_noise_center, self.measurement_noise
-        return Interval(c - r, c + r)
+        return _noise_box(
+            self, "measurement_noise", self.measurement_noise_center, self.measurement_noise
+        )
 
 
     # ------------------------------------------------------------------ contract
