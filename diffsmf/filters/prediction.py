@@ -134,7 +134,7 @@ def zonotope_prediction(filt: SetFilter, fc: Tensor, FG: Tensor, E: Interval) ->
 
     wc, wr, Gw = noise_generators(filt)
     ec = E.center
-    rad = E.radius + wr  # Theorem 2: sum of two boxes
+    rad = torch.add(wr, E.upper - E.lower, alpha=0.5)  # Theorem 2: sum of two boxes
     # `rounding_margin(fc, ec, sum_j |FG_ij|, rad)`: rad + ROUND_REL (1 + |fc| + |ec| +
     # sum_j |FG_ij| + rad), the absolute values summed at once over [FG, fc, ec, rad] (a
     # 1-norm is one op but far slower on short rows)
