@@ -91,6 +91,42 @@ def test_positive_parameter_roundtrip_and_gradient():
         m.bound = torch.tensor([-1.0, 1.0, 1.0])
 
 
+def test_positive_value_reused_without_grad_follows_every_change():
+    m = _Holder(torch.tensor([1.0, 2.0]))
+    opt = torch.optim.SGD(m.parameters(), lr=0.5)
+
+    def reference():
+        return m.bound_scale * torch.nn.functional.softplus(m.raw_bound.detach())
+
+    with torch.no_grad():
+        first = m.bound
+        assert m.bound is first  # reused while nothing changed
+    m.bound.sum().backward()  # recorded: a fresh value with its graph
+    opt.step()  # in-place change of raw
+    with torch.no_grad():
+        assert torch.equal(m.bound, reference()) and not torch.equal(m.bound, first)
+    m.bound = torch.tensor([3.0, 4.0])  # the setter
+    with torch.no_grad():
+        assert torch.equal(m.bound, torch.tensor([3.0, 4.0]))
+    m.load_state_dict({**m.state_dict(), "raw_bound": torch.zeros(2)})
+    with torch.no_grad():
+        assert torch.equal(m.bound, reference())
+    assert m.bound.requires_grad
+
+
+def test_measurement_events_table_matches_the_bit_rule():
+    from diffsmf.filters.events import LOSES_BOUND, FilterEvent
+    from diffsmf.filters.state import measurement_events
+    from diffsmf.utils import traced
+
+    codes = torch.arange(2 * max(FilterEvent))
+    skipped = ((codes & LOSES_BOUND) != 0) * int(FilterEvent.MEASUREMENT_SKIPPED)
+    expected = (codes & ~LOSES_BOUND) | skipped
+    assert torch.equal(measurement_events(codes), expected)
+    with traced():
+        assert torch.equal(measurement_events(codes), expected)
+
+
 class _IntervalFilter(SetFilter):
     """Exact box filter for the linear test system with H = [1, 0] (reference for the loop)."""
 
