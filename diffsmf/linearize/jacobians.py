@@ -188,8 +188,8 @@ def stirling_jacobian(fn: Fn, x: Tensor, h: Tensor | float) -> Tensor:
         hx = hx.expand(*batch, n)
     if x.shape[:-1] != batch:
         x = x.expand(*batch, n)
-    out = fn(_stencil_points(x, hx, center=False))  # [2n, ..., k]
-    return _central_slopes(out[:n], out[n:], hx)
+    plus, minus = fn(_stencil_points(x, hx, center=False)).split(n)  # [n, ..., k] each
+    return _central_slopes(plus, minus, hx)
 
 
 def stirling_value_jacobian(fn: Fn, x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
@@ -202,8 +202,8 @@ def stirling_value_jacobian(fn: Fn, x: Tensor, h: Tensor) -> tuple[Tensor, Tenso
     ``x``) must be positive; neither is checked. The same values as the two separate calls.
     """
     n = x.shape[-1]
-    out = fn(_stencil_points(x, h, center=True))  # [2n + 1, ..., k]
-    return out[0], _central_slopes(out[1 : n + 1], out[n + 1 :], h)
+    fc, plus, minus = fn(_stencil_points(x, h, center=True)).split([1, n, n])  # [2n + 1, ..., k]
+    return fc.squeeze(0), _central_slopes(plus, minus, h)
 
 
 #: Stencil sign tables of `_stencil_points`, per (n, batch dims, center, dtype, device).
