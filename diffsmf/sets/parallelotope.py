@@ -269,8 +269,8 @@ class Parallelotope(ConvexSet):
         empty = (eps0p < -1) | (eps0m > 1)
         # double-where: an empty element computes with a harmless full-overlap range so that
         # the unused branch gives no inf/NaN in the backward pass (its output is the input)
-        eps0p = torch.where(empty, 1.0, eps0p)
-        eps0m = torch.where(empty, -1.0, eps0m)
+        eps0p = eps0p.masked_fill(empty, 1.0)  # masked_fill: torch.where with a scalar is 2 calls
+        eps0m = eps0m.masked_fill(empty, -1.0)
         marg = 16 * _EPS * (1 + mid.abs() + spread)  # outward rounding margin
         # step 1, eq. 33-36: tightened strip |p_bar x - c_bar| <= 1
         rp = eps0p.clamp(max=1.0) + marg
@@ -279,12 +279,12 @@ class Parallelotope(ConvexSet):
         p_bar = g.unsqueeze(-1) * p
         c_bar = g * (c + (rp - rm) / 2)
         # step 2, eq. 37: tighten eta_i in [-r_i-, r_i+]; no tightening where p t_i = 0
-        nz = pt > 0
-        ptd = torch.where(nz, pt, 1.0)
+        z = ~(pt > 0)  # NaN counts as 0
+        ptd = pt.masked_fill(z, 1.0)
         mi = (marg.unsqueeze(-1) / ptd).unsqueeze(-2)
         num = torch.stack([1 - eps0m, 1 + eps0p], -1).unsqueeze(-1)  # [..., 2, 1]
         r2 = (num / ptd.unsqueeze(-2) - 1 + mi).clamp(max=1.0)
-        rip, rim = torch.where(nz.unsqueeze(-2), r2, 1.0).unbind(-2)
+        rip, rim = r2.masked_fill(z.unsqueeze(-2), 1.0).unbind(-2)
         half = ((rip + rim) / 2).clamp_min(1e-12)
         T_bar = T * half.unsqueeze(-2)
         xc_bar = xc + small_sum(T * ((rip - rim) / 2).unsqueeze(-2), -1)
