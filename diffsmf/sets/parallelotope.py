@@ -334,24 +334,26 @@ def _tie_rule(T_bar: Tensor, pbt: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]
     ``replace`` is False and ``i*`` any index.
     """
     with torch.no_grad():
+        # (NaN values, only from a NaN set whose output is NaN anyway, are not special-cased)
         top = pbt.amax(-1, keepdim=True)
-        keep_tied = top <= 1 + TIE_RTOL  # keeping P_bar (value 1) is among the least
-        tied = pbt * (1 + TIE_RTOL) >= top.clamp_min(1)  # within TIE_RTOL
-        ps = torch.where(pbt > 0, pbt, 1.0)
+        untied = pbt * (1 + TIE_RTOL) < top.clamp_min(1)  # not within TIE_RTOL of the least
+        ps = pbt.masked_fill(pbt == 0, 1.0)  # pbt >= 0
         # rows weighted by 1 / (P_bar's hull half-width): the widths relative to P_bar's,
         # so that the choice does not depend on the units of the states
         Ta = T_bar.abs()
         rw = small_sum(Ta, -1, keepdim=True)
-        rw = torch.where(rw > 0, rw.reciprocal(), 1.0)  # [..., n, 1]
-        A = Ta * rw
+        rw = rw.reciprocal().masked_fill(rw == 0, 1.0)  # [..., n, 1]
+        colA = small_sum(Ta * rw, -2)  # [..., n]
         # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]
         ratio = (pbt.unsqueeze(-2) / ps.unsqueeze(-1)).unsqueeze(-2)  # pbt_j / pbt_i
         D = T_bar.unsqueeze(-3) - T_bar.mT.unsqueeze(-1) * ratio
-        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + small_sum(A, -2) / ps  # [..., n]
-        hull = torch.where(tied, hull, torch.inf)
-        hmin = hull.amin(-1, keepdim=True)
-        best = tied & (hull <= hmin * (1 + TIE_RTOL))
-        istar = best.to(torch.uint8).argmax(-1, keepdim=True)  # the lowest such index
-        keep_hull = A.sum((-1, -2)).unsqueeze(-1)
-        replace = (~keep_tied | (hmin * (1 + TIE_RTOL) < keep_hull)) & keep
+        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + colA / ps  # [..., n]
+        hull = hull.masked_fill(untied, torch.inf)
+        hm = hull.amin(-1, keepdim=True) * (1 + TIE_RTOL)
+        # the lowest index within TIE_RTOL of the least hull; where none is tied, replace is
+        # False and i* is unused
+        istar = (hull <= hm).to(torch.uint8).argmax(-1, keepdim=True)
+        keep_hull = colA.sum(-1, keepdim=True)
+        # keeping P_bar (value 1) is not among the least volumes, or is but has a larger hull
+        replace = ((top > 1 + TIE_RTOL) | (hm < keep_hull)) & keep
     return istar, replace
