@@ -337,17 +337,17 @@ def _tie_rule(T_bar: Tensor, pbt: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]
         # (NaN values, only from a NaN set whose output is NaN anyway, are not special-cased)
         top = pbt.amax(-1, keepdim=True)
         untied = pbt * (1 + TIE_RTOL) < top.clamp_min(1)  # not within TIE_RTOL of the least
-        ps = pbt.masked_fill(pbt == 0, 1.0)  # pbt >= 0
         # rows weighted by 1 / (P_bar's hull half-width): the widths relative to P_bar's,
         # so that the choice does not depend on the units of the states
         Ta = T_bar.abs()
         rw = small_sum(Ta, -1, keepdim=True)
         rw = rw.reciprocal().masked_fill(rw == 0, 1.0)  # [..., n, 1]
         colA = small_sum(Ta * rw, -2)  # [..., n]
-        # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]
-        ratio = (pbt.unsqueeze(-2) / ps.unsqueeze(-1)).unsqueeze(-2)  # pbt_j / pbt_i
+        # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]; a
+        # candidate with pbt_i = 0 (inf / NaN here) is untied, its hull replaced by inf
+        ratio = (pbt.unsqueeze(-2) / pbt.unsqueeze(-1)).unsqueeze(-2)  # pbt_j / pbt_i
         D = T_bar.unsqueeze(-3) - T_bar.mT.unsqueeze(-1) * ratio
-        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + colA / ps  # [..., n]
+        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + colA / pbt  # [..., n]
         hull = hull.masked_fill(untied, torch.inf)
         hm = hull.amin(-1, keepdim=True) * (1 + TIE_RTOL)
         # the lowest index within TIE_RTOL of the least hull; where none is tied, replace is
