@@ -150,11 +150,12 @@ def _affine_strips(
     ``|J_exact| + |J|``; it cannot be unbounded, so no remainder events) -> normal, offset,
     halfwidth ``[B, m]`` (``hc``: ``h(c)`` where the caller has it)."""
     hc = h(c) if hc is None else hc
-    hull = S.interval_hull()
-    mag = torch.maximum(hull.lower.abs(), hull.upper.abs())
-    scale = hc.abs() + 2.0 * (H.abs() * mag.unsqueeze(-2)).sum(-1)
     eps = torch.finfo(hc.dtype)
-    tol = (_AFFINE_PAD_ULPS * eps.eps) * scale.detach() + eps.tiny  # [B, m]
+    with torch.no_grad():  # a padding: no gradient (no detach call)
+        hull = S.interval_hull()
+        mag = torch.maximum(hull.lower.abs(), hull.upper.abs())
+        scale = hc.abs() + 2.0 * (H.abs() * mag.unsqueeze(-2)).sum(-1)
+        tol = (_AFFINE_PAD_ULPS * eps.eps) * scale + eps.tiny  # [B, m]
     Hc = (H * c.unsqueeze(-2)).sum(-1)
     offset, half = _offset_half(hc, None, tol, Hc, y, vbox, system)
     if system.angle_outputs:

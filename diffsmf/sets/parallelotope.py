@@ -258,8 +258,10 @@ class Parallelotope(ConvexSet):
         y, sig = _expand(y.unsqueeze(-1), (*batch, 1)), _expand(sig.unsqueeze(-1), (*batch, 1))
         tiny = torch.finfo(T0.dtype).tiny
         # a zero halfwidth is widened by 1e-15 of the strip's scale (outward, keeps p finite)
-        scale = small_sum(a.abs() * (xc.abs() + small_sum(T0.abs(), -1)), -1, keepdim=True)
-        sig = torch.maximum(sig, 1e-15 * scale.detach() + tiny)
+        with torch.no_grad():  # (no gradient through the widening; no detach call)
+            scale = small_sum(a.abs() * (xc.abs() + small_sum(T0.abs(), -1)), -1, keepdim=True)
+            floor = 1e-15 * scale + tiny
+        sig = torch.maximum(sig, floor)
         p, c = a / sig, y / sig  # eq. 24-25 normalisation
         # direction convention (eq. before 33): p t_i >= 0 (column i negated where p t_i < 0)
         pt = small_sum(p.unsqueeze(-1) * T0, -2)  # [..., n]
