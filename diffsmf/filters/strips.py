@@ -19,6 +19,7 @@ from diffsmf.filters.remainders import ROUND_REL, checked_remainder, rounding_ma
 from diffsmf.linearize.jets import JetError, jet_eval
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
+from diffsmf.sets.parallelotope import Parallelotope
 from diffsmf.sets.strip import Strip
 from diffsmf.systems.system import System
 from diffsmf.utils import tracing
@@ -152,8 +153,7 @@ def _affine_strips(
     hc = h(c) if hc is None else hc
     eps = torch.finfo(hc.dtype)
     with torch.no_grad():  # a padding: no gradient (no detach call)
-        hull = S.interval_hull()
-        mag = torch.maximum(hull.lower.abs(), hull.upper.abs())
+        mag = _hull_magnitude(S)
         scale = hc.abs() + 2.0 * (H.abs() * mag.unsqueeze(-2)).sum(-1)
         tol = (_AFFINE_PAD_ULPS * eps.eps) * scale + eps.tiny  # [B, m]
     Hc = (H * c.unsqueeze(-2)).sum(-1)
@@ -163,6 +163,17 @@ def _affine_strips(
         amb = angle_ambiguous(system, S, c, H, E, vbox)
         half = torch.where(amb, torch.full_like(half, torch.inf), half)
     return H, offset, half
+
+
+def _hull_magnitude(S: ConvexSet) -> Tensor:
+    """``max(|lo|, |hi|) [..., n]`` over the interval hull ``[lo, hi]`` of ``S``; for a
+    `Parallelotope`, whose hull is ``c +- r``, as ``|c| + r`` (the same floats: rounding is
+    monotone and odd, so ``fl(|c| + r)`` is the larger of ``|fl(c - r)|`` and ``|fl(c + r)|``),
+    without the hull's bounds."""
+    if isinstance(S, Parallelotope):
+        return S.center.abs() + S.T.abs().sum(-1)
+    hull = S.interval_hull()
+    return torch.maximum(hull.lower.abs(), hull.upper.abs())
 
 
 def _affine(h: Callable[[Tensor], Tensor], S: ConvexSet) -> bool:
