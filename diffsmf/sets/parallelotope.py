@@ -347,8 +347,9 @@ def _tie_rule(T_bar: Tensor, pbt: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]
         colA = small_sum(Ta * rw, -2)  # [..., n]
         # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]; a
         # candidate with pbt_i = 0 (inf / NaN here) is untied, its hull replaced by inf
-        ratio = (pbt.unsqueeze(-2) / pbt.unsqueeze(-1)).unsqueeze(-2)  # pbt_j / pbt_i
-        D = T_bar.unsqueeze(-3) - T_bar.mT.unsqueeze(-1) * ratio
+        ratio = pbt.reshape(*pbt.shape[:-1], 1, 1, -1) / pbt.reshape(*pbt.shape, 1, 1)
+        U = T_bar.unsqueeze(-3)  # [..., 1, row, column]; its transpose(-1, -3): T_bar[row, i]
+        D = U - U.transpose(-1, -3) * ratio  # ratio [..., i, 1, j]: pbt_j / pbt_i
         hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + colA / pbt  # [..., n]
         hull = hull.masked_fill(untied, torch.inf)
         hm = hull.amin(-1, keepdim=True) * (1 + TIE_RTOL)
