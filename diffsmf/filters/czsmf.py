@@ -296,12 +296,8 @@ class CZSMF(SetFilter):
             self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box(),
             self.system, events=True,
         )  # eq. 23-29: |a_i x - d_i| <= w_i, [B, m, n], [B, m], [B, m]
-        # a degenerate strip (non-finite normal or offset: an overflow) skips the update
-        degen = (~torch.isfinite(a).all(-1) | ~torch.isfinite(d)).any(-1)
-        ev = ev | torch.where(degen, int(FilterEvent.DEGENERATE_STRIP), 0)
-        a = torch.where(degen[..., None, None], torch.ones_like(a), a)
-        d = torch.where(degen.unsqueeze(-1), torch.zeros_like(d), d)
-        w = torch.where(degen.unsqueeze(-1), torch.full_like(w, torch.inf), w)
+        # (a degenerate row, a zero or non-finite normal or a non-finite offset, is all of R^n
+        # here already: measurement_strips, with the event DEGENERATE_STRIP)
         # projection of the predicted hull on each normal: the strip that contains the set
         pm = (a * p.unsqueeze(-2)).sum(-1)
         pr = (a.abs() * (0.5 * (hi - lo)).unsqueeze(-2)).sum(-1)

@@ -15,10 +15,11 @@ from torch import Tensor
 from diffsmf.filters.base import SetFilter
 from diffsmf.filters.events import FilterEvent
 from diffsmf.filters.params import stirling_steps
-from diffsmf.filters.remainders import checked_remainder, rounding_margin
+from diffsmf.filters.remainders import ROUND_REL, checked_remainder, rounding_margin
 from diffsmf.linearize.jets import JetError, jet_eval
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
+from diffsmf.sets.parallelotope import Parallelotope
 from diffsmf.sets.strip import Strip
 from diffsmf.systems.system import System
 from diffsmf.utils import tracing
@@ -140,6 +141,7 @@ def _affine_strips(
     y: Tensor,
     vbox: Interval,
     system: System,
+    hc: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """`measurement_strips` of an affine ``h`` with its exact slopes ``H [B, m, n]`` (its
     autograd Jacobian): the remainder ``h(x) - h(c) - H (x - c)`` is 0 but for the float
@@ -147,13 +149,13 @@ def _affine_strips(
     |hi|))`` over the hull ``[lo, hi]`` of ``S`` (the padding with which
     `diffsmf.linearize.dc_remainder` bounds an affine function about its Stirling slopes,
     ``|J_exact| + |J|``; it cannot be unbounded, so no remainder events) -> normal, offset,
-    halfwidth ``[B, m]``."""
-    hc = h(c)
-    hull = S.interval_hull()
-    mag = torch.maximum(hull.lower.abs(), hull.upper.abs())
-    scale = hc.abs() + 2.0 * (H.abs() * mag.unsqueeze(-2)).sum(-1)
+    halfwidth ``[B, m]`` (``hc``: ``h(c)`` where the caller has it)."""
+    hc = h(c) if hc is None else hc
     eps = torch.finfo(hc.dtype)
-    tol = (_AFFINE_PAD_ULPS * eps.eps) * scale.detach() + eps.tiny  # [B, m]
+    with torch.no_grad():  # a padding: no gradient (no detach call)
+        mag = _hull_magnitude(S)
+        scale = hc.abs() + 2.0 * (H.abs() * mag.unsqueeze(-2)).sum(-1)
+        tol = (_AFFINE_PAD_ULPS * eps.eps) * scale + eps.tiny  # [B, m]
     Hc = (H * c.unsqueeze(-2)).sum(-1)
     offset, half = _offset_half(hc, None, tol, Hc, y, vbox, system)
     if system.angle_outputs:
@@ -161,6 +163,17 @@ def _affine_strips(
         amb = angle_ambiguous(system, S, c, H, E, vbox)
         half = torch.where(amb, torch.full_like(half, torch.inf), half)
     return H, offset, half
+
+
+def _hull_magnitude(S: ConvexSet) -> Tensor:
+    """``max(|lo|, |hi|) [..., n]`` over the interval hull ``[lo, hi]`` of ``S``; for a
+    `Parallelotope`, whose hull is ``c +- r``, as ``|c| + r`` (the same floats: rounding is
+    monotone and odd, so ``fl(|c| + r)`` is the larger of ``|fl(c - r)|`` and ``|fl(c + r)|``),
+    without the hull's bounds."""
+    if isinstance(S, Parallelotope):
+        return S.center.abs() + S.T.abs().sum(-1)
+    hull = S.interval_hull()
+    return torch.maximum(hull.lower.abs(), hull.upper.abs())
 
 
 def _affine(h: Callable[[Tensor], Tensor], S: ConvexSet) -> bool:
@@ -222,10 +235,12 @@ def _degenerate(
     fin = ((normal - normal).sum(-1) + (offset - offset) == 0) & (half == half)
     degen = zero | ~fin
     skip = degen | (half == torch.inf)
-    # the consistency margin (only used where the strip is not skipped, and for zero normals)
-    atol = rounding_margin(offset, half).detach()
+    # the consistency margin (only used where the strip is not skipped, and for zero normals;
+    # in comparisons only, so no gradient): rounding_margin(offset, half), |offset| shared
+    oa = offset.abs()
+    atol = ROUND_REL * (1.0 + oa + half.abs())
     # a zero normal: the strip is R^n (|d| <= w) or empty -- checked, never intersected
-    zero_ok = ~(zero & fin & (offset.abs() > half + atol))
+    zero_ok = ~(zero & fin & (oa > half + atol))
     ev = degen.any(-1) * int(FilterEvent.DEGENERATE_STRIP)
     return degen, skip, zero_ok, atol, ev
 
@@ -252,15 +267,18 @@ def sequential_strip_update(
     degen, skip, ok, atol, ev = _degenerate(normal, offset, half)
     ok = ok.all(-1)
     # skipped strips become the finite placeholder |1 . x| <= 1 (intersected, then dropped)
-    a = torch.where(degen.unsqueeze(-1), 1.0, normal)
-    d = torch.where(skip, 0.0, offset)
-    w = torch.where(skip, 1.0, half)
+    a = normal.masked_fill(degen.unsqueeze(-1), 1.0)  # torch.where with a scalar: 2 calls
+    d = offset.masked_fill(skip, 0.0)
+    w = half.masked_fill(skip, 1.0)
     cur = S
     rows = zip(a.unbind(-2), d.unbind(-1), w.unbind(-1), skip.unbind(-1), atol.unbind(-1))
+    m = normal.shape[-2]
     for ai, di, wi, sk, tol in rows:
         strip = Strip._make(ai, di, wi)
         ok = ok & (sk | cur.intersects_strip(strip, atol=tol))
         nxt = intersect(cur, strip)
+        if m == 1:  # one strip: its intersection where it is kept and consistent, else S
+            return where(ok & ~sk, nxt, _like(S, nxt)), ok, ev
         a_, b_ = align([nxt, cur])
         cur = where(sk, b_, a_)
     return where(ok, cur, _like(S, cur)), ok, ev
@@ -284,19 +302,38 @@ def stirling_strip_update(
     alone (`_affine_strips`): the same strips to rounding, without the Stirling points and
     the remainder's machinery.
     """
-    from diffsmf.linearize import jacobian, stirling_jacobian
+    from diffsmf.linearize import stirling_jacobian
+    from diffsmf.linearize.jacobians import value_and_jacobian
 
     c = S.center
     h, system = filt.system.h, filt.system
-    vbox = filt.measurement_noise_box()
+    vbox = _NoiseBox(filt.measurement_noise_center, filt.measurement_noise)
     if _affine(h, region):
-        a, d, w = _affine_strips(h, region, c, jacobian(h, c), y, vbox, system)
+        hc, H = value_and_jacobian(h, c)  # h(c) and the exact slopes from one call of h
+        a, d, w = _affine_strips(h, region, c, H, y, vbox, system, hc=hc)
         new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
         return new, ok, ev
     H = stirling_jacobian(h, c, stirling_steps(filt, c, region.interval_hull().radius))
     a, d, w, ev_h = _strips(h, filt.remainder_fn, region, c, H, y, vbox, system)
     new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
     return new, ok, ev | ev_h
+
+
+class _NoiseBox:
+    """The measurement-noise box ``center +- radius [m]`` as `Interval` reads it (``center``,
+    ``radius``, ``lower``, ``upper``), kept as its centre and half-width: the strips use
+    those, so they are not recomputed from the bounds (the same values for a centre 0)."""
+
+    def __init__(self, center: Tensor, radius: Tensor) -> None:
+        self.center, self.radius = center, radius
+
+    @property
+    def lower(self) -> Tensor:
+        return self.center - self.radius
+
+    @property
+    def upper(self) -> Tensor:
+        return self.center + self.radius
 
 
 def _like(S: ConvexSet, ref: ConvexSet) -> ConvexSet:

@@ -253,58 +253,61 @@ class Parallelotope(ConvexSet):
         n = self.dim
         batch = strip_batch(self.batch_shape, a, y, sig)
         xc, T0 = _expand(self._c, (*batch, n)), _expand(self.T, (*batch, n, n))
-        a, y, sig = _expand(a, (*batch, n)), _expand(y, batch), _expand(sig, batch)
+        # the strip's scalars and everything per element below are kept as [..., 1]
+        a = _expand(a, (*batch, n))
+        y, sig = _expand(y.unsqueeze(-1), (*batch, 1)), _expand(sig.unsqueeze(-1), (*batch, 1))
         tiny = torch.finfo(T0.dtype).tiny
         # a zero halfwidth is widened by 1e-15 of the strip's scale (outward, keeps p finite)
-        scale = small_sum(a.abs() * (xc.abs() + small_sum(T0.abs(), -1)), -1).detach()
-        sig = torch.maximum(sig, 1e-15 * scale + tiny)
-        p, c = a / sig.unsqueeze(-1), y / sig  # eq. 24-25 normalisation
+        with torch.no_grad():  # (no gradient through the widening; no detach call)
+            scale = small_sum(a.abs() * (xc.abs() + small_sum(T0.abs(), -1)), -1, keepdim=True)
+            floor = 1e-15 * scale + tiny
+        sig = torch.maximum(sig, floor)
+        p, c = a / sig, y / sig  # eq. 24-25 normalisation
         # direction convention (eq. before 33): p t_i >= 0 (column i negated where p t_i < 0)
         pt = small_sum(p.unsqueeze(-1) * T0, -2)  # [..., n]
         neg = (pt < 0).unsqueeze(-2)
         T, pt = torch.where(neg, -T0, T0), pt.abs()
-        mid = small_sum(p * xc, -1) - c
-        spread = small_sum(pt, -1)
+        mid = small_sum(p * xc, -1, keepdim=True) - c
+        spread = small_sum(pt, -1, keepdim=True)
         eps0p, eps0m = mid + spread, mid - spread  # eq. 31-32
         empty = (eps0p < -1) | (eps0m > 1)
         # double-where: an empty element computes with a harmless full-overlap range so that
         # the unused branch gives no inf/NaN in the backward pass (its output is the input)
-        eps0p = torch.where(empty, 1.0, eps0p)
-        eps0m = torch.where(empty, -1.0, eps0m)
+        eps0p = eps0p.masked_fill(empty, 1.0)  # masked_fill: torch.where with a scalar is 2 calls
+        eps0m = eps0m.masked_fill(empty, -1.0)
         marg = 16 * _EPS * (1 + mid.abs() + spread)  # outward rounding margin
         # step 1, eq. 33-36: tightened strip |p_bar x - c_bar| <= 1
         rp = eps0p.clamp(max=1.0) + marg
         rm = (-eps0m).clamp(max=1.0) + marg
         g = 2 / (rp + rm).clamp_min(tiny)
-        p_bar = g.unsqueeze(-1) * p
+        p_bar = g * p
         c_bar = g * (c + (rp - rm) / 2)
         # step 2, eq. 37: tighten eta_i in [-r_i-, r_i+]; no tightening where p t_i = 0
-        nz = pt > 0
-        ptd = torch.where(nz, pt, 1.0)
-        mi = (marg.unsqueeze(-1) / ptd).unsqueeze(-2)
-        num = torch.stack([1 - eps0m, 1 + eps0p], -1).unsqueeze(-1)  # [..., 2, 1]
+        z = ~(pt > 0)  # NaN counts as 0
+        ptd = pt.masked_fill(z, 1.0)
+        mi = (marg / ptd).unsqueeze(-2)
+        num = torch.stack([1 - eps0m, 1 + eps0p], -2)  # [..., 2, 1]
         r2 = (num / ptd.unsqueeze(-2) - 1 + mi).clamp(max=1.0)
-        rip, rim = torch.where(nz.unsqueeze(-2), r2, 1.0).unbind(-2)
+        rip, rim = r2.masked_fill(z.unsqueeze(-2), 1.0).unbind(-2)
         half = ((rip + rim) / 2).clamp_min(1e-12)
         T_bar = T * half.unsqueeze(-2)
         xc_bar = xc + small_sum(T * ((rip - rim) / 2).unsqueeze(-2), -1)
         # step 3, eq. 38-39: i* = argmax_j p_bar t_bar_j over j = 1..n+1 (p_bar t_bar_{n+1} = 1)
         pbt = small_sum(p_bar.unsqueeze(-1) * T_bar, -2)  # [..., n]
-        istar, replace = _tie_rule(T_bar, pbt, ~empty.unsqueeze(-1))  # [..., 1]
-        # eq. 41: replace strip i* by the measurement strip
+        istar, replace = _tie_rule(T_bar, pbt, ~empty)  # [..., 1]
+        # eq. 41: replace strip i* by the measurement strip; where P_bar is kept (eq. 40),
+        # d = 1 and the other columns' factors are 0, so that T_new is T_bar exactly
         col = istar.unsqueeze(-1).expand(*batch, n, 1)
         t_star = torch.gather(T_bar, -1, col)
-        d = torch.gather(pbt, -1, istar)  # p_bar t_bar_i*  [..., 1]
-        d = torch.where(replace, d, 1.0)
-        T_new = T_bar - t_star * (pbt / d).unsqueeze(-2)
+        d = torch.where(replace, torch.gather(pbt, -1, istar), 1.0)  # p_bar t_bar_i*  [..., 1]
+        T_new = T_bar - t_star * ((pbt / d) * replace).unsqueeze(-2)
         T_new = T_new.scatter(-1, col, t_star / d.unsqueeze(-1))  # column i*: t_i* / d
-        q = (c_bar - small_sum(p_bar * xc_bar, -1)).unsqueeze(-1) / d
+        q = (c_bar - small_sum(p_bar * xc_bar, -1, keepdim=True)) / d
         xc_new = xc_bar + t_star.squeeze(-1) * q
-        # eq. 40: keep P_bar when i* = n + 1; empty -> the input unchanged
-        T_out = torch.where(replace.unsqueeze(-1), T_new, T_bar)
-        T_out = torch.where(empty.reshape(*batch, 1, 1), T0, torch.where(neg, -T_out, T_out))
+        # empty -> the input unchanged
+        T_out = torch.where(empty.unsqueeze(-1), T0, torch.where(neg, -T_new, T_new))
         x_out = torch.where(replace, xc_new, xc_bar)
-        x_out = torch.where(empty.unsqueeze(-1), xc, x_out)
+        x_out = torch.where(empty, xc, x_out)
         return Parallelotope._make(x_out, T_out)
 
     def intersects_strip(self, strip: Any, atol: float = 0.0) -> Tensor:
@@ -333,24 +336,27 @@ def _tie_rule(T_bar: Tensor, pbt: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]
     ``replace`` is False and ``i*`` any index.
     """
     with torch.no_grad():
+        # (NaN values, only from a NaN set whose output is NaN anyway, are not special-cased)
         top = pbt.amax(-1, keepdim=True)
-        keep_tied = top <= 1 + TIE_RTOL  # keeping P_bar (value 1) is among the least
-        tied = pbt * (1 + TIE_RTOL) >= top.clamp_min(1)  # within TIE_RTOL
-        ps = torch.where(pbt > 0, pbt, 1.0)
+        untied = pbt * (1 + TIE_RTOL) < top.clamp_min(1)  # not within TIE_RTOL of the least
         # rows weighted by 1 / (P_bar's hull half-width): the widths relative to P_bar's,
         # so that the choice does not depend on the units of the states
         Ta = T_bar.abs()
         rw = small_sum(Ta, -1, keepdim=True)
-        rw = torch.where(rw > 0, rw.reciprocal(), 1.0)  # [..., n, 1]
-        A = Ta * rw
-        # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]
-        ratio = (pbt.unsqueeze(-2) / ps.unsqueeze(-1)).unsqueeze(-2)  # pbt_j / pbt_i
-        D = T_bar.unsqueeze(-3) - T_bar.mT.unsqueeze(-1) * ratio
-        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + small_sum(A, -2) / ps  # [..., n]
-        hull = torch.where(tied, hull, torch.inf)
-        hmin = hull.amin(-1, keepdim=True)
-        best = tied & (hull <= hmin * (1 + TIE_RTOL))
-        istar = best.to(torch.uint8).argmax(-1, keepdim=True)  # the lowest such index
-        keep_hull = A.sum((-1, -2)).unsqueeze(-1)
-        replace = (~keep_tied | (hmin * (1 + TIE_RTOL) < keep_hull)) & keep
+        rw = rw.reciprocal().masked_fill(rw == 0, 1.0)  # [..., n, 1]
+        colA = small_sum(Ta * rw, -2)  # [..., n]
+        # summed hull half-widths of each candidate i (eq. 41), [..., i, row, column j]; a
+        # candidate with pbt_i = 0 (inf / NaN here) is untied, its hull replaced by inf
+        ratio = pbt.reshape(*pbt.shape[:-1], 1, 1, -1) / pbt.reshape(*pbt.shape, 1, 1)
+        U = T_bar.unsqueeze(-3)  # [..., 1, row, column]; its transpose(-1, -3): T_bar[row, i]
+        D = U - U.transpose(-1, -3) * ratio  # ratio [..., i, 1, j]: pbt_j / pbt_i
+        hull = (D.abs() * rw.unsqueeze(-3)).sum((-1, -2)) + colA / pbt  # [..., n]
+        hull = hull.masked_fill(untied, torch.inf)
+        hm = hull.amin(-1, keepdim=True) * (1 + TIE_RTOL)
+        # the lowest index within TIE_RTOL of the least hull; where none is tied, replace is
+        # False and i* is unused
+        istar = (hull <= hm).to(torch.uint8).argmax(-1, keepdim=True)
+        keep_hull = colA.sum(-1, keepdim=True)
+        # keeping P_bar (value 1) is not among the least volumes, or is but has a larger hull
+        replace = ((top > 1 + TIE_RTOL) | (hm < keep_hull)) & keep
     return istar, replace

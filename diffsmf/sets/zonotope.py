@@ -511,7 +511,7 @@ class Zonotope(ConvexSet):
             inside = dist + rad <= sig
             empty = dist > rad + sig
             zero = (inside | empty).unsqueeze(-1)
-        lam = torch.where(zero, 0.0, lam)
+        lam = lam.masked_fill(zero, 0.0)  # (torch.where with a scalar is two calls)
         # Alamo 2005 Property: c(lam) = c + lam (y - p'c), G(lam) = [(I - lam p')G, sigma lam]
         cn = c + lam * r.unsqueeze(-1)
         Gn = torch.cat(
