@@ -297,7 +297,7 @@ def mul(a: Iv, b: Iv) -> Any:
     if pa and pb:
         p = a.lower * b.lower
         return a._pair(outward(p, point=True)) if _M.stack else a._make(down(p), up(p))
-    if tracing() or a.lower.device.type != "cpu":
+    if tracing() or tensor_of(a).device.type != "cpu":  # (no view of stacked bounds)
         return _mul_general(a, b)
     st = _stacked_pair(a, b, outer=True)
     if st is not None:
