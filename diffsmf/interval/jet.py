@@ -128,9 +128,10 @@ def _outer_sym(g: Interval, g2: Interval | None = None) -> Interval:
     return Interval._make(torch.where(eye, o.lower.clamp_min(0.0), o.lower), o.upper)
 
 
-#: Derivative sums keep an exact zero sum exact (two ops more a sum; False: a zero sum is
-#: widened to the smallest subnormal, like a product)
-EXACT_SUMS = True
+#: Derivative sums keep an exact zero sum exact (True: two ops more a sum). False: every sum is
+#: moved to its neighbouring floats (`diffsmf.interval.rounding.outward`, one op; a zero sum
+#: becomes the smallest subnormals, like a product); value sums stay exact either way
+EXACT_SUMS = False
 
 
 def _eye(n: int, trailing: int, device: torch.device) -> Tensor:
