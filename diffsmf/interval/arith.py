@@ -38,6 +38,7 @@ from diffsmf.interval.rounding import (
     eps,
     finite_inner,
     nan_to_zero,
+    pair_const,
     outward,
     pair_signs,
     tiny,
@@ -546,10 +547,10 @@ def square(x: Iv) -> Any:
     """Exact range of ``x ** 2``: the squares of the smallest and largest ``|x|``."""
     sx = _st(x)
     if sx is not None:
-        m = sx * pair_signs(sx, sx.dim())  # [-lo, hi]
-        big = m.amax(0)  # max |x|
-        small = (-m).amax(0).clamp_min(0.0)  # min |x| (0 where the interval meets 0)
-        both = torch.stack([small, big])
+        # [min(-lo, hi), max(-lo, hi)] sorted, the first clamped to <= 0: [-min |x|, max |x|]
+        # (min |x| is 0 where the interval meets 0; the square of -min |x| is min |x|^2)
+        m = torch.sort(sx * pair_signs(sx, sx.dim()), dim=0).values
+        both = m.clamp(max=pair_const(m, m.dim(), 0.0, math.inf))
         return x._pair(outward(both * both).clamp_min(0.0))
     lo, hi = x.lower, x.upper
     if is_point(x):
