@@ -332,7 +332,8 @@ def _weyl2(Hcr: Tensor) -> tuple[Tensor, Tensor]:
     m, h = 0.5 * (a + d), 0.5 * (a - d)
     r = torch.sqrt(h * h + b * b + torch.finfo(a.dtype).tiny)  # [2, ...]
     # [m - r, -m - r] (exactly -(m + r)) of the midpoint, minus rho(H_r) = m + r of the radius
-    weyl = torch.addcmul(-r[0], m[0], _pm1(m)) - (m[1] + r[1])
+    (m0, m1), (r0, r1) = m.unbind(0), r.unbind(0)
+    weyl = torch.addcmul(-r0, m0, _pm1(m)) - (m1 + r1)
     return weyl, _nograd(Hcr.abs().sum((0, -2, -1)))
 
 
@@ -483,10 +484,12 @@ def _dc_bounds(
     M = V4 = None
     for p0 in range(0, P, step):
         sl = slice(p0, min(p0 + step, P))  # the tangent points only (dP has all 1 + N)
-        diff = materialize(dv.unsqueeze(0) - dP[sl].unsqueeze(1))  # [p, N, ..., n]: x_v - p
+        dPs, gPs, rPs = (dP, gP, rP) if P == 1 + dv.shape[0] and step >= P else (
+            dP[sl], gP[sl], rP[sl])  # (no slicing ops when one chunk holds every point)
+        diff = materialize(dv.unsqueeze(0) - dPs.unsqueeze(1))  # [p, N, ..., n]: x_v - p
         # the tangent plane of r at p, at the vertices: [p, N, ..., k]
         L = materialize(
-            linalg.small_dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2)) + rP[sl].unsqueeze(1)
+            linalg.small_dot(gPs.unsqueeze(1), diff.unsqueeze(-2)) + rPs.unsqueeze(1)
         )
         # Q = sum_j W_j (x_vj - p_j)^2 for the four forms: [p, N, 4, ..., k]
         Q = linalg.small_dot(W, materialize(diff * diff).unsqueeze(-2).unsqueeze(2))
@@ -497,7 +500,7 @@ def _dc_bounds(
         m = Q.addcmul_(L.unsqueeze(2), neg).amax(1).amin(0)  # [4, ..., k]
         M = m if M is None else torch.minimum(M, m)
     # forms of r: upper V4 (eq. 15), lower -M (eq. 16); forms of -r: upper M, lower -V4
-    pos = neg < 0
+    pos = _form_signs(rv, positive=True)  # neg < 0
     upper = torch.where(pos, V4, M).masked_fill(bad, torch.inf).amin(0)
     lower = torch.where(pos, M, V4).masked_fill(bad, torch.inf).amin(0).neg()
     return lower, upper
@@ -506,14 +509,17 @@ def _dc_bounds(
 _SIGNS: dict = {}
 
 
-def _form_signs(like: Tensor) -> Tensor:
+def _form_signs(like: Tensor, positive: bool = False) -> Tensor:
     """``[-1, -1, 1, 1]`` shaped ``[4, 1, .., 1]`` against ``[4, *like.shape[1:]]`` (cached
-    per dtype, device and rank in eager mode: a constant, not an op per call)."""
-    key = (like.dtype, like.device, like.dim())
+    per dtype, device and rank in eager mode: a constant, not an op per call);
+    ``positive``: the boolean ``[True, True, False, False]`` (the signs < 0) instead."""
+    key = (like.dtype, like.device, like.dim(), positive)
     t = None if tracing() else _SIGNS.get(key)
     if t is None:
         t = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=like.dtype, device=like.device)
         t = t.reshape(4, *([1] * (like.dim() - 1)))
+        if positive:
+            t = t < 0
         if not tracing():
             _SIGNS[key] = t
     return t
