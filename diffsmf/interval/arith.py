@@ -330,6 +330,32 @@ def _mul_stacked(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
     return a._pair(outward(both))
 
 
+def mul_sum(x1: Iv, y1: Iv, x2: Iv, y2: Iv) -> Any | None:
+    """``[x1] [y1] + [x2] [y2]`` in stacked mode, the two products in one (each rounded
+    outward as `mul` rounds it, then the sum as `add` with ``exact_zero=False``: the same
+    bounds), or None where it does not apply (the caller then multiplies and adds: operands
+    not all stacked, shapes that differ between the terms, or a NaN product while the checks
+    are not deferred)."""
+    if not _M.stack or tracing():
+        return None
+    ts = [_st(t) for t in (x1, y1, x2, y2)]
+    if any(t is None for t in ts) or ts[0].shape != ts[2].shape or ts[1].shape != ts[3].shape:
+        return None
+    if ts[0].device.type != "cpu":
+        return None
+    sx, sy = ts[0].shape[1:], ts[1].shape[1:]
+    r = max(len(sx), len(sy))
+    # [2, 1, 2 terms, 1.., *sx] * [1, 2, 2 terms, 1.., *sy]: the four products of each term
+    X = torch.stack([ts[0], ts[2]], 1).reshape(2, 1, 2, *([1] * (r - len(sx))), *sx)
+    Y = torch.stack([ts[1], ts[3]], 1).reshape(1, 2, 2, *([1] * (r - len(sy))), *sy)
+    both = torch.sort((X * Y).flatten(0, 1), dim=0).values[::3]  # [2, 2 terms, ...]
+    if _M.checks is not None:
+        _M.checks.append(both)
+    elif math.isnan(both.sum().item()):
+        return None
+    return x1._pair(outward(outward(both).sum(1)))
+
+
 def _mul_general(a: Iv, b: Iv) -> Any:
     # the four products, 0 * inf := 0, NaN operands kept NaN (any shapes, traceable)
     al, au, bl, bu = torch.broadcast_tensors(a.lower, a.upper, b.lower, b.upper)
