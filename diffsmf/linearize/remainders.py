@@ -307,7 +307,7 @@ def _curvature(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
     diag = torch.stack([torch.diagonal(lo, dim1=-2, dim2=-1),
                         -torch.diagonal(hi, dim1=-2, dim2=-1)])  # [2, ..., n]
     gersh = linalg.small_reduce(diag - off, "amin")  # [2, ...]
-    Hcr = torch.stack([0.5 * (lo + hi), 0.5 * (hi - lo)])  # [2, ..., n, n]: midpoint, radius
+    Hcr = torch.stack([lo + hi, hi - lo]) * 0.5  # [2, ..., n, n]: midpoint, radius
     if n == 2:
         weyl, norm = _weyl2(Hcr)
     else:
@@ -351,6 +351,17 @@ def _pm1(like: Tensor) -> Tensor:
 
 
 _EYES: dict = {}
+
+
+def _one(like: Tensor) -> Tensor:
+    """A 0-dim 1 like ``like`` (cached in eager mode: a constant, not an op per call)."""
+    key = ("one", like.dtype, like.device)
+    t = None if tracing() else _SIGNS.get(key)
+    if t is None:
+        t = torch.ones((), dtype=like.dtype, device=like.device)
+        if not tracing():
+            _SIGNS[key] = t
+    return t
 
 
 def _eye(n: int, device: torch.device) -> Tensor:
@@ -432,8 +443,10 @@ def _convexifying_weights(
     s = box.radius
     # a flat or non-finite width (a diverged element) normalises by 1: no inf reaches the
     # weights or, through them, the gradients of the other elements
-    s = torch.where((s > _MIN_SCALE) & (s < torch.inf), s, 1.0)  # [..., n]
-    ss = (s.unsqueeze(-1) * s.unsqueeze(-2)).unsqueeze(-3)  # [..., 1, n, n]
+    s = torch.where((s > _MIN_SCALE) & (s < torch.inf), s, _one(s))  # [..., n]
+    n = s.shape[-1]
+    lead = s.shape[:-1]
+    ss = s.reshape(*lead, 1, n, 1) * s.reshape(*lead, 1, 1, n)  # [..., 1, n, n]
     unbounded = None
     if finite:
         lo, hi = H.lower * ss, H.upper * ss
