@@ -597,7 +597,8 @@ def dc_remainder(
     W = materialize(W)
     Vf = _front(V)  # [N, ..., n]
     tangents = V.shape[-2] <= _MAX_TANGENTS  # tangent planes at the vertices too
-    pts = torch.cat([torch.broadcast_to(c, Vf.shape[1:]).unsqueeze(0), Vf])  # [1 + N, ..., n]
+    c0 = c if c.shape == Vf.shape[1:] else torch.broadcast_to(c, Vf.shape[1:])
+    pts = torch.cat([c0.unsqueeze(0), Vf])  # [1 + N, ..., n]
     if tangents:  # one batched autograd call: values and gradients at c and the vertices
         fall, Jall = value_and_jacobian(fn, pts, points=True)  # [1 + N, ..., k (, n)]
     else:
@@ -619,8 +620,9 @@ def dc_remainder(
     jv = _abs_max(jet.val)  # rounding of fn at interior points
     dl, du = box.lower - c, box.upper - c
     mag = torch.maximum(du, dl.neg())  # [..., n] >= |x - c| on the hull
-    G = gP.abs().amax(0) + J.abs() + W.amax(0) * mag.unsqueeze(-2)  # [..., k, n]
-    scale = fall.abs().amax(0) * 2.0 + jv + linalg.small_dot(G, mag.unsqueeze(-2)) * 4.0
+    mag2 = mag.unsqueeze(-2)
+    G = gP.abs().amax(0) + J.abs() + W.amax(0) * mag2  # [..., k, n]
+    scale = fall.abs().amax(0) * 2.0 + jv + linalg.small_dot(G, mag2) * 4.0
     out = _padded(lower, upper, scale)
     if with_lagrange:
         out = out.intersect(_lagrange(jet, box, S, c, J, Jc - J))
