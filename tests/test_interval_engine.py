@@ -254,3 +254,30 @@ def test_stacked_products_fall_back_on_zero_times_infinity(monkeypatch):
         e = enclose(f, Interval(torch.tensor(lo), torch.tensor(hi)), 2)
     assert not torch.isnan(e.val.lower).any() and not torch.isnan(e.grad.lower).any()
     assert e.val.lower[0, 0] <= 0 <= e.val.upper[0, 0] and e.val.upper[0, 0] < 1e-300
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, math.inf, math.nan]))
+def test_fused_product_sum_equals_two_products_and_a_sum(seed, special):
+    """The engine's fused ``x1 y1 + x2 y2`` (stacked mode) has the bounds of two outward
+    products and an outward sum, also with infinite and NaN operands (then it declines)."""
+    from diffsmf.interval import arith
+
+    g = torch.Generator().manual_seed(seed)
+
+    def iv(*shape):
+        t = torch.randn(2, *shape, generator=g, dtype=torch.float64)
+        t[0, ..., 0] = special if special == 0.0 else -special
+        return Interval._pair(torch.sort(t, dim=0).values)
+
+    x1, x2, y1, y2 = iv(3, 1, 2), iv(3, 1, 2), iv(1, 2), iv(1, 2)
+    prev = arith.stacking(True)
+    try:
+        fused = arith.mul_sum(x1, y1, x2, y2)
+        ref = arith.add(arith.mul(x1, y1), arith.mul(x2, y2), exact_zero=False)
+    finally:
+        arith.stacking(prev)
+    if fused is None:  # declined: a NaN product (0 * inf or a NaN operand)
+        assert special != 0.0
+        return
+    assert torch.equal(fused.lower, ref.lower) and torch.equal(fused.upper, ref.upper)

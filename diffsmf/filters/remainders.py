@@ -12,6 +12,7 @@ from diffsmf.filters.base import MAX_SET_RADIUS
 from diffsmf.filters.events import FilterEvent
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
+from diffsmf.utils import tracing
 
 __all__ = [
     "ROUND_REL",
@@ -57,8 +58,23 @@ def _events_ok(R: Interval) -> tuple[Tensor, Tensor]:
     m = torch.maximum(R.lower.abs(), R.upper.abs())  # NaN where a bound is NaN
     nan = torch.isnan(m).any(-1)
     ok = (m <= MAX_SET_RADIUS).all(-1)  # False for NaN and inf
-    ev = torch.where(nan, int(FilterEvent.DOMAIN), int(FilterEvent.DIVERGED))
+    ev = torch.where(nan, *_event_codes(m.device))
     return ev.masked_fill(ok, 0), ok
+
+
+_CODES: dict = {}
+
+
+def _event_codes(device: torch.device) -> tuple[Tensor, Tensor]:
+    """The codes ``DOMAIN`` and ``DIVERGED`` as 0-dim int64 tensors (cached eagerly: constants,
+    not ops per call)."""
+    codes = None if tracing() else _CODES.get(device)
+    if codes is None:
+        codes = tuple(torch.tensor(int(e), dtype=torch.int64, device=device)
+                      for e in (FilterEvent.DOMAIN, FilterEvent.DIVERGED))
+        if not tracing():
+            _CODES[device] = codes
+    return codes
 
 
 def checked_remainder(R: Interval) -> tuple[Interval, Tensor]:

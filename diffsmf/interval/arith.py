@@ -39,6 +39,7 @@ from diffsmf.interval.rounding import (
     finite_inner,
     nan_to_zero,
     outward,
+    pair_const,
     pair_signs,
     tiny,
     up,
@@ -297,7 +298,7 @@ def mul(a: Iv, b: Iv) -> Any:
     if pa and pb:
         p = a.lower * b.lower
         return a._pair(outward(p, point=True)) if _M.stack else a._make(down(p), up(p))
-    if tracing() or a.lower.device.type != "cpu":
+    if tracing() or tensor_of(a).device.type != "cpu":  # (no view of stacked bounds)
         return _mul_general(a, b)
     st = _stacked_pair(a, b, outer=True)
     if st is not None:
@@ -327,6 +328,32 @@ def _mul_stacked(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
     elif math.isnan(both.sum().item()):  # 0 * inf or a NaN operand: the general rule
         return _mul_general(a, b)
     return a._pair(outward(both))
+
+
+def mul_sum(x1: Iv, y1: Iv, x2: Iv, y2: Iv) -> Any | None:
+    """``[x1] [y1] + [x2] [y2]`` in stacked mode, the two products in one (each rounded
+    outward as `mul` rounds it, then the sum as `add` with ``exact_zero=False``: the same
+    bounds), or None where it does not apply (the caller then multiplies and adds: operands
+    not all stacked, shapes that differ between the terms, or a NaN product while the checks
+    are not deferred)."""
+    if not _M.stack or tracing():
+        return None
+    ts = [_st(t) for t in (x1, y1, x2, y2)]
+    if any(t is None for t in ts) or ts[0].shape != ts[2].shape or ts[1].shape != ts[3].shape:
+        return None
+    if ts[0].device.type != "cpu":
+        return None
+    sx, sy = ts[0].shape[1:], ts[1].shape[1:]
+    r = max(len(sx), len(sy))
+    # [2, 1, 2 terms, 1.., *sx] * [1, 2, 2 terms, 1.., *sy]: the four products of each term
+    X = torch.stack([ts[0], ts[2]], 1).reshape(2, 1, 2, *([1] * (r - len(sx))), *sx)
+    Y = torch.stack([ts[1], ts[3]], 1).reshape(1, 2, 2, *([1] * (r - len(sy))), *sy)
+    both = torch.sort((X * Y).flatten(0, 1), dim=0).values[::3]  # [2, 2 terms, ...]
+    if _M.checks is not None:
+        _M.checks.append(both)
+    elif math.isnan(both.sum().item()):
+        return None
+    return x1._pair(outward(outward(both).sum(1)))
 
 
 def _mul_general(a: Iv, b: Iv) -> Any:
@@ -546,10 +573,10 @@ def square(x: Iv) -> Any:
     """Exact range of ``x ** 2``: the squares of the smallest and largest ``|x|``."""
     sx = _st(x)
     if sx is not None:
-        m = sx * pair_signs(sx, sx.dim())  # [-lo, hi]
-        big = m.amax(0)  # max |x|
-        small = (-m).amax(0).clamp_min(0.0)  # min |x| (0 where the interval meets 0)
-        both = torch.stack([small, big])
+        # [min(-lo, hi), max(-lo, hi)] sorted, the first clamped to <= 0: [-min |x|, max |x|]
+        # (min |x| is 0 where the interval meets 0; the square of -min |x| is min |x|^2)
+        m = torch.sort(sx * pair_signs(sx, sx.dim()), dim=0).values
+        both = m.clamp(max=pair_const(m, m.dim(), 0.0, math.inf))
         return x._pair(outward(both * both).clamp_min(0.0))
     lo, hi = x.lower, x.upper
     if is_point(x):

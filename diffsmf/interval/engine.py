@@ -21,6 +21,7 @@ from diffsmf.interval.arith import shape_of, tensor_of
 from diffsmf.interval.capture import EngineError, Program, capture, seed, stacks, to_trailing
 from diffsmf.interval.jet import Jet, point
 from diffsmf.sets.interval import Interval
+from diffsmf.utils import tracing
 
 __all__ = ["Enclosure", "StepModel", "enclose", "enclose_dynamics", "program_for",
            "register_row_model"]
@@ -239,7 +240,7 @@ def enclose(fn: Callable[..., Tensor], box: Interval, order: int = 2,
     lo = box.lower
     n = lo.shape[-1]
     if isinstance(fn, StepModel):  # one program for every batch shape: a batch row in front
-        prog = fn.program(torch.zeros(1, n, dtype=lo.dtype, device=lo.device))
+        prog = fn.program(_example(n, lo))
         if prog.out_rank != 2:
             raise EngineError(f"{prog.name}: must map x [..., n] to [..., k] (keep the batch "
                               "dims)")
@@ -269,7 +270,7 @@ def enclose_dynamics(
     lo = box.lower
     n, q = lo.shape[-1], theta.lower.shape[-1]
     sm = StepModel(f, u, theta.lower)
-    prog = sm.program(torch.zeros(1, n, dtype=lo.dtype, device=lo.device))
+    prog = sm.program(_example(n, lo))
     th = Interval._make(theta.lower.unsqueeze(-2), theta.upper.unsqueeze(-2))
     inputs = [seed(_row(box), order, n + q, 0)]
     if u is not None:
@@ -277,6 +278,21 @@ def enclose_dynamics(
     inputs.append(seed(th, order, n + q, n))
     out = prog.run(inputs)
     return Enclosure(to_trailing(out, order, lo, n + q, row=True))
+
+
+_EXAMPLES: dict = {}
+
+
+def _example(n: int, like: Tensor) -> Tensor:
+    """Zeros ``[1, n]`` like ``like``: the example input that keys a step model's program
+    (cached eagerly: a constant, not an op per call)."""
+    key = (n, like.dtype, like.device)
+    t = None if tracing() else _EXAMPLES.get(key)
+    if t is None:
+        t = torch.zeros(1, n, dtype=like.dtype, device=like.device)
+        if not tracing():
+            _EXAMPLES[key] = t
+    return t
 
 
 def _row(box: Interval) -> Interval:

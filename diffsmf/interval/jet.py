@@ -128,9 +128,10 @@ def _outer_sym(g: Interval, g2: Interval | None = None) -> Interval:
     return Interval._make(torch.where(eye, o.lower.clamp_min(0.0), o.lower), o.upper)
 
 
-#: Derivative sums keep an exact zero sum exact (two ops more a sum; False: a zero sum is
-#: widened to the smallest subnormal, like a product)
-EXACT_SUMS = True
+#: Derivative sums keep an exact zero sum exact (True: two ops more a sum). False: every sum is
+#: moved to its neighbouring floats (`diffsmf.interval.rounding.outward`, one op; a zero sum
+#: becomes the smallest subnormals, like a product); value sums stay exact either way
+EXACT_SUMS = False
 
 
 def _eye(n: int, trailing: int, device: torch.device) -> Tensor:
@@ -190,7 +191,7 @@ def mul(a: Jet | Tensor, b: Jet | Tensor) -> Jet:
         return a.like(arith.mul(a.val, c), _scaled(a.grad, c, 1), _scaled(a.hess, c, 2))
     if a is b:
         return a.like(arith.square(a.val), *_square_derivs(a))
-    grad = hadd(_scaled(a.grad, b.val, 1), _scaled(b.grad, a.val, 1))
+    grad = _mul_sum(a.grad, b.val, b.grad, a.val)
     hess = None
     if a.order >= 2:
         cross = None
@@ -200,6 +201,17 @@ def mul(a: Jet | Tensor, b: Jet | Tensor) -> Jet:
                               exact_zero=EXACT_SUMS)
         hess = hadd(_scaled(a.hess, b.val, 2), _scaled(b.hess, a.val, 2), cross)
     return a.like(arith.mul(a.val, b.val), grad, hess)
+
+
+def _mul_sum(x1: Interval | None, y1: Interval, x2: Interval | None, y2: Interval
+             ) -> Interval | None:
+    """``x1 y1 + x2 y2`` for derivatives ``x1``, ``x2`` (None: structurally zero), the two
+    products in one where `arith.mul_sum` applies (the same bounds)."""
+    if x1 is not None and x2 is not None and not EXACT_SUMS:
+        out = arith.mul_sum(x1, y1, x2, y2)
+        if out is not None:
+            return out
+    return hadd(_scaled(x1, y1, 1), _scaled(x2, y2, 1))
 
 
 def _square_derivs(a: Jet) -> tuple[Interval | None, Interval | None]:

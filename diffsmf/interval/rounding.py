@@ -30,7 +30,8 @@ from torch import Tensor
 
 from diffsmf.utils import tracing
 
-__all__ = ["down", "eps", "finite_inner", "nan_to_zero", "outward", "pair_signs", "subnormal",
+__all__ = ["down", "eps", "finite_inner", "nan_to_zero", "outward", "pair_const", "pair_signs",
+           "subnormal",
            "tiny", "up"]
 
 
@@ -114,6 +115,12 @@ def _pair_const(x: Tensor, rank: int, lo: float, hi: float) -> Tensor:
         if not tracing():
             _TARGETS[key] = t
     return t
+
+
+def pair_const(x: Tensor, rank: int, lo: float, hi: float) -> Tensor:
+    """``[lo, hi]`` shaped ``[2, 1, ..., 1]`` (``rank`` dims) like ``x`` (cached eagerly):
+    a per-bound constant of stacked bounds."""
+    return _pair_const(x, rank, lo, hi)
 
 
 def pair_signs(x: Tensor, rank: int) -> Tensor:

@@ -15,6 +15,7 @@ by ``fn``. ``fn`` must be batch-elementwise (see `diffsmf.linearize.jacobians`).
 from __future__ import annotations
 
 import itertools
+import math
 import weakref
 from collections.abc import Callable
 
@@ -22,6 +23,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.interval.arith import Stacked
 from diffsmf.interval.engine import enclose_dynamics
 from diffsmf.linearize.jacobians import jacobian, value_and_jacobian
 from diffsmf.linearize.jets import Jet, jet_eval
@@ -225,10 +227,13 @@ def _lower_order(
     # infinite Jacobian bounds are masked out of the products and put back in the result, so
     # that no 0 * inf reaches the gradients of the other batch elements
     finite = (gu - gl) < torch.inf  # False for an infinite bound (and NaN): gu - gl >= 0
-    inf_g = ~finite
+    # eagerly, one host read: all finite (the usual case) needs no masks
+    all_finite = not tracing() and bool(finite.all())
     Jl, Ju = (gu, gl) if J is None else (J, J)  # J = None: [J_fn] - [J_fn]
-    a = (gl - Jl).masked_fill(inf_g, 0.0)  # [..., k, n]: [a, b] = [J_fn] - J
-    b = (gu - Ju).masked_fill(inf_g, 0.0)
+    a, b = gl - Jl, gu - Ju  # [..., k, n]: [a, b] = [J_fn] - J
+    if not all_finite:
+        inf_g = ~finite
+        a, b = a.masked_fill(inf_g, 0.0), b.masked_fill(inf_g, 0.0)
     lo = linalg.small_reduce(torch.minimum(a * du, b * dl), "sum")  # [..., k]
     hi = linalg.small_reduce(torch.maximum(a * dl, b * du), "sum")
     jv = _abs_max(jet.val) if jv is None else jv  # the caller's, when it has it
@@ -237,7 +242,7 @@ def _lower_order(
         mag = torch.maximum(-dl, du) if mag is None else mag.unsqueeze(-2)
         scale = scale + _nograd(linalg.small_dot(J.abs(), mag))
     R1 = _padded(lo, hi, scale)
-    if not tracing() and bool(finite.all()):
+    if all_finite:
         return R.intersect(R1)
     rows = finite.all(-1)
     R = Interval._make(torch.where(rows, torch.maximum(R.lower, R1.lower), R.lower),
@@ -254,9 +259,19 @@ def _lower_order(
                           torch.where(use, both.upper, R.upper))
 
 
+def _abs_sum(I: Interval) -> float:
+    """The sum of ``|bound|`` over ``I`` (one host read; NaN where a bound is NaN)."""
+    if isinstance(I, Stacked):
+        return float(_nograd(I.both).abs().sum())
+    return float(_nograd(I.lower).abs().sum() + _nograd(I.upper).abs().sum())
+
+
 def _abs_max(I: Interval) -> Tensor:
     """``max |x|`` over an interval array (inf-safe, detached)."""
-    m = _nograd(torch.maximum(I.lower.abs(), I.upper.abs()))
+    if isinstance(I, Stacked):  # bounds stacked [2, ...]: no views of each
+        m = _nograd(I.both).abs().amax(0)
+    else:
+        m = _nograd(torch.maximum(I.lower.abs(), I.upper.abs()))
     return torch.nan_to_num(m, nan=0.0, posinf=0.0)
 
 
@@ -292,7 +307,7 @@ def _curvature(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
     diag = torch.stack([torch.diagonal(lo, dim1=-2, dim2=-1),
                         -torch.diagonal(hi, dim1=-2, dim2=-1)])  # [2, ..., n]
     gersh = linalg.small_reduce(diag - off, "amin")  # [2, ...]
-    Hcr = torch.stack([0.5 * (lo + hi), 0.5 * (hi - lo)])  # [2, ..., n, n]: midpoint, radius
+    Hcr = torch.stack([lo + hi, hi - lo]) * 0.5  # [2, ..., n, n]: midpoint, radius
     if n == 2:
         weyl, norm = _weyl2(Hcr)
     else:
@@ -317,7 +332,8 @@ def _weyl2(Hcr: Tensor) -> tuple[Tensor, Tensor]:
     m, h = 0.5 * (a + d), 0.5 * (a - d)
     r = torch.sqrt(h * h + b * b + torch.finfo(a.dtype).tiny)  # [2, ...]
     # [m - r, -m - r] (exactly -(m + r)) of the midpoint, minus rho(H_r) = m + r of the radius
-    weyl = torch.addcmul(-r[0], m[0], _pm1(m)) - (m[1] + r[1])
+    (m0, m1), (r0, r1) = m.unbind(0), r.unbind(0)
+    weyl = torch.addcmul(-r0, m0, _pm1(m)) - (m1 + r1)
     return weyl, _nograd(Hcr.abs().sum((0, -2, -1)))
 
 
@@ -335,6 +351,17 @@ def _pm1(like: Tensor) -> Tensor:
 
 
 _EYES: dict = {}
+
+
+def _one(like: Tensor) -> Tensor:
+    """A 0-dim 1 like ``like`` (cached in eager mode: a constant, not an op per call)."""
+    key = ("one", like.dtype, like.device)
+    t = None if tracing() else _SIGNS.get(key)
+    if t is None:
+        t = torch.ones((), dtype=like.dtype, device=like.device)
+        if not tracing():
+            _SIGNS[key] = t
+    return t
 
 
 def _eye(n: int, device: torch.device) -> Tensor:
@@ -395,7 +422,9 @@ def diagonal_shift(H: Interval) -> Tensor:
 _MIN_SCALE = 1e-150
 
 
-def _convexifying_weights(H: Interval, box: Interval) -> tuple[Tensor, Tensor]:
+def _convexifying_weights(
+    H: Interval, box: Interval, finite: bool = False
+) -> tuple[Tensor, Tensor]:
     """Weights ``W [4, ..., k, n]`` of the four quadratics ``q = sum_j W_j (x_j - c_j)^2`` of
     the DC split: ball and diagonal shift for ``r`` and for ``-r`` (``H [..., k, n, n]`` is
     the interval Hessian of ``r``; that of ``-r`` is ``-H``), and ``bad [4, ..., k]``: True
@@ -409,22 +438,31 @@ def _convexifying_weights(H: Interval, box: Interval) -> tuple[Tensor, Tensor]:
     in kelvin inflated the remainder of one in mol/L); for a cube the two are the same. A
     change of units ``x' = D x`` (D diagonal) gives the same quadratics, so the same bounds.
     Validity: ``M~ + 2 diag(w~) >= 0`` implies ``M + 2 diag(w~ / s^2) >= 0`` (congruence).
+    ``finite=True`` declares every bound of ``H`` finite (the caller checked): no masks.
     """
     s = box.radius
     # a flat or non-finite width (a diverged element) normalises by 1: no inf reaches the
     # weights or, through them, the gradients of the other elements
-    s = torch.where((s > _MIN_SCALE) & (s < torch.inf), s, 1.0)  # [..., n]
-    ss = (s.unsqueeze(-1) * s.unsqueeze(-2)).unsqueeze(-3)  # [..., 1, n, n]
-    hinf = ~((H.upper - H.lower) < torch.inf)  # an infinite bound (or NaN): upper - lower >= 0
-    unbounded = hinf.flatten(-2).any(-1)  # [..., k]: no convexification
-    lo = H.lower.masked_fill(hinf, 0.0) * ss
-    hi = H.upper.masked_fill(hinf, 0.0) * ss
+    s = torch.where((s > _MIN_SCALE) & (s < torch.inf), s, _one(s))  # [..., n]
+    n = s.shape[-1]
+    lead = s.shape[:-1]
+    ss = s.reshape(*lead, 1, n, 1) * s.reshape(*lead, 1, 1, n)  # [..., 1, n, n]
+    unbounded = None
+    if finite:
+        lo, hi = H.lower * ss, H.upper * ss
+    else:
+        hinf = ~((H.upper - H.lower) < torch.inf)  # an infinite bound (or NaN): hi - lo >= 0
+        unbounded = hinf.flatten(-2).any(-1)  # [..., k]: no convexification
+        lo = H.lower.masked_fill(hinf, 0.0) * ss
+        hi = H.upper.masked_fill(hinf, 0.0) * ss
     lam, diag = _curvature(lo, hi)  # [2, ..., k] (r and -r), [2, ..., k, n]
     ball = (lam.clamp(max=0) * -0.5).unsqueeze(-1).expand_as(diag)  # alpha~, beta~
     W = torch.stack([ball, diag], 1).flatten(0, 1)  # [4, ..., k, n], scaled
     # a non-finite weight (an unbounded or overflowing Hessian) marks the form bad; only
     # finite weights are mapped back, so no inf * 0 reaches the gradients
-    drop = ~(W < torch.inf) | unbounded.unsqueeze(-1)  # W >= 0 or NaN
+    drop = ~(W < torch.inf)  # W >= 0 or NaN
+    if unbounded is not None:
+        drop = drop | unbounded.unsqueeze(-1)
     Wf = W.masked_fill(drop, 0.0) * (1.0 / (s * s)).unsqueeze(-2)
     return Wf, linalg.small_reduce(drop, "any")
 
@@ -459,10 +497,12 @@ def _dc_bounds(
     M = V4 = None
     for p0 in range(0, P, step):
         sl = slice(p0, min(p0 + step, P))  # the tangent points only (dP has all 1 + N)
-        diff = materialize(dv.unsqueeze(0) - dP[sl].unsqueeze(1))  # [p, N, ..., n]: x_v - p
+        dPs, gPs, rPs = (dP, gP, rP) if P == 1 + dv.shape[0] and step >= P else (
+            dP[sl], gP[sl], rP[sl])  # (no slicing ops when one chunk holds every point)
+        diff = materialize(dv.unsqueeze(0) - dPs.unsqueeze(1))  # [p, N, ..., n]: x_v - p
         # the tangent plane of r at p, at the vertices: [p, N, ..., k]
         L = materialize(
-            linalg.small_dot(gP[sl].unsqueeze(1), diff.unsqueeze(-2)) + rP[sl].unsqueeze(1)
+            linalg.small_dot(gPs.unsqueeze(1), diff.unsqueeze(-2)) + rPs.unsqueeze(1)
         )
         # Q = sum_j W_j (x_vj - p_j)^2 for the four forms: [p, N, 4, ..., k]
         Q = linalg.small_dot(W, materialize(diff * diff).unsqueeze(-2).unsqueeze(2))
@@ -473,7 +513,7 @@ def _dc_bounds(
         m = Q.addcmul_(L.unsqueeze(2), neg).amax(1).amin(0)  # [4, ..., k]
         M = m if M is None else torch.minimum(M, m)
     # forms of r: upper V4 (eq. 15), lower -M (eq. 16); forms of -r: upper M, lower -V4
-    pos = neg < 0
+    pos = _form_signs(rv, positive=True)  # neg < 0
     upper = torch.where(pos, V4, M).masked_fill(bad, torch.inf).amin(0)
     lower = torch.where(pos, M, V4).masked_fill(bad, torch.inf).amin(0).neg()
     return lower, upper
@@ -482,14 +522,17 @@ def _dc_bounds(
 _SIGNS: dict = {}
 
 
-def _form_signs(like: Tensor) -> Tensor:
+def _form_signs(like: Tensor, positive: bool = False) -> Tensor:
     """``[-1, -1, 1, 1]`` shaped ``[4, 1, .., 1]`` against ``[4, *like.shape[1:]]`` (cached
-    per dtype, device and rank in eager mode: a constant, not an op per call)."""
-    key = (like.dtype, like.device, like.dim())
+    per dtype, device and rank in eager mode: a constant, not an op per call);
+    ``positive``: the boolean ``[True, True, False, False]`` (the signs < 0) instead."""
+    key = (like.dtype, like.device, like.dim(), positive)
     t = None if tracing() else _SIGNS.get(key)
     if t is None:
         t = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=like.dtype, device=like.device)
         t = t.reshape(4, *([1] * (like.dim() - 1)))
+        if positive:
+            t = t < 0
         if not tracing():
             _SIGNS[key] = t
     return t
@@ -540,17 +583,22 @@ def dc_remainder(
     if _remember(fn, jet):  # same result as every later call (which skips the jets)
         return _affine_remainder(fn, S, c, J)
     H = jet.hess  # [..., k, n, n]
-    if not tracing() and not (bool(H.lower.any()) or bool(H.upper.any())):
+    # eagerly, one host read: the sum of |bounds| is 0 for a zero Hessian, finite for a
+    # finite one (an overflowing sum only takes the general, masked path)
+    mass = None if tracing() else _abs_sum(H)
+    if mass == 0.0:
         # fn is affine on the hull: r(x) = (J_exact - J)(x - c) exactly, no vertices needed
         R = _lagrange(jet, box, S, c, J, None if J is None else jacobian(fn, c) - J)
         return _lower_order(fn, jet, box, S, c, J, R)
     # the four convexifications at once (leading dim 4): r + q convex with q the ball
     # (alpha |x - c|^2) or the diagonal shift, and -r + q convex with the same two forms
-    W, bad = _convexifying_weights(H, box)  # [4, ..., k, n], [4, ..., k]
+    W, bad = _convexifying_weights(  # [4, ..., k, n], [4, ..., k]
+        H, box, mass is not None and mass < math.inf)
     W = materialize(W)
     Vf = _front(V)  # [N, ..., n]
     tangents = V.shape[-2] <= _MAX_TANGENTS  # tangent planes at the vertices too
-    pts = torch.cat([torch.broadcast_to(c, Vf.shape[1:]).unsqueeze(0), Vf])  # [1 + N, ..., n]
+    c0 = c if c.shape == Vf.shape[1:] else torch.broadcast_to(c, Vf.shape[1:])
+    pts = torch.cat([c0.unsqueeze(0), Vf])  # [1 + N, ..., n]
     if tangents:  # one batched autograd call: values and gradients at c and the vertices
         fall, Jall = value_and_jacobian(fn, pts, points=True)  # [1 + N, ..., k (, n)]
     else:
@@ -572,8 +620,9 @@ def dc_remainder(
     jv = _abs_max(jet.val)  # rounding of fn at interior points
     dl, du = box.lower - c, box.upper - c
     mag = torch.maximum(du, dl.neg())  # [..., n] >= |x - c| on the hull
-    G = gP.abs().amax(0) + J.abs() + W.amax(0) * mag.unsqueeze(-2)  # [..., k, n]
-    scale = fall.abs().amax(0) * 2.0 + jv + linalg.small_dot(G, mag.unsqueeze(-2)) * 4.0
+    mag2 = mag.unsqueeze(-2)
+    G = gP.abs().amax(0) + J.abs() + W.amax(0) * mag2  # [..., k, n]
+    scale = fall.abs().amax(0) * 2.0 + jv + linalg.small_dot(G, mag2) * 4.0
     out = _padded(lower, upper, scale)
     if with_lagrange:
         out = out.intersect(_lagrange(jet, box, S, c, J, Jc - J))
