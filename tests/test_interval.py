@@ -389,3 +389,22 @@ def test_point_intervals_enclose_exact_values():
         for i in range(150):
             v = fn(mpmath.mpf(pts[i].item()))
             assert mpmath.mpf(res.lower[i].item()) <= v <= mpmath.mpf(res.upper[i].item()), fn
+
+
+def test_traced_next_float_matches_nextafter_bit_for_bit() -> None:
+    """The compiled rounding step (integer steps of the bits) equals torch.nextafter, also at
+    0, subnormals, the largest float and the infinities."""
+    import math
+
+    from diffsmf.interval import rounding
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(20_000, generator=g, dtype=torch.float64)
+    x = x * torch.exp(100 * torch.randn(20_000, generator=g, dtype=torch.float64))
+    special = torch.tensor([0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308,
+                            1.7976931348623157e308, -1.7976931348623157e308, math.inf,
+                            -math.inf], dtype=torch.float64)
+    for t in (torch.cat([x, special]), torch.cat([x, special]).float()):
+        for d in (-math.inf, math.inf):
+            ref = torch.nextafter(t, torch.tensor(d, dtype=t.dtype))
+            assert torch.equal(rounding._next_float(t, d), ref)

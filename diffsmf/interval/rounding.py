@@ -67,12 +67,15 @@ def _step(x: Tensor, k: int, direction: float, absolute: bool) -> Tensor:
         big = torch.finfo(x.dtype).max  # where a sum of floats is exact)
         x = x.clamp(max=big) if direction < 0 else x.clamp(min=-big)
         return torch.add(x, _nograd(x).abs(), alpha=eps(x) if direction > 0 else -eps(x))
-    t = _TARGETS.get((direction, x.dtype, x.device))
-    if t is None:
-        t = torch.tensor(direction, dtype=x.dtype, device=x.device)
-        if not tracing():
-            _TARGETS[(direction, x.dtype, x.device)] = t
-    out = torch.nextafter(x, t)
+    if tracing() and not x.requires_grad and x.dtype in _BITS:
+        out = _next_float(x, direction)  # the same bits, fused by the compiler
+    else:
+        t = _TARGETS.get((direction, x.dtype, x.device))
+        if t is None:
+            t = torch.tensor(direction, dtype=x.dtype, device=x.device)
+            if not tracing():
+                _TARGETS[(direction, x.dtype, x.device)] = t
+        out = torch.nextafter(x, t)
     if k == 1:
         return out
     # then k - 1 ulps more, relatively (the first step made an overflowed bound finite)
@@ -80,6 +83,28 @@ def _step(x: Tensor, k: int, direction: float, absolute: bool) -> Tensor:
     if absolute:
         pad = pad + subnormal(x)
     return out + pad if direction > 0 else out - pad
+
+
+#: the integer dtype of the same width, for `_next_float`
+_BITS = {torch.float64: torch.int64, torch.float32: torch.int32}
+
+
+def _next_float(x: Tensor, direction: float) -> Tensor:
+    """``torch.nextafter(x, direction)`` (``direction`` +-inf) from integer steps of the
+    float's bits: the same result (NaN stays NaN), in elementwise ops that Inductor fuses into
+    its loops, where ``nextafter`` is a C library call per element (it made a compiled
+    HSNSMF step at B = 1 about 40 % slower). No gradient: used while traced without one.
+
+    The bits of a float ordered as an integer of the same width grow with its magnitude for
+    either sign, so the next float away from 0 is ``bits + 1`` and towards 0 ``bits - 1``;
+    0 (either sign) goes to the smallest subnormal, and an infinity in ``direction`` stays.
+    """
+    bits = x.view(_BITS[x.dtype])
+    toward_zero = x > 0 if direction < 0 else x < 0
+    out = torch.where(toward_zero, bits - 1, bits + 1).view(x.dtype)
+    sub = subnormal(x)
+    out = torch.where(x == 0, -sub if direction < 0 else sub, out)
+    return torch.where(x == direction, x, out)
 
 
 #: the 0-dim ``+-inf`` targets of ``nextafter`` per dtype and device (made once, eagerly)
