@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from filters_bench import _time_torch  # noqa: E402 - the shared torch timing loop
 
 DT, K0, KD, CD = 0.1, 1.5, 3.0, 1.24
+ONLINE_STEPS = 200  # steps per repeat of the compiled online row
 W, V = 2e-3, 1e-3
 
 
@@ -198,6 +199,8 @@ def main() -> None:
             if compiled and args.no_compile:
                 continue
             steps = args.steps if batch <= 1000 or compiled else max(2, args.steps // 5)
+            if online:  # a step of ~0.1 ms: enough of them that a hiccup does not decide
+                steps = max(steps, ONLINE_STEPS)
             rate, tc = _time_torch(name, system, batch, steps, compiled=compiled,
                                    online=online, repeats=args.repeats)
             mode = "compiled online" if online else "compiled" if compiled else "eager"
