@@ -6,7 +6,6 @@ of a set with the strips with its consistency flag and events.
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Callable
 
 import torch
@@ -16,13 +15,12 @@ from diffsmf.filters.base import SetFilter
 from diffsmf.filters.events import FilterEvent
 from diffsmf.filters.params import stirling_steps
 from diffsmf.filters.remainders import ROUND_REL, checked_remainder, rounding_margin
-from diffsmf.linearize.jets import JetError, jet_eval
+from diffsmf.linearize.remainders import is_affine
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
 from diffsmf.sets.parallelotope import Parallelotope
 from diffsmf.sets.strip import Strip
 from diffsmf.systems.system import System
-from diffsmf.utils import tracing
 
 __all__ = [
     "angle_ambiguous",
@@ -35,10 +33,6 @@ __all__ = [
 #: magnitudes involved (the same padding as the remainder of an affine function,
 #: `diffsmf.linearize.dc_remainder`).
 _AFFINE_PAD_ULPS = 64.0
-
-#: Output functions probed by `_affine` (weak keys: the function objects), value: affine.
-_AFFINE_H: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
 
 def measurement_strips(
     h: Callable[[Tensor], Tensor],
@@ -176,27 +170,6 @@ def _hull_magnitude(S: ConvexSet) -> Tensor:
     return torch.maximum(hull.lower.abs(), hull.upper.abs())
 
 
-def _affine(h: Callable[[Tensor], Tensor], S: ConvexSet) -> bool:
-    """Whether ``h`` is affine on all of R^n: its interval jet over the hull of ``S`` has a
-    structurally zero Hessian (a property of the function, not of the set). Probed once per
-    function, on its first eager update, and remembered (weakly, by identity), so that the
-    first update and every later one take the same path; False while tracing (host state:
-    the traced graph takes the general path) and for a function the engine cannot enclose."""
-    if tracing():
-        return False
-    try:
-        known = _AFFINE_H.get(h)
-    except TypeError:  # unhashable callable
-        return False
-    if known is None:
-        try:
-            known = jet_eval(h, S.interval_hull(), order=2).hess_is_zero
-        except JetError:
-            known = False
-        _AFFINE_H[h] = known
-    return known
-
-
 def angle_ambiguous(
     system: System, S: ConvexSet, c: Tensor, H: Tensor, E: Interval, vbox: Interval
 ) -> Tensor:
@@ -297,7 +270,7 @@ def stirling_strip_update(
     `FilterEvent` codes ``[B]``: ``DOMAIN`` / ``DIVERGED`` of the remainder of ``h``, whose
     update is then skipped, and ``DEGENERATE_STRIP``; none of them loses the guarantee).
 
-    An affine ``h`` (`_affine`, eager only) takes its exact slopes instead (the Stirling
+    An affine ``h`` (`is_affine`, eager only) takes its exact slopes instead (the Stirling
     slopes of an affine function, up to rounding) and a remainder that is the float padding
     alone (`_affine_strips`): the same strips to rounding, without the Stirling points and
     the remainder's machinery.
@@ -308,7 +281,7 @@ def stirling_strip_update(
     c = S.center
     h, system = filt.system.h, filt.system
     vbox = _NoiseBox(filt.measurement_noise_center, filt.measurement_noise)
-    if _affine(h, region):
+    if is_affine(h, region.interval_hull()):
         hc, H = value_and_jacobian(h, c)  # h(c) and the exact slopes from one call of h
         a, d, w = _affine_strips(h, region, c, H, y, vbox, system, hc=hc)
         new, ok, ev = sequential_strip_update(S, a, d, w, intersect)

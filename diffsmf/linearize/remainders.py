@@ -26,7 +26,7 @@ from diffsmf import linalg
 from diffsmf.interval.arith import Stacked
 from diffsmf.interval.engine import enclose_dynamics
 from diffsmf.linearize.jacobians import jacobian, value_and_jacobian
-from diffsmf.linearize.jets import Jet, jet_eval
+from diffsmf.linearize.jets import Jet, JetError, jet_eval
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
 from diffsmf.utils import materialize, tracing
@@ -39,6 +39,7 @@ __all__ = [
     "dc_remainder",
     "diagonal_shift",
     "hessian_eig_lower_bound",
+    "is_affine",
     "lagrange_remainder",
     "mean_value_remainder",
     "parameter_deviation",
@@ -57,8 +58,9 @@ _TANGENT_ELEMS = 4_000_000
 _PAD_ULPS = 64.0
 
 
-#: Functions whose interval jet had a structurally zero Hessian: affine on all of R^n (the
-#: jets build a Hessian for every non-affine operation), so later calls skip the jets.
+#: Functions whose interval jet had a structurally zero Hessian (True: affine on all of R^n,
+#: the jets build a Hessian for every non-affine operation) or not (False), so later calls
+#: skip the jets.
 _AFFINE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -69,6 +71,28 @@ def _known_affine(fn: Fn) -> bool:
         return bool(_AFFINE.get(fn, False))
     except TypeError:  # unhashable callable
         return False
+
+
+def is_affine(fn: Fn, box: Interval) -> bool:
+    """Whether ``fn`` is affine on all of R^n: its interval jet over ``box [..., n]`` has a
+    structurally zero Hessian (a property of the function, not of the box). Probed once per
+    function and remembered (weakly, by identity) with what the remainder bounds learn, so
+    that the first call and every later one agree; False while tracing (host state: the
+    traced graph takes the general path), for an unhashable callable and for a function the
+    engine cannot enclose."""
+    if tracing():
+        return False
+    try:
+        known = _AFFINE.get(fn)
+    except TypeError:  # unhashable callable
+        return False
+    if known is None:
+        try:
+            known = jet_eval(fn, box, order=2).hess_is_zero
+        except JetError:
+            known = False
+        _AFFINE[fn] = known
+    return known
 
 
 def _remember(fn: Fn, jet: Jet) -> bool:
