@@ -281,7 +281,7 @@ def stirling_strip_update(
     c = S.center
     h, system = filt.system.h, filt.system
     vbox = _NoiseBox(filt.measurement_noise_center, filt.measurement_noise)
-    if is_affine(h, region.interval_hull()):
+    if is_affine(h, region):
         hc, H = value_and_jacobian(h, c)  # h(c) and the exact slopes from one call of h
         a, d, w = _affine_strips(h, region, c, H, y, vbox, system, hc=hc)
         new, ok, ev = sequential_strip_update(S, a, d, w, intersect)

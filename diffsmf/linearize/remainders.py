@@ -73,9 +73,10 @@ def _known_affine(fn: Fn) -> bool:
         return False
 
 
-def is_affine(fn: Fn, box: Interval) -> bool:
-    """Whether ``fn`` is affine on all of R^n: its interval jet over ``box [..., n]`` has a
-    structurally zero Hessian (a property of the function, not of the box). Probed once per
+def is_affine(fn: Fn, S: ConvexSet) -> bool:
+    """Whether ``fn`` is affine on all of R^n: its interval jet over the interval hull of the
+    set ``S`` has a structurally zero Hessian (a property of the function, not of the set;
+    the hull is only computed for the probe). Probed once per
     function and remembered (weakly, by identity) with what the remainder bounds learn, so
     that the first call and every later one agree; False while tracing (host state: the
     traced graph takes the general path), for an unhashable callable and for a function the
@@ -88,7 +89,7 @@ def is_affine(fn: Fn, box: Interval) -> bool:
         return False
     if known is None:
         try:
-            known = jet_eval(fn, box, order=2).hess_is_zero
+            known = jet_eval(fn, S.interval_hull(), order=2).hess_is_zero
         except JetError:
             known = False
         _AFFINE[fn] = known
