@@ -280,7 +280,7 @@ def stirling_strip_update(
 
     c = S.center
     h, system = filt.system.h, filt.system
-    vbox = _NoiseBox(filt.measurement_noise_center, filt.measurement_noise)
+    vbox = _measurement_box(filt)
     if is_affine(h, region):
         hc, H = value_and_jacobian(h, c)  # h(c) and the exact slopes from one call of h
         a, d, w = _affine_strips(h, region, c, H, y, vbox, system, hc=hc)
@@ -290,6 +290,16 @@ def stirling_strip_update(
     a, d, w, ev_h = _strips(h, filt.remainder_fn, region, c, H, y, vbox, system)
     new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
     return new, ok, ev | ev_h
+
+
+def _measurement_box(filt: SetFilter) -> Interval | _NoiseBox:
+    """The measurement-noise box V ``[m]`` of the strips: `SetFilter.measurement_noise_box`,
+    read as its centre and half-width without forming the Interval where the filter keeps
+    that method (as `diffsmf.filters.prediction.noise_generators` does for W), else the
+    filter's own override."""
+    if type(filt).measurement_noise_box is SetFilter.measurement_noise_box:
+        return _NoiseBox(filt.measurement_noise_center, filt.measurement_noise)
+    return filt.measurement_noise_box()
 
 
 class _NoiseBox:
