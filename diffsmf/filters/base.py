@@ -107,6 +107,14 @@ def _hull_radius(S: ConvexSet) -> Tensor:
         return S.interval_hull().radius
 
 
+def _all_small(r: Tensor, c: Tensor) -> bool:
+    """Whether every half-width ``r`` is at most `MAX_SET_RADIUS` and every centre ``c`` is
+    finite (one host read: ``r + 0 c`` is NaN at a NaN / inf centre, the max propagates NaN);
+    read without the gradient, so no warning while autograd records."""
+    with torch.no_grad():
+        return float(torch.add(r, c, alpha=0).max()) <= MAX_SET_RADIUS
+
+
 def _noise_box(filt: nn.Module, name: str, c: Tensor, r: Tensor) -> Interval:
     """``Interval(c - r, c + r)``; without autograd recording, eagerly, the box of the last call
     again while ``r`` is the same tensor (`Positive` reuses its value) and ``c`` unchanged."""
@@ -408,8 +416,7 @@ class SetFilter(nn.Module):
         r = _hull_radius(S)
         was = state.bounded
         if not tracing() and type(S) in (family("Zonotope"), family("Parallelotope")) and (
-            r.numel() > 0  # r + 0 c: NaN at a NaN / inf centre; the max propagates NaN
-            and float(torch.add(r, S.center, alpha=0).max()) <= MAX_SET_RADIUS
+            r.numel() > 0 and _all_small(r, S.center)
         ):  # eager, every element finite and small: nothing to flag or replace
             b = torch.ones_like(state.consistent) if was is None else was
             new = _with_events(state).replace(bounded=b)
