@@ -210,3 +210,36 @@ def test_config_key_pins_every_object_it_keys_by_identity():
 
     walk(key)
     assert ids and ids <= {id(p) for p in pins}
+
+
+def test_small_step_keeps_intermediates_on_the_stack_for_this_compile_only(monkeypatch):
+    """A small captured step is compiled with its intermediates in stack arrays (the wrapper
+    is Inductor's for the CPU again afterwards), and its outputs are fresh tensors: a state
+    kept by the caller does not change when the next step runs."""
+    from torch._inductor.codegen import common
+
+    common.init_backend_registration()
+    before = common.device_codegens["cpu"].cpp_wrapper_codegen
+    used = []
+    scoped = streaming._stack_arrays
+
+    def spy(enable):
+        used.append(enable)
+        return scoped(enable)
+
+    monkeypatch.setattr(streaming, "_stack_arrays", spy)
+    s = ds.systems.get("spring_damper")
+    y = s.simulate(steps=3, batch=2, seed=1).y
+    eager, comp = ds.filters.EKF(s), ds.filters.EKF(s).compile()
+    with torch.no_grad(), comp.streaming():
+        st1 = comp.step(comp.initial_state(batch=2), None, y[:, 0])
+        kept = [t.clone() for t in st1.set._tensors()]
+        st2 = comp.step(st1, None, y[:, 1])
+        ref1 = eager.step(eager.initial_state(batch=2), None, y[:, 0])
+        ref2 = eager.step(ref1, None, y[:, 1])
+    assert used == [True]
+    assert common.device_codegens["cpu"].cpp_wrapper_codegen is before
+    for a, b in zip(st1.set._tensors(), kept):
+        assert torch.equal(a, b)
+    _close(st1, ref1)
+    _close(st2, ref2)

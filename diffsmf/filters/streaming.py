@@ -11,7 +11,9 @@ documented contract), so the guards have nothing to check. There the step is
    or a branch on a tensor value raises instead of being baked in), with the filter's
    parameters and buffers as explicit inputs (``torch.func.functional_call``), so that their
    current values are read at every call;
-2. compiled by Inductor (``torch._inductor.compile``, the filter's compile options);
+2. compiled by Inductor (``torch._inductor.compile``, the filter's compile options); on the
+   CPU, a graph whose intermediates are small (`STACK_BYTES`) keeps them in stack arrays of
+   the C++ wrapper (`_stack_arrays`) instead of one tensor handle each;
 3. called directly on the flat state tensors.
 
 Which compiled step a call may use is decided by `config_key` (the filter's
@@ -22,11 +24,12 @@ takes this path; while autograd records, ``step`` uses the Dynamo-compiled graph
 
 from __future__ import annotations
 
+import contextlib
 import operator
 import types
 import warnings
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import torch
@@ -44,6 +47,15 @@ RUNTIME_ATTRS = frozenset({
 
 #: Compiled structures kept per configuration (least recently used dropped first).
 MAX_ENTRIES = 8
+
+#: A captured CPU step whose intermediate values (every node of the graph, summed) take at
+#: most this many bytes is compiled with its C++ wrapper's intermediates in stack arrays.
+#: Inductor's wrapper otherwise creates one tensor handle per intermediate buffer at every
+#: call: about 130 for HSNSMF at batch 1, 65 of the 100 us of its online step (the kernel
+#: itself runs in 5 us). Inductor applies its own limit to what it puts on the stack (100 KB
+#: after fusion and reuse) and allocates as usual above it.
+STACK_BYTES = 1 << 20
+_STACK_OPTIONS = {"aot_inductor.allow_stack_allocation": True, "memory_planning": False}
 
 
 def _value_key(v: Any, pins: list, depth: int = 0) -> Any:
@@ -217,9 +229,13 @@ class DirectSteps:
         example = [*self._tensors, *state, y, *([] if u is None else [u])]
         with torch.no_grad(), traced():
             gm = make_fx(flat_step, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
-        with warnings.catch_warnings():  # torch 2.13's lowering calls its own deprecated check
+        options = self._options
+        stack = options.get("cpp_wrapper") and _intermediate_bytes(gm) <= STACK_BYTES
+        with warnings.catch_warnings(), _stack_arrays(stack) as on:
+            # torch 2.13's lowering calls its own deprecated check
             warnings.filterwarnings("ignore", ".*_prims_common.check", FutureWarning)
-            compiled = inductor_compile(gm, example, options=self._options)
+            compiled = inductor_compile(gm, example, options={
+                **options, **(_STACK_OPTIONS if on else {})})
         (n_out, out_extras), = out_keys
         out_struct = (self._module.filt._out_type, n_out, out_extras)
         tensors = self._tensors
@@ -239,3 +255,72 @@ class DirectSteps:
         while len(self._entries) > MAX_ENTRIES:
             self._entries.popitem(last=False)
         return run
+
+
+def _intermediate_bytes(gm: torch.fx.GraphModule) -> int:
+    """Bytes of every tensor a node of ``gm`` computes, summed (an upper bound of what
+    Inductor allocates after fusion); a tensor on an accelerator counts as unbounded (no
+    stack arrays there)."""
+    total = 0
+    for node in gm.graph.nodes:
+        vals = node.meta.get("val") if node.op == "call_function" else None
+        for v in vals if isinstance(vals, (list, tuple)) else (vals,):
+            if isinstance(v, Tensor):
+                if v.device.type not in ("cpu", "meta"):
+                    return 1 << 62
+                total += v.numel() * v.element_size()
+    return total
+
+
+_WRAPPER: list = []
+
+
+def _stack_wrapper() -> type:
+    """Inductor's C++ wrapper for the CPU that keeps intermediates in stack arrays
+    (``CppWrapperCpuArrayRef``), except the graph's outputs: a stack-allocated output would
+    be returned in a thread-local buffer that the next call overwrites (a trajectory of
+    states, kept step after step, would change under the caller)."""
+    if not _WRAPPER:
+        from torch._inductor.codegen.cpp_wrapper_cpu_array_ref import CppWrapperCpuArrayRef
+        from torch._inductor.virtualized import V
+
+        class _Wrapper(CppWrapperCpuArrayRef):
+            @staticmethod
+            def create(*args: Any, **kwargs: Any) -> _Wrapper:
+                return _Wrapper()
+
+            def can_stack_allocate_buffer(self, buffer: Any) -> bool:
+                outputs = V.graph.get_output_names()
+                return buffer.get_name() not in outputs and super().can_stack_allocate_buffer(
+                    buffer)
+
+        _WRAPPER.append(_Wrapper)
+    return _WRAPPER[0]
+
+
+@contextlib.contextmanager
+def _stack_arrays(enable: bool) -> Iterator[bool]:
+    """`_stack_wrapper` as Inductor's C++ wrapper for the CPU (which Inductor otherwise
+    selects only when its option is set at its first compile in the process), for this
+    compile only: the registration is put back on exit, so other compiles in the process are
+    unaffected. Yields whether it is in place (False when not asked, or when this torch
+    lacks the wrapper: then the compile proceeds as usual)."""
+    entry = old = None
+    if enable:
+        try:
+            from torch._inductor.codegen import common
+
+            wrapper = _stack_wrapper()
+            common.init_backend_registration()
+            entry = common.device_codegens.get("cpu")
+            old = entry.cpp_wrapper_codegen if entry is not None else None
+        except (ImportError, AttributeError):
+            entry = None
+    if entry is None or old is None:
+        yield False
+        return
+    entry.cpp_wrapper_codegen = wrapper
+    try:
+        yield True
+    finally:
+        entry.cpp_wrapper_codegen = old
