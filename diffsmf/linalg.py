@@ -36,7 +36,7 @@ import math
 import torch
 from torch import Tensor
 
-from diffsmf.utils import tracing
+from diffsmf.utils import broadcast_shapes, tracing
 
 __all__ = [
     "CLOSED_FORM_MAX_N", "SMALL_MATMUL_ELEMS", "SMALL_MATMUL_MAX", "cholesky", "cholesky_solve",
@@ -298,8 +298,9 @@ def small_dot(a: Tensor, b: Tensor) -> Tensor:
     multiply-add), within the ``n eps sum |terms|`` that every caller's padding covers.
     """
     n = a.shape[-1]
-    shape = torch.broadcast_shapes(a.shape, b.shape)
-    if n > SMALL_REDUCE_MAX_N or math.prod(shape[:-1]) < SMALL_REDUCE_MIN_OUTPUTS:
+    if n > SMALL_REDUCE_MAX_N or broadcast_shapes(a.shape[:-1], b.shape[:-1]).numel() < (
+        SMALL_REDUCE_MIN_OUTPUTS
+    ):
         return (a * b).sum(-1)
     out = a[..., 0] * b[..., 0]
     for j in range(1, n):

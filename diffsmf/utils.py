@@ -46,6 +46,30 @@ def is_int(value: object) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
+def broadcast_shapes(*shapes: tuple[int, ...]) -> torch.Size:
+    """``torch.broadcast_shapes`` of shapes (not tensors) in plain Python: the same result
+    and a ``RuntimeError`` on shapes that do not broadcast, in 1-2 us instead of 14 us
+    (it is called by the set constructors and linearisations of every eager step)."""
+    first = shapes[0]
+    if all(s == first for s in shapes):
+        return torch.Size(first)
+    n = max(map(len, shapes))
+    out = [1] * n
+    for k, s in enumerate(shapes):
+        off = n - len(s)
+        for i, d in enumerate(s):
+            o = out[off + i]
+            if d != o:
+                if o == 1:
+                    out[off + i] = d
+                elif d != 1:
+                    raise RuntimeError(
+                        "Shape mismatch: objects cannot be broadcast to a single shape. "
+                        f"Mismatch is between arg {k} {list(s)} and the broadcast of the "
+                        f"earlier shapes {out}.")
+    return torch.Size(out)
+
+
 def tracing() -> bool:
     """True while ``torch.compile`` (or `traced`) traces the code: then host-syncing
     checks are skipped and data-dependent branches take their general, branch-free form."""

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from diffsmf import linalg
 from diffsmf.sets.zonotope import _best_basis
@@ -229,3 +231,23 @@ def test_small_sum_same_bits_as_sum(k: int, dim: int) -> None:
             ref = x.sum(dim, keepdim=keep)
             out = linalg.small_sum(x, dim, keepdim=keep)
             assert out.shape == ref.shape and torch.equal(out, ref)
+
+
+_SHAPES = st.lists(st.lists(st.integers(0, 3), max_size=4).map(tuple), min_size=1, max_size=4)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_SHAPES)
+def test_broadcast_shapes_agrees_with_torch(shapes):
+    """`diffsmf.utils.broadcast_shapes` (plain Python, used on every eager step) gives
+    ``torch.broadcast_shapes``'s result, and raises where it raises."""
+    from diffsmf.utils import broadcast_shapes
+
+    try:
+        ref = torch.broadcast_shapes(*shapes)
+    except RuntimeError:
+        with pytest.raises(RuntimeError, match="cannot be broadcast"):
+            broadcast_shapes(*shapes)
+        return
+    got = broadcast_shapes(*shapes)
+    assert type(got) is torch.Size and got == ref

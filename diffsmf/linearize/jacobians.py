@@ -16,7 +16,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from diffsmf.utils import tracing
+from diffsmf.utils import broadcast_shapes, tracing
 
 __all__ = [
     "hessian", "jacobian", "stirling_jacobian", "stirling_value_jacobian", "value_and_jacobian",
@@ -73,7 +73,7 @@ def value_and_jacobian(fn: Fn, x: Tensor, *, points: bool = False) -> tuple[Tens
         y = fn(base)
         if not isinstance(y, Tensor) or y.dim() < 1:
             raise ValueError("fn: must return a tensor of shape [..., k]")
-        batch = torch.broadcast_shapes(x.shape[:-1], y.shape[:-1])
+        batch = broadcast_shapes(x.shape[:-1], y.shape[:-1])
         wrt = base
         if batch != x.shape[:-1] or batch != y.shape[:-1]:
             wrt = base.expand(*batch, x.shape[-1])
@@ -104,7 +104,7 @@ def _stacked(fn: Fn, x: Tensor) -> tuple[Tensor, Tensor]:
         if not isinstance(y, Tensor) or y.dim() < 2:
             raise ValueError("fn: must return a tensor of shape [..., k] (batch dims kept)")
         k = y.shape[-1]
-        batch = torch.broadcast_shapes(x.shape[:-1], y.shape[1:-1])
+        batch = broadcast_shapes(x.shape[:-1], y.shape[1:-1])
         if k > r or batch != x.shape[:-1] or y.shape[:-1] != (r, *batch):
             r = max(k, 1)
             wrt = base.expand(r, *batch, n)

@@ -17,7 +17,7 @@ from diffsmf import linalg
 from diffsmf.linalg import small_sum
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.sets.strip import strip_batch, strip_fields
-from diffsmf.utils import checking
+from diffsmf.utils import broadcast_shapes, checking
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -72,7 +72,7 @@ class Parallelotope(ConvexSet):
     @classmethod
     def _make(cls, c: Tensor, T: Tensor) -> Parallelotope:
         """Internal constructor without validation (broadcasts the batch dims)."""
-        batch = torch.broadcast_shapes(c.shape[:-1], T.shape[:-2])
+        batch = broadcast_shapes(c.shape[:-1], T.shape[:-2])
         n = c.shape[-1]
         obj = object.__new__(cls)
         object.__setattr__(obj, "_c", _expand(c, (*batch, n)))

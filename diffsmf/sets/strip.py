@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.sets.base import ConvexSet, as_tensor, as_vector
-from diffsmf.utils import checking
+from diffsmf.utils import broadcast_shapes, checking
 
 __all__ = ["Strip", "strip_batch", "strip_fields"]
 
@@ -62,7 +62,7 @@ class Strip(ConvexSet):
     def _make(cls, normal: Tensor, offset: Tensor, halfwidth: Tensor) -> Strip:
         """Internal constructor without validation (broadcasts the batch dims; no call where
         they agree already)."""
-        batch = torch.broadcast_shapes(normal.shape[:-1], offset.shape, halfwidth.shape)
+        batch = broadcast_shapes(normal.shape[:-1], offset.shape, halfwidth.shape)
         n = normal.shape[-1]
         obj = object.__new__(cls)
         object.__setattr__(obj, "normal", normal if normal.shape[:-1] == batch
@@ -187,7 +187,7 @@ def strip_fields(strip: Any, ref: ConvexSet) -> tuple[Tensor, Tensor, Tensor]:
 def strip_batch(batch: torch.Size, p: Tensor, y: Tensor, sig: Tensor) -> torch.Size:
     """Common batch shape of a set and a strip; ``ValueError`` naming ``strip`` otherwise."""
     try:
-        return torch.broadcast_shapes(batch, p.shape[:-1], y.shape, sig.shape)
+        return broadcast_shapes(batch, p.shape[:-1], y.shape, sig.shape)
     except RuntimeError as exc:
         raise ValueError(
             f"strip: batch shape {tuple(y.shape)} does not broadcast with the set's "

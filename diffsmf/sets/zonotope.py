@@ -34,7 +34,7 @@ from diffsmf.sets.base import (
 )
 from diffsmf.sets.czono_lp import certify_feasible
 from diffsmf.sets.strip import strip_batch, strip_fields
-from diffsmf.utils import HIGHS_OPTIONS, materialize, tracing
+from diffsmf.utils import HIGHS_OPTIONS, broadcast_shapes, materialize, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -252,7 +252,7 @@ class Zonotope(ConvexSet):
     @classmethod
     def _make(cls, c: Tensor, G: Tensor) -> Zonotope:
         """Internal constructor without validation (broadcasts the batch dims)."""
-        batch = torch.broadcast_shapes(c.shape[:-1], G.shape[:-2])
+        batch = broadcast_shapes(c.shape[:-1], G.shape[:-2])
         obj = object.__new__(cls)
         if c.shape[:-1] != batch:
             c = c.expand(*batch, c.shape[-1])
