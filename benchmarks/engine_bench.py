@@ -10,7 +10,8 @@ one compiled ``filt.step`` per measurement inside ``filt.streaming()``).
 
 Printed in one table, with the targets: aten calls per eager HSNSMF step (n = 2, B = 1), the
 rate ratios to the numpy loop, the eager step of a 6-state model with square roots (a cascade
-of six tanks), and the cold compile time per filter and batch size. Median of ``--repeats``.
+of six tanks), and the cold compile time per filter and batch size. Median of ``--repeats``
+(at least ``ONLINE_REPEATS`` for the compiled online row, whose step takes about 0.1 ms).
 
     python benchmarks/engine_bench.py [--steps 10] [--big 10000] [--no-compile] [--threads 1]
 
@@ -38,6 +39,7 @@ from filters_bench import _time_torch  # noqa: E402 - the shared torch timing lo
 
 DT, K0, KD, CD = 0.1, 1.5, 3.0, 1.24
 ONLINE_STEPS = 200  # steps per repeat of the compiled online row
+ONLINE_REPEATS = 9  # at least this many repeats of it (a repeat takes about 20 ms)
 W, V = 2e-3, 1e-3
 
 
@@ -199,10 +201,11 @@ def main() -> None:
             if compiled and args.no_compile:
                 continue
             steps = args.steps if batch <= 1000 or compiled else max(2, args.steps // 5)
+            repeats = args.repeats
             if online:  # a step of ~0.1 ms: enough of them that a hiccup does not decide
-                steps = max(steps, ONLINE_STEPS)
+                steps, repeats = max(steps, ONLINE_STEPS), max(repeats, ONLINE_REPEATS)
             rate, tc = _time_torch(name, system, batch, steps, compiled=compiled,
-                                   online=online, repeats=args.repeats)
+                                   online=online, repeats=repeats)
             mode = "compiled online" if online else "compiled" if compiled else "eager"
             rows.append((f"{name}: {mode}, B = {batch}", f"{rate / ref:.3g}x", target,
                          f"{rate:,.0f} traj-steps/s"))
@@ -216,7 +219,7 @@ def main() -> None:
     for r in rows:
         print("| " + " | ".join(r) + " |")
     print(f"\nratios: diffsmf trajectory-steps/s over the numpy loop's ({ref:,.0f}), same run, "
-          f"median of {args.repeats}.")
+          f"median of {args.repeats} ({max(args.repeats, ONLINE_REPEATS)} online).")
 
 
 if __name__ == "__main__":
