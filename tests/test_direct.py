@@ -161,7 +161,7 @@ def test_a_step_that_cannot_be_captured_falls_back_to_dynamo(monkeypatch):
     tr = s.simulate(steps=4, batch=2, seed=1)
     eager = ds.filters.EKF(s)
     comp = ds.filters.EKF(s).compile(backend="eager")
-    comp._direct_options = {}  # as after an Inductor compile, so that streaming() tries
+    comp._direct_options = ({}, {})  # as after an Inductor compile: streaming() tries
 
     def fail(*args, **kw):
         raise NotImplementedError("no fake implementation of some op")
@@ -243,3 +243,31 @@ def test_small_step_keeps_intermediates_on_the_stack_for_this_compile_only(monke
         assert torch.equal(a, b)
     _close(st1, ref1)
     _close(st2, ref2)
+
+
+def test_a_large_batch_is_compiled_without_the_memory_pool(monkeypatch):
+    """From `runtime.LARGE_BATCH` trajectories on, the captured step is compiled with
+    ``memory_planning`` off (unless the user's options set it); a small one keeps its
+    intermediates on the stack. Inductor is replaced by the captured graph itself here, so
+    the states must be the eager filter's."""
+    from diffsmf.filters import runtime
+
+    assert runtime.large_batch_options({"memory_planning": True}, {})["memory_planning"] is False
+    mine = {"memory_planning": True}
+    assert runtime.large_batch_options(mine, mine) is mine
+    seen = []
+
+    def fake_inductor(gm, example, options=None):
+        seen.append(options)
+        return lambda *args: gm(*args)
+
+    monkeypatch.setattr(torch._inductor, "compile", fake_inductor)
+    s = ds.systems.get("spring_damper")
+    eager, comp = ds.filters.EKF(s), ds.filters.EKF(s).compile()
+    for B in (2, runtime.LARGE_BATCH):
+        y = s.simulate(steps=2, batch=B, seed=0).y
+        with torch.no_grad(), comp.streaming():
+            _close(_run(comp, y, B), _run(eager, y, B))
+    small, large = seen
+    assert small["aot_inductor.allow_stack_allocation"] is True
+    assert large["memory_planning"] is False and "aot_inductor.allow_stack_allocation" not in large

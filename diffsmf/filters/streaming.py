@@ -167,9 +167,14 @@ class DirectSteps:
     returns the next flat state, like `diffsmf.filters.state.flat_step`. Call it in no-grad mode.
     """
 
-    def __init__(self, filt: nn.Module, options: dict[str, Any]) -> None:
+    def __init__(
+        self, filt: nn.Module, options: dict[str, Any], large_options: dict[str, Any] | None = None,
+        large_batch: int | None = None,
+    ) -> None:
         self._module = _Step(filt)
         self._options = options
+        # the options of a batch of at least large_batch (see runtime.LARGE_BATCH)
+        self._large = (large_batch, large_options) if large_options is not None else None
         self._entries: OrderedDict[tuple, Callable] = OrderedDict()
         named = [*self._module.named_parameters(), *self._module.named_buffers()]
         self._names = [k for k, _ in named]
@@ -230,6 +235,8 @@ class DirectSteps:
         with torch.no_grad(), traced():
             gm = make_fx(flat_step, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
         options = self._options
+        if self._large is not None and state[n_fields].numel() >= self._large[0]:
+            options = self._large[1]  # (state[n_fields] is consistent [B])
         stack = options.get("cpp_wrapper") and _intermediate_bytes(gm) <= STACK_BYTES
         with warnings.catch_warnings(), _stack_arrays(stack) as on:
             # torch 2.13's lowering calls its own deprecated check
