@@ -135,15 +135,19 @@ def test_compile_options(monkeypatch):
     monkeypatch.setattr(torch, "compile", lambda fn, **kw: seen.append(kw) or fn)
     s = ds.systems.get("spring_damper")
     ds.filters.EKF(s).compile()
-    assert seen[-1]["options"] == {
-        "cpp.vec_isa_ok": False, "cpp_wrapper": True, "memory_planning": True
-    }
-    assert seen[-1]["fullgraph"]
+    small = {"cpp.vec_isa_ok": False, "cpp_wrapper": True, "memory_planning": True}
+    # one step and K steps, then both again for a batch of at least LARGE_BATCH (no pool)
+    assert [kw["options"] for kw in seen[-4:]] == [small] * 2 + [
+        {**small, "memory_planning": False}] * 2
+    assert all(kw["fullgraph"] for kw in seen[-4:])
     ds.filters.EKF(s).compile(options={"cpp.vec_isa_ok": None, "max_autotune": False})
     assert seen[-1]["options"] == {
-        "cpp.vec_isa_ok": None, "cpp_wrapper": True, "memory_planning": True,
+        "cpp.vec_isa_ok": None, "cpp_wrapper": True, "memory_planning": False,
         "max_autotune": False,
     }
+    n = len(seen)
+    ds.filters.EKF(s).compile(options={"memory_planning": True})  # the user's: both sides
+    assert len(seen) == n + 2 and seen[-1]["options"]["memory_planning"] is True
     ds.filters.EKF(s).compile(backend="eager")
     assert "options" not in seen[-1]
     ds.filters.EKF(s).compile(mode="default")
