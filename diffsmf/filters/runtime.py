@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import itertools
 import logging
 import math
 import types
@@ -245,8 +246,9 @@ def check_step_y(y: Any, state: FilterState, m: int, dtype: torch.dtype, skip_na
 
 def check_finite_y(y: Tensor, skip_nan: bool) -> Tensor:
     """``y`` unchanged; inf raises, NaN raises unless ``skip_nan`` (host syncs)."""
-    if y.numel() <= _SMALL_Y and y.device.type == "cpu":  # online B = 1: no tensor ops
-        if all(map(math.isfinite, y.reshape(-1).tolist())):
+    if y.numel() <= _SMALL_Y and y.is_cpu:  # online B = 1: no tensor ops
+        values = y.tolist() if y.dim() == 2 else [y.reshape(-1).tolist()]  # [B, m] rows
+        if all(map(math.isfinite, itertools.chain.from_iterable(values))):
             return y
     elif bool(torch.isfinite(y).all()):  # the common case: one check
         return y
