@@ -223,7 +223,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.set_default_dtype(torch.float64)
-    torch.set_default_device(args.device)
+    if args.device != "cpu":  # a default device is a torch-function mode on every torch call
+        torch.set_default_device(args.device)
     machine = platform.processor() or platform.machine()
     print(f"{time.strftime('%Y-%m-%d')}, commit {_commit()}, {machine}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} thread(s)")
