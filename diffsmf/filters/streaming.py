@@ -25,6 +25,7 @@ takes this path; while autograd records, ``step`` uses the Dynamo-compiled graph
 from __future__ import annotations
 
 import contextlib
+import functools
 import operator
 import types
 import warnings
@@ -168,13 +169,13 @@ class DirectSteps:
     """
 
     def __init__(
-        self, filt: nn.Module, options: dict[str, Any], large_options: dict[str, Any] | None = None,
-        large_batch: int | None = None,
+        self, filt: nn.Module, options: dict[str, Any], large_options: dict[str, Any],
+        large_batch: int,
     ) -> None:
         self._module = _Step(filt)
         self._options = options
         # the options of a batch of at least large_batch (see runtime.LARGE_BATCH)
-        self._large = (large_batch, large_options) if large_options is not None else None
+        self._large_options, self._large_batch = large_options, large_batch
         self._entries: OrderedDict[tuple, Callable] = OrderedDict()
         named = [*self._module.named_parameters(), *self._module.named_buffers()]
         self._names = [k for k, _ in named]
@@ -242,9 +243,8 @@ class DirectSteps:
         example = [*self._tensors, *state, y, *([] if u is None else [u])]
         with torch.no_grad(), traced():
             gm = make_fx(flat_step, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
-        options = self._options
-        if self._large is not None and state[n_fields].numel() >= self._large[0]:
-            options = self._large[1]  # (state[n_fields] is consistent [B])
+        big = state[n_fields].numel() >= self._large_batch  # (state[n_fields]: consistent [B])
+        options = self._large_options if big else self._options
         stack = options.get("cpp_wrapper") and _intermediate_bytes(gm) <= STACK_BYTES
         with warnings.catch_warnings(), _stack_arrays(stack) as on:
             # torch 2.13's lowering calls its own deprecated check
@@ -287,30 +287,25 @@ def _intermediate_bytes(gm: torch.fx.GraphModule) -> int:
     return total
 
 
-_WRAPPER: list = []
-
-
+@functools.cache
 def _stack_wrapper() -> type:
     """Inductor's C++ wrapper for the CPU that keeps intermediates in stack arrays
     (``CppWrapperCpuArrayRef``), except the graph's outputs: a stack-allocated output would
     be returned in a thread-local buffer that the next call overwrites (a trajectory of
     states, kept step after step, would change under the caller)."""
-    if not _WRAPPER:
-        from torch._inductor.codegen.cpp_wrapper_cpu_array_ref import CppWrapperCpuArrayRef
-        from torch._inductor.virtualized import V
+    from torch._inductor.codegen.cpp_wrapper_cpu_array_ref import CppWrapperCpuArrayRef
+    from torch._inductor.virtualized import V
 
-        class _Wrapper(CppWrapperCpuArrayRef):
-            @staticmethod
-            def create(*args: Any, **kwargs: Any) -> _Wrapper:
-                return _Wrapper()
+    class _Wrapper(CppWrapperCpuArrayRef):
+        @staticmethod
+        def create(*args: Any, **kwargs: Any) -> _Wrapper:
+            return _Wrapper()
 
-            def can_stack_allocate_buffer(self, buffer: Any) -> bool:
-                outputs = V.graph.get_output_names()
-                return buffer.get_name() not in outputs and super().can_stack_allocate_buffer(
-                    buffer)
+        def can_stack_allocate_buffer(self, buffer: Any) -> bool:
+            outputs = V.graph.get_output_names()
+            return buffer.get_name() not in outputs and super().can_stack_allocate_buffer(buffer)
 
-        _WRAPPER.append(_Wrapper)
-    return _WRAPPER[0]
+    return _Wrapper
 
 
 @contextlib.contextmanager

@@ -15,7 +15,7 @@ from diffsmf.filters.base import SetFilter
 from diffsmf.filters.events import FilterEvent
 from diffsmf.filters.params import stirling_steps
 from diffsmf.filters.remainders import ROUND_REL, checked_remainder, rounding_margin
-from diffsmf.linearize.remainders import is_affine
+from diffsmf.linearize.remainders import float_padding, is_affine
 from diffsmf.sets.base import ConvexSet, align, where
 from diffsmf.sets.interval import Interval
 from diffsmf.sets.parallelotope import Parallelotope
@@ -29,10 +29,6 @@ __all__ = [
     "stirling_strip_update",
 ]
 
-#: Padding of the float evaluation of an affine ``h`` about ``c``, in units of eps times the
-#: magnitudes involved (the same padding as the remainder of an affine function,
-#: `diffsmf.linearize.dc_remainder`).
-_AFFINE_PAD_ULPS = 64.0
 
 def measurement_strips(
     h: Callable[[Tensor], Tensor],
@@ -145,11 +141,10 @@ def _affine_strips(
     ``|J_exact| + |J|``; it cannot be unbounded, so no remainder events) -> normal, offset,
     halfwidth ``[B, m]`` (``hc``: ``h(c)`` where the caller has it)."""
     hc = h(c) if hc is None else hc
-    eps = torch.finfo(hc.dtype)
     with torch.no_grad():  # a padding: no gradient (no detach call)
         mag = _hull_magnitude(S)
         scale = hc.abs() + 2.0 * (H.abs() * mag.unsqueeze(-2)).sum(-1)
-        tol = (_AFFINE_PAD_ULPS * eps.eps) * scale + eps.tiny  # [B, m]
+        tol = float_padding(scale)  # [B, m], the remainders' padding of an affine function
     Hc = (H * c.unsqueeze(-2)).sum(-1)
     offset, half = _offset_half(hc, None, tol, Hc, y, vbox, system)
     if system.angle_outputs:

@@ -38,6 +38,7 @@ __all__ = [
     "REMAINDERS",
     "dc_remainder",
     "diagonal_shift",
+    "float_padding",
     "hessian_eig_lower_bound",
     "is_affine",
     "lagrange_remainder",
@@ -137,9 +138,17 @@ def _check(S: ConvexSet, c: Tensor, J: Tensor | None) -> tuple[Tensor, Tensor | 
     return c, J
 
 
+def float_padding(scale: Tensor) -> Tensor:
+    """``_PAD_ULPS * eps * scale + tiny`` (``scale`` detached): the outward padding of a
+    bound for the float error of terms of magnitude at most ``scale`` (also the strips'
+    padding of an affine measurement function, `diffsmf.filters.strips`)."""
+    fi = torch.finfo(scale.dtype)
+    return (_PAD_ULPS * fi.eps) * _nograd(scale) + fi.tiny
+
+
 def _padded(lo: Tensor, hi: Tensor, scale: Tensor) -> Interval:
-    """``[lo - tol, hi + tol]`` with ``tol = PAD * eps * scale`` (detached) + tiny."""
-    tol = (_PAD_ULPS * _eps(lo)) * _nograd(scale) + torch.finfo(lo.dtype).tiny
+    """``[lo - tol, hi + tol]`` with ``tol = float_padding(scale)``."""
+    tol = float_padding(scale)
     # internal bounds (lo <= hi by construction): no validation, and no host sync, per call;
     # a NaN propagates to the filters' guard (sanitize_remainder), which flags the element
     return Interval._make(lo - tol, hi + tol)
