@@ -5,9 +5,11 @@
 ``_predict(state, u)`` and ``_update(state, y)`` (and ``_initial_state(batch)`` when its start
 is not the system's initial set); the public ``predict``, ``update`` and ``initial_state``
 validate the inputs, record the events and call them. NaN handling, the boundedness guard
-and result assembly live here once. The compiled runtime (``compile``, ``step``,
-``streaming``, the compiled time loop of ``forward``) is `diffsmf.filters.runtime`; the
-state and its flat form are `diffsmf.filters.state`.
+and result assembly live here once (the guard's tests of a set are in
+`diffsmf.filters.events`; ``carry`` and ``bounded_result``, which combine states, in
+`diffsmf.filters.state`). The compiled runtime (``compile``, ``step``, ``streaming``, the
+compiled time loop of ``forward``) is `diffsmf.filters.runtime`; the state and its flat form
+are `diffsmf.filters.state`.
 """
 
 from __future__ import annotations
@@ -20,17 +22,27 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.filters import runtime
-from diffsmf.filters.events import FilterEvent, mark_unbounded
+from diffsmf.filters.events import (
+    MAX_SET_RADIUS,
+    FilterEvent,
+    all_small,
+    finite_fields,
+    hull_radius,
+)
 from diffsmf.filters.params import register_minkowski_scale, scaled_minkowski_sum
 from diffsmf.filters.runtime import COMPILE_OPTIONS, compiled_loop
 from diffsmf.filters.state import (
     FilterResult,
     FilterState,
+    bounded_result,
+    carry,
     flat_state,
+    pad_and_stack,
     state_batch,
     state_from_flat,
+    with_events,
 )
-from diffsmf.sets.base import ConvexSet, align, family, stack, where
+from diffsmf.sets.base import ConvexSet, align, family, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System, check_system
 from diffsmf.utils import (
@@ -60,61 +72,6 @@ __all__ = [
 ]
 
 
-#: A set whose interval hull has a half-width above this (or any non-finite field) is
-#: *unbounded*: flagged ``bounded=False`` from then on, its bounds reported as +-inf.
-MAX_SET_RADIUS = 1e100
-
-def carry(prev: FilterState, new: FilterState, update: bool = False) -> FilterState:
-    """``new`` with what ``prev`` had met: ``bounded`` stays False once False and the event
-    bits accumulate (a filter's step may build its state afresh); after an update, a
-    measurement is never inconsistent against an unbounded set (``consistent |= ~bounded``)."""
-    b = new.bounded
-    if prev.bounded is not None and b is not prev.bounded:  # (b & b is b)
-        b = prev.bounded if b is None else prev.bounded & b
-    ev = prev.extras.get("events")
-    extras = new.extras
-    if ev is not None:
-        now = extras.get("events")
-        if now is not ev:
-            extras = {**extras, "events": ev if now is None else ev | now}
-    consistent = new.consistent
-    if update and b is not None:
-        consistent = b <= consistent  # consistent | ~b, one op on bools
-    return FilterState(new.set, consistent, extras, b)
-
-
-def _finite_fields(S: ConvexSet) -> Tensor:
-    """``[*B]`` bool: every field of ``S`` finite (``t * 0`` is NaN exactly at a NaN or an
-    infinite entry, and a sum of zeros cannot overflow)."""
-    nb = len(S.batch_shape)
-    z = None
-    for t in S._tensors():
-        zt = (t * 0).sum(tuple(range(nb, t.dim()))) if t.dim() > nb else t * 0
-        z = zt if z is None else z + zt
-    return z == 0
-
-
-def _hull_radius(S: ConvexSet) -> Tensor:
-    """Half-widths ``[*B, n]`` of the interval hull of ``S`` (for a zonotope or a
-    parallelotope ``sum_j |G_ij|`` directly, else ``S.interval_hull().radius``)."""
-    if type(S) is family("Zonotope"):
-        return S.generators.abs().sum(-1)
-    if type(S) is family("Parallelotope"):
-        return S.T.abs().sum(-1)
-    if tracing():
-        return S.interval_hull().radius
-    with numerical_events():  # the hull of a non-finite set: NaN, flagged, never raised
-        return S.interval_hull().radius
-
-
-def _all_small(r: Tensor, c: Tensor) -> bool:
-    """Whether every half-width ``r`` is at most `MAX_SET_RADIUS` and every centre ``c`` is
-    finite (one host read: ``r + 0 c`` is NaN at a NaN / inf centre, the max propagates NaN);
-    read without the gradient, so no warning while autograd records."""
-    with torch.no_grad():
-        return float(torch.add(r, c, alpha=0).max()) <= MAX_SET_RADIUS
-
-
 def _noise_box(filt: nn.Module, name: str, c: Tensor, r: Tensor) -> Interval:
     """``Interval(c - r, c + r)``; without autograd recording, eagerly, the box of the last call
     again while ``r`` is the same tensor (`Positive` reuses its value) and ``c`` unchanged."""
@@ -141,15 +98,6 @@ def _flagging(fn: Callable[..., FilterState], *args: Any) -> FilterState:
         return fn(*args)
 
 
-def _with_events(state: FilterState) -> FilterState:
-    """``state`` with ``extras["events"]`` (zeros ``[B]`` int64) when it has none, so that
-    every state of a run has the same structure (one compiled graph)."""
-    if "events" in state.extras:
-        return state
-    ev = torch.zeros(state.consistent.shape, dtype=torch.int64, device=state.consistent.device)
-    return state.replace(extras={**state.extras, "events": ev})
-
-
 def check_filter(name: str, filt: Any, system: System | None = None) -> Any:
     """``filt`` itself, or a ``ValueError`` naming ``name`` when it is not a filter instance
     built on a `System` (any ``nn.Module`` with a ``system``: the set
@@ -170,45 +118,6 @@ def check_filter(name: str, filt: Any, system: System | None = None) -> Any:
             f"m = {own.m}"
         )
     return filt
-
-
-def bounded_result(
-    cls: type,
-    states: list[FilterState],
-    sets: ConvexSet,
-    center: Tensor,
-    lower: Tensor,
-    upper: Tensor,
-    volume: Tensor,
-    extras: dict[str, Tensor],
-) -> FilterResult:
-    """A ``cls`` (`FilterResult` or a subclass) from stacked per-step quantities, with
-    the ``bounded [B, T+1]`` flags of ``states`` applied: where a set stopped being finite,
-    ``lower = -inf``, ``upper = +inf``, ``volume = inf`` and ``center`` is NaN (one home for
-    that rule, used by every filter's ``collect``)."""
-    bounded = torch.stack(
-        [torch.ones_like(s.consistent) if s.bounded is None else s.bounded for s in states], 1
-    )
-    b = bounded.unsqueeze(-1)
-    inf = torch.full_like(lower, torch.inf)
-    if "events" not in extras and all("events" in s.extras for s in states):
-        extras = {**extras, "events": torch.stack([s.extras["events"] for s in states], 1)}
-    return cls(
-        sets=sets if tracing() or bool(bounded.all()) else mark_unbounded(sets, bounded),
-        center=torch.where(b, center, torch.full_like(center, torch.nan)),
-        lower=torch.where(b, lower, -inf),
-        upper=torch.where(b, upper, inf),
-        volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
-        consistent=torch.stack([s.consistent for s in states], 1) | ~bounded,
-        extras=extras,
-        bounded=bounded,
-    )
-
-
-def _pad_and_stack(sets: list[ConvexSet]) -> ConvexSet:
-    """Stack along a new dim 1; zonotopes with differing generator counts are zero-padded."""
-    return stack(align(sets), dim=1)
-
 
 
 class SetFilter(nn.Module):
@@ -338,7 +247,7 @@ class SetFilter(nn.Module):
     def initial_state(self, batch: int | None = None) -> FilterState:
         """State at k = 0, batch shape ``[batch]``: the subclass's `_initial_state` with
         ``extras["events"]`` (zeros) so that every state of a run has one structure."""
-        return _with_events(self._initial_state(batch))
+        return with_events(self._initial_state(batch))
 
     def _initial_state(self, batch: int | None) -> FilterState:
         """Hook: the state at k = 0 (default: the system's initial set)."""
@@ -413,16 +322,16 @@ class SetFilter(nn.Module):
         Branch-free while traced; eagerly, a batch that is all bounded skips the replacement.
         """
         S = state.set
-        r = _hull_radius(S)
+        r = hull_radius(S)
         was = state.bounded
         if not tracing() and type(S) in (family("Zonotope"), family("Parallelotope")) and (
-            r.numel() > 0 and _all_small(r, S.center)
+            r.numel() > 0 and all_small(r, S.center)
         ):  # eager, every element finite and small: nothing to flag or replace
             b = torch.ones_like(state.consistent) if was is None else was
-            new = _with_events(state).replace(bounded=b)
+            new = with_events(state).replace(bounded=b)
             # consistent | ~b, one op on bools
             return new if was is None else new.replace(consistent=b <= state.consistent)
-        finite = _finite_fields(S)
+        finite = finite_fields(S)
         small = (r <= MAX_SET_RADIUS).all(-1)  # NaN: False
         ok = finite & small
         lost = ~ok if was is None else was & ~ok
@@ -487,7 +396,7 @@ class SetFilter(nn.Module):
 
     def collect(self, states: list[FilterState]) -> FilterResult:
         """Assemble a `FilterResult` from the per-step states."""
-        sets = _pad_and_stack([s.set for s in states])
+        sets = pad_and_stack([s.set for s in states])
         hull = runtime.compiled_hull_and_volume(self, sets)
         if hull is None:
             box = sets.interval_hull()

@@ -25,6 +25,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.sets.base import ConvexSet, family
+from diffsmf.utils import numerical_events, tracing
+
 __all__ = [
     "LOSES_BOUND",
     "FilterEvent",
@@ -208,3 +211,42 @@ def mark_unbounded(S: Any, bounded: Tensor | None) -> Any:
 def is_marked(S: Any) -> bool:
     """Whether ``S`` is a set returned by `mark_unbounded` with some unbounded element."""
     return isinstance(S, _Unbounded)
+
+
+# ------------------------------------------------------------------ the boundedness guard
+
+#: A set whose interval hull has a half-width above this (or any non-finite field) is
+#: *unbounded*: flagged ``bounded=False`` from then on, its bounds reported as +-inf.
+MAX_SET_RADIUS = 1e100
+
+
+def finite_fields(S: ConvexSet) -> Tensor:
+    """``[*B]`` bool: every field of ``S`` finite (``t * 0`` is NaN exactly at a NaN or an
+    infinite entry, and a sum of zeros cannot overflow)."""
+    nb = len(S.batch_shape)
+    z = None
+    for t in S._tensors():
+        zt = (t * 0).sum(tuple(range(nb, t.dim()))) if t.dim() > nb else t * 0
+        z = zt if z is None else z + zt
+    return z == 0
+
+
+def hull_radius(S: ConvexSet) -> Tensor:
+    """Half-widths ``[*B, n]`` of the interval hull of ``S`` (for a zonotope or a
+    parallelotope ``sum_j |G_ij|`` directly, else ``S.interval_hull().radius``)."""
+    if type(S) is family("Zonotope"):
+        return S.generators.abs().sum(-1)
+    if type(S) is family("Parallelotope"):
+        return S.T.abs().sum(-1)
+    if tracing():
+        return S.interval_hull().radius
+    with numerical_events():  # the hull of a non-finite set: NaN, flagged, never raised
+        return S.interval_hull().radius
+
+
+def all_small(r: Tensor, c: Tensor) -> bool:
+    """Whether every half-width ``r`` is at most `MAX_SET_RADIUS` and every centre ``c`` is
+    finite (one host read: ``r + 0 c`` is NaN at a NaN / inf centre, the max propagates NaN);
+    read without the gradient, so no warning while autograd records."""
+    with torch.no_grad():
+        return float(torch.add(r, c, alpha=0).max()) <= MAX_SET_RADIUS

@@ -16,7 +16,8 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.filters.base import FilterState, SetFilter, _hull_radius
+from diffsmf.filters.base import FilterState, SetFilter
+from diffsmf.filters.events import hull_radius
 from diffsmf.filters.params import (
     register_remainder,
     register_remainder_margin,
@@ -103,7 +104,7 @@ class HSNSMF(SetFilter):
         P = state.set
         c, T = P.center, P.T
         fn = step_function(self.system, u)
-        h = stirling_steps(self, c, _hull_radius(P))  # the hull's half-widths sum_j |T_ij|
+        h = stirling_steps(self, c, hull_radius(P))  # the hull's half-widths sum_j |T_ij|
         fc, F = stirling_value_jacobian(fn, c, h)  # eq. 12 and f(c) in one call of f
         E, ev = prediction_remainder(  # not finite: flagged (events), never NaN
             self.system, self.remainder_fn, fn, P, c, F, u, self.remainder_margin, events=True

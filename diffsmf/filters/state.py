@@ -15,7 +15,8 @@ import torch
 from torch import Tensor
 
 from diffsmf.filters.events import LOSES_BOUND, FilterEvent, mark_unbounded
-from diffsmf.sets.base import ConvexSet, check_count, check_nonempty
+from diffsmf.sets.base import ConvexSet, align, check_count, check_nonempty, stack
+from diffsmf.utils import tracing
 
 __all__ = [
     "FilterResult",
@@ -288,3 +289,69 @@ def state_batch(batch: Any) -> int:
     """The ``batch`` argument of ``initial_state``: ``None`` -> 1, else an ``int >= 0`` (not
     a ``bool``); anything else raises ``ValueError`` naming ``batch``."""
     return 1 if batch is None else check_count("batch", batch)
+
+
+def carry(prev: FilterState, new: FilterState, update: bool = False) -> FilterState:
+    """``new`` with what ``prev`` had met: ``bounded`` stays False once False and the event
+    bits accumulate (a filter's step may build its state afresh); after an update, a
+    measurement is never inconsistent against an unbounded set (``consistent |= ~bounded``)."""
+    b = new.bounded
+    if prev.bounded is not None and b is not prev.bounded:  # (b & b is b)
+        b = prev.bounded if b is None else prev.bounded & b
+    ev = prev.extras.get("events")
+    extras = new.extras
+    if ev is not None:
+        now = extras.get("events")
+        if now is not ev:
+            extras = {**extras, "events": ev if now is None else ev | now}
+    consistent = new.consistent
+    if update and b is not None:
+        consistent = b <= consistent  # consistent | ~b, one op on bools
+    return FilterState(new.set, consistent, extras, b)
+
+
+def with_events(state: FilterState) -> FilterState:
+    """``state`` with ``extras["events"]`` (zeros ``[B]`` int64) when it has none, so that
+    every state of a run has the same structure (one compiled graph)."""
+    if "events" in state.extras:
+        return state
+    ev = torch.zeros(state.consistent.shape, dtype=torch.int64, device=state.consistent.device)
+    return state.replace(extras={**state.extras, "events": ev})
+
+
+def bounded_result(
+    cls: type,
+    states: list[FilterState],
+    sets: ConvexSet,
+    center: Tensor,
+    lower: Tensor,
+    upper: Tensor,
+    volume: Tensor,
+    extras: dict[str, Tensor],
+) -> FilterResult:
+    """A ``cls`` (`FilterResult` or a subclass) from stacked per-step quantities, with
+    the ``bounded [B, T+1]`` flags of ``states`` applied: where a set stopped being finite,
+    ``lower = -inf``, ``upper = +inf``, ``volume = inf`` and ``center`` is NaN (one home for
+    that rule, used by every filter's ``collect``)."""
+    bounded = torch.stack(
+        [torch.ones_like(s.consistent) if s.bounded is None else s.bounded for s in states], 1
+    )
+    b = bounded.unsqueeze(-1)
+    inf = torch.full_like(lower, torch.inf)
+    if "events" not in extras and all("events" in s.extras for s in states):
+        extras = {**extras, "events": torch.stack([s.extras["events"] for s in states], 1)}
+    return cls(
+        sets=sets if tracing() or bool(bounded.all()) else mark_unbounded(sets, bounded),
+        center=torch.where(b, center, torch.full_like(center, torch.nan)),
+        lower=torch.where(b, lower, -inf),
+        upper=torch.where(b, upper, inf),
+        volume=torch.where(bounded, volume, torch.full_like(volume, torch.inf)),
+        consistent=torch.stack([s.consistent for s in states], 1) | ~bounded,
+        extras=extras,
+        bounded=bounded,
+    )
+
+
+def pad_and_stack(sets: list[ConvexSet]) -> ConvexSet:
+    """Stack along a new dim 1; zonotopes with differing generator counts are zero-padded."""
+    return stack(align(sets), dim=1)
