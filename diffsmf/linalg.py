@@ -287,6 +287,10 @@ def small_sum(x: Tensor, dim: int, keepdim: bool = False) -> Tensor:
 #: output); smaller ones are a product and a sum (two ops).
 SMALL_REDUCE_MIN_OUTPUTS = 1 << 14
 SMALL_REDUCE_MAX_N = 4
+#: Eagerly, `small_dot` with more than `SMALL_REDUCE_MAX_N` terms contracts with ``einsum``
+#: (a batched matmul) from this many products on: 10-25x faster than the product and sum on
+#: CPU at 60k-600k products, 2x slower below about 8k (its fixed cost).
+EINSUM_MIN_PRODUCT = 1 << 13
 
 
 def small_dot(a: Tensor, b: Tensor) -> Tensor:
@@ -294,13 +298,19 @@ def small_dot(a: Tensor, b: Tensor) -> Tensor:
 
     Small outputs: a product and a sum (two ops). Large ones: the first product, then
     ``addcmul_`` in place (no temporary per term: a fresh large tensor costs its page
-    faults). The two may differ in the last bits (order of the additions, a fused
-    multiply-add), within the ``n eps sum |terms|`` that every caller's padding covers.
+    faults); more than `SMALL_REDUCE_MAX_N` terms, eagerly: ``einsum``. They may differ in
+    the last bits (order of the additions, a fused multiply-add), within the
+    ``n eps sum |terms|`` that every caller's padding covers.
     """
     n = a.shape[-1]
-    if n > SMALL_REDUCE_MAX_N or broadcast_shapes(a.shape[:-1], b.shape[:-1]).numel() < (
-        SMALL_REDUCE_MIN_OUTPUTS
-    ):
+    outputs = broadcast_shapes(a.shape[:-1], b.shape[:-1]).numel()
+    if n > SMALL_REDUCE_MAX_N:
+        if outputs * n >= EINSUM_MIN_PRODUCT and a.dtype == b.dtype and not tracing():
+            # a broadcast product of many elements (e.g. every tangent point against every
+            # vertex): einsum contracts it as a batched matmul, never materialising it
+            return torch.einsum("...j,...j->...", a, b)
+        return (a * b).sum(-1)
+    if outputs < SMALL_REDUCE_MIN_OUTPUTS:
         return (a * b).sum(-1)
     out = a[..., 0] * b[..., 0]
     for j in range(1, n):

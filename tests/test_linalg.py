@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -251,3 +253,54 @@ def test_broadcast_shapes_agrees_with_torch(shapes):
         return
     got = broadcast_shapes(*shapes)
     assert type(got) is torch.Size and got == ref
+
+
+@pytest.mark.parametrize("sa,sb", [((4, 1, 6, 6), (65, 64, 1, 1, 1, 6)),  # einsum, broadcast
+                                   ((3000, 5), (5,)),  # einsum, one operand shared
+                                   ((2, 7), (3, 1, 7)),  # small: product and sum
+                                   ((40, 1, 3), (1, 500, 3))])  # n <= 4: unrolled
+def test_small_dot_matches_numpy(sa, sb) -> None:
+    """`linalg.small_dot` on every path (product and sum, unrolled, einsum) against numpy's
+    broadcast product and sum, to the rounding of n terms; the gradient flows."""
+    g = torch.Generator().manual_seed(2)
+    a = torch.randn(sa, generator=g, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(sb, generator=g, dtype=torch.float64)
+    out = linalg.small_dot(a, b)
+    ref = (a.detach().numpy() * b.numpy()).sum(-1)
+    assert out.shape == ref.shape
+    np.testing.assert_allclose(out.detach().numpy(), ref, rtol=1e-13, atol=1e-13)
+    (grad,) = torch.autograd.grad(out.sum(), a)
+    (gref,) = torch.autograd.grad((a * b).sum(), a)
+    torch.testing.assert_close(grad, gref, rtol=1e-12, atol=1e-12)
+
+
+def _least_basis_volume(G: np.ndarray) -> tuple[float, dict]:
+    """numpy brute force: |det T| of Chisci's parallelotope for every regular basis."""
+    n, m = G.shape
+    vols = {}
+    for S in itertools.combinations(range(m), n):
+        B = G[:, S]
+        d = abs(np.linalg.det(B))
+        if d > 1e-12 * np.prod(np.linalg.norm(B, axis=0)):
+            vols[S] = d * np.abs(np.linalg.solve(B, G)).sum(1).prod()
+    return min(vols.values()), vols
+
+
+@pytest.mark.parametrize("n,m", [(4, 4), (4, 7), (5, 9), (6, 12), (8, 10)])
+def test_best_basis_cramer_is_least_volume(n: int, m: int) -> None:
+    """From n = 4 the basis search reads every basis' volume from determinants (Cramer's
+    rule). Against a numpy brute force of determinants and solves: the chosen basis has the
+    least volume (to 1e-9), rank-deficient and repeated generators included, and a batch
+    gives each element its own answer."""
+    g = torch.Generator().manual_seed(n * m)
+    G = torch.randn(6, n, m, generator=g, dtype=torch.float64)
+    G[1, :, 1] = G[1, :, 0]  # a repeated generator (singular when m = n)
+    G[2, :, : m - n + 1] *= 1e-7  # short generators
+    G[3] = G[3, :, :1] * torch.arange(1.0, m + 1, dtype=torch.float64)  # rank 1
+    best, ok = _best_basis(G)
+    assert best.shape == (6, n) and ok.tolist() == [True, m > n, True, False, True, True]
+    for b in (0, 1, 2, 4, 5) if m > n else (0, 2, 4, 5):
+        least, vols = _least_basis_volume(G[b].numpy())
+        assert vols[tuple(best[b].tolist())] == pytest.approx(least, rel=1e-9)
+        one, _ = _best_basis(G[b])
+        assert one.tolist() == best[b].tolist()
