@@ -82,27 +82,17 @@ _SMALL_Y = 64
 #: a compiled step. Same sets and gradients; A/B in one process, 8 interleaved runs each
 #: (spring_damper, B = 1, 1 thread): HSNSMF 0.749 -> 0.421 ms per step, ESMF 1.707 -> 0.973,
 #: EKF 0.104 -> 0.095; cold compile times within 25 %.
-#: ``memory_planning``: the intermediate buffers of a call come from one planned pool instead
-#: of one allocation each (a 4-step CombinedFilter graph allocated 236 tensors per call). Same
-#: sets and gradients (bit for bit in the checks); A/B in one process, interleaved runs
-#: (spring_damper, 1 thread, a quiet machine): CombinedFilter B = 1, 4 steps per call, 0.116 ->
-#: 0.102 ms per step; HSNSMF B = 1 0.239 -> 0.218; HSNSMF B = 10,000 and the EKF unchanged.
+#: ``inplace_buffers`` off: torch 2.13's Inductor, writing a kernel's output over an input it
+#: took for dead, computed CSTR's HSNSMF step (predict and update in one graph) wrong, the
+#: bounds 4e5 from the eager step's; each half alone, or the step without in-place buffers
+#: (or without any buffer reuse), gives the eager bounds to 2e-16.
+#: ``memory_planning`` stays off (Inductor's default): its planner, which places a call's
+#: intermediate buffers in one pool, gave a 6-state HSNSMF step other numbers than the eager
+#: step (the bounds 0.26 apart) and failed on CSTR's step with a RecursionError. It saved
+#: about 30 us per call at B = 1.
 COMPILE_OPTIONS: dict[str, Any] = {
-    "cpp.vec_isa_ok": False, "cpp_wrapper": True, "memory_planning": True,
+    "cpp.vec_isa_ok": False, "cpp_wrapper": True, "inplace_buffers": False,
 }
-
-#: From this batch size on, a compiled step allocates its buffers one by one instead of from
-#: one pool per call (``memory_planning`` off, unless the options name it). At batch 1 the pool
-#: saves a tensor handle per buffer; at B = 10,000 HSNSMF's pool is larger than glibc's
-#: largest reused block (32 MB), so every call mapped it afresh and took its page faults: 71
-#: ms per step with the pool, 50 ms without (45.7 against 48.6 ms with ``retain_memory``).
-LARGE_BATCH = 1024
-
-
-def large_batch_options(options: dict[str, Any], user: dict[str, Any]) -> dict[str, Any]:
-    """``options`` for a batch of at least `LARGE_BATCH`: ``memory_planning`` off, unless the
-    user's options ``user`` set it."""
-    return options if "memory_planning" in user else {**options, "memory_planning": False}
 
 
 def compile_options() -> dict[str, Any]:
@@ -311,9 +301,7 @@ def compile_filter(
             and is faster at run time for these small-matrix steps, and the C++ wrapper,
             which removes Python from the calls between kernels; pass e.g.
             ``options={"cpp.vec_isa_ok": None, "cpp_wrapper": False}`` for Inductor's
-            defaults). Buffers come from one memory pool per call below `LARGE_BATCH`
-            trajectories and are allocated one by one from it on (a separate compiled
-            function per side; an explicit ``memory_planning`` option applies to both).
+            defaults; Inductor's ``memory_planning`` stays off, see `COMPILE_OPTIONS`).
 
     Unlike ``nn.Module.compile`` this compiles the step, not the whole unrolled horizon,
     so compile time does not grow with T.
@@ -326,34 +314,26 @@ def compile_filter(
         retain_freed_memory()
     kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
     filt._direct_options = None  # streaming() calls Inductor's graphs directly
-    large_kw = None  # the options of a batch of at least LARGE_BATCH, where they differ
     if kw.get("backend", "inductor") == "inductor" and "mode" not in kw:
-        user = _check_options(kw.get("options"))
-        kw["options"] = {**compile_options(), **user}
-        large = large_batch_options(kw["options"], user)
-        if large is not kw["options"]:
-            large_kw = {**kw, "options": large}
+        kw["options"] = {**compile_options(), **_check_options(kw.get("options"))}
         if set(kw) <= {"fullgraph", "dynamic", "options", "backend"} and not kw["dynamic"]:
-            filt._direct_options = (kw["options"], large)
+            filt._direct_options = kw["options"]
     filt.__dict__.pop("_direct_cache", None)
     filt.__dict__.pop("_compiled_functions", None)
     filt.__dict__.pop("_guarded_step_failed", None)
     filt._compile_kwargs = kw
     # each its own code object (own recompile budget, see _own_code); compiled lazily
     one, multi = _compiled_pair(filt, kw)
-    one_large, multi_large = (one, multi) if large_kw is None else _compiled_pair(filt, large_kw)
 
     def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
         if not filt._compile_ready(state):
             return filt._eager_step(state, u, y)
         filt._guarded_calls = getattr(filt, "_guarded_calls", 0) + 1  # see run_steps
-        fn = one_large if state.consistent.numel() >= LARGE_BATCH else one
-        return unflatten(filt, fn(*step_args(filt, state), u, y, type(state.set)))
+        return unflatten(filt, one(*step_args(filt, state), u, y, type(state.set)))
 
     def compiled_steps(state: FilterState, us: Tensor | None, ys: Tensor) -> list[FilterState]:
         filt._guarded_calls = getattr(filt, "_guarded_calls", 0) + 1
-        fn = multi_large if state.consistent.numel() >= LARGE_BATCH else multi
-        outs = fn(*step_args(filt, state), us, ys, type(state.set))
+        outs = multi(*step_args(filt, state), us, ys, type(state.set))
         return [unflatten(filt, o) for o in outs]
 
     filt._out_type = type(filt.initial_state(batch=1).set)
@@ -653,7 +633,7 @@ def _direct_steps(filt: nn.Module) -> DirectSteps | None:
         if len(cache) >= _DIRECT_CONFIGS:
             cache.pop(next(iter(cache)))
         # the pinned objects live as long as the key: no other can take their identity
-        cache[key] = (DirectSteps(filt, *options, large_batch=LARGE_BATCH), pins)
+        cache[key] = (DirectSteps(filt, options), pins)
     return cache[key][0]
 
 

@@ -168,14 +168,9 @@ class DirectSteps:
     returns the next flat state, like `diffsmf.filters.state.flat_step`. Call it in no-grad mode.
     """
 
-    def __init__(
-        self, filt: nn.Module, options: dict[str, Any], large_options: dict[str, Any],
-        large_batch: int,
-    ) -> None:
+    def __init__(self, filt: nn.Module, options: dict[str, Any]) -> None:
         self._module = _Step(filt)
         self._options = options
-        # the options of a batch of at least large_batch (see runtime.LARGE_BATCH)
-        self._large_options, self._large_batch = large_options, large_batch
         self._entries: OrderedDict[tuple, Callable] = OrderedDict()
         named = [*self._module.named_parameters(), *self._module.named_buffers()]
         self._names = [k for k, _ in named]
@@ -243,8 +238,7 @@ class DirectSteps:
         example = [*self._tensors, *state, y, *([] if u is None else [u])]
         with torch.no_grad(), traced():
             gm = make_fx(flat_step, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
-        big = state[n_fields].numel() >= self._large_batch  # (state[n_fields]: consistent [B])
-        options = self._large_options if big else self._options
+        options = self._options
         stack = options.get("cpp_wrapper") and _intermediate_bytes(gm) <= STACK_BYTES
         with warnings.catch_warnings(), _stack_arrays(stack) as on:
             # torch 2.13's lowering calls its own deprecated check
