@@ -30,9 +30,13 @@ from diffsmf.utils import numerical_events, tracing
 
 __all__ = [
     "LOSES_BOUND",
+    "MAX_SET_RADIUS",
     "FilterEvent",
+    "all_small",
     "describe_events",
     "event_text",
+    "finite_fields",
+    "hull_radius",
     "is_marked",
     "mark_unbounded",
 ]

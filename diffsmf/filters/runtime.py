@@ -323,7 +323,8 @@ def compile_filter(
     filt.__dict__.pop("_guarded_step_failed", None)
     filt._compile_kwargs = kw
     # each its own code object (own recompile budget, see _own_code); compiled lazily
-    one, multi = _compiled_pair(filt, kw)
+    one = _quiet(torch.compile(_own_code(flat_step).__get__(filt), **kw))
+    multi = _quiet(torch.compile(_own_code(flat_steps).__get__(filt), **kw))
 
     def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
         if not filt._compile_ready(state):
@@ -340,14 +341,6 @@ def compile_filter(
     filt._steps_per_call = steps_per_call
     filt._compiled_step = compiled
     filt._compiled_steps = compiled_steps
-
-
-def _compiled_pair(filt: nn.Module, kw: dict[str, Any]) -> tuple[Callable, Callable]:
-    """The one-step and K-step functions of ``filt`` under ``torch.compile(**kw)``, each
-    with a code object of its own (its own recompile budget, see `_own_code`; compiled
-    lazily, at the first call)."""
-    one = _quiet(torch.compile(_own_code(flat_step).__get__(filt), **kw))
-    return one, _quiet(torch.compile(_own_code(flat_steps).__get__(filt), **kw))
 
 
 @contextlib.contextmanager

@@ -21,6 +21,8 @@ from diffsmf.utils import tracing
 __all__ = [
     "FilterResult",
     "FilterState",
+    "bounded_result",
+    "carry",
     "check_initial_set",
     "expand_state_set",
     "flat_args",
@@ -28,10 +30,12 @@ __all__ = [
     "flat_step",
     "flat_steps",
     "measurement_events",
+    "pad_and_stack",
     "predicted_state",
     "state_batch",
     "state_from_flat",
     "updated_state",
+    "with_events",
 ]
 
 
