@@ -267,3 +267,37 @@ def test_streaming_compiles_with_the_filters_options_at_any_batch(monkeypatch):
     assert small["aot_inductor.allow_stack_allocation"] is True
     assert "aot_inductor.allow_stack_allocation" not in large
     assert not small["memory_planning"] and not large.get("memory_planning", False)
+
+
+def _inductor(fn, example):
+    from torch._inductor import compile as inductor_compile
+    from torch.fx.experimental.proxy_tensor import make_fx
+
+    with torch.no_grad():  # as `DirectSteps` captures
+        gm = make_fx(fn, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
+        return inductor_compile(gm, example, options={"cpp_wrapper": True})
+
+
+def test_entry_calls_inductors_code_directly_only_where_the_wrappers_do_nothing():
+    """`streaming._entry`: a graph with constants of its own and fresh outputs is called at its
+    Inductor entry (the wrapped call's outputs, bit for bit, on new inputs too); a graph that
+    returns one of its inputs keeps AOTAutograd's wrapper (which returns that input itself)."""
+    w = torch.tensor([0.5, -2.0, 3.0])
+    x, y = torch.randn(4, 3), torch.randn(4, 3)
+
+    def fresh(a, b):
+        return [torch.sin(a) * w + b, (a > b).all(-1)]
+
+    compiled = _inductor(fresh, [x, y])
+    call, head = streaming._entry(compiled, [x, y])
+    assert call is compiled.current_callable and len(head) >= 1  # w is the graph's constant
+    x2, y2 = torch.randn(4, 3), torch.randn(4, 3)
+    got, ref = call([*head, x2, y2]), compiled(x2, y2)
+    assert len(got) == 2 and all(torch.equal(a, b) for a, b in zip(got, ref))
+
+    def alias(a, b):
+        return [a, a * b]
+
+    compiled = _inductor(alias, [x, y])
+    call, head = streaming._entry(compiled, [x, y])
+    assert head == [] and call([x, y])[0] is x  # the wrapper, which returns x itself
