@@ -162,6 +162,10 @@ def eigvalsh(S: Tensor) -> Tensor:
         # the tiny floor keeps the gradient finite at a double eigenvalue (sqrt'(0) = inf)
         r = torch.sqrt(h * h + b * b + torch.finfo(S.dtype).tiny)
         return torch.stack([m - r, m + r], -1)
+    if not tracing() and S.device.type == "cpu" and math.isfinite(float(S.sum())):
+        # eagerly on the CPU, one host read: every entry finite (a NaN or inf makes the sum
+        # non-finite; a sum that overflows only takes the masked path)
+        return torch.linalg.eigvalsh(S)
     bad, safe = _finite_or_eye(S)
     return torch.where(bad.unsqueeze(-1), torch.nan, torch.linalg.eigvalsh(safe))
 

@@ -281,3 +281,44 @@ def test_fused_product_sum_equals_two_products_and_a_sum(seed, special):
         assert special != 0.0
         return
     assert torch.equal(fused.lower, ref.lower) and torch.equal(fused.upper, ref.upper)
+
+
+_NONNEG = st.one_of(st.just(0.0), st.just(math.inf), st.just(5e-324),
+                    st.floats(0.0, 1e300, allow_nan=False))
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=st.lists(_NONNEG, min_size=2, max_size=2), n=st.lists(_NONNEG, min_size=2, max_size=2),
+       num=st.floats(1e-3, 1e3), t=st.floats(0.0, 1.0))
+def test_quotient_of_nonnegative_intervals_encloses_the_quotients(x, n, num, t):
+    """`arith.quotient_nonneg`: ``num / [x]`` and ``[n] / [x]`` on non-negative intervals
+    (ends at 0, inf and the smallest subnormal included) contain the quotient of points
+    between the ends (numpy, the exact IEEE quotient rounded to nearest, lies within one ulp
+    of the enclosure's own), and the stacked bounds give the same bits as separate ones."""
+    import numpy as np
+
+    from diffsmf.interval import arith
+
+    lo, hi = sorted(x)
+    nlo, nhi = sorted(n)
+    X = Interval(torch.tensor([lo]), torch.tensor([hi]))
+    N = Interval(torch.tensor([nlo]), torch.tensor([nhi]))
+    xs = lo + t * (hi - lo) if math.isfinite(hi - lo) else (hi if t > 0.5 else lo)
+    for top, pts in ((num, [num]), (N, [nlo, nhi])):
+        prev = arith.stacking(False)
+        try:
+            plain = arith.quotient_nonneg(top, X)
+            arith.stacking(True)
+            stacked = arith.quotient_nonneg(top, X)
+        finally:
+            arith.stacking(prev)
+        for a, b in ((plain.lower, stacked.lower), (plain.upper, stacked.upper)):
+            torch.testing.assert_close(a, b, rtol=0.0, atol=0.0, equal_nan=True)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            ends = np.float64(pts[0]) / np.float64(hi), np.float64(pts[-1]) / np.float64(lo)
+            qs = [np.float64(p) / np.float64(xs) for p in pts]
+        # a bound is NaN exactly where its end quotient is 0 / 0 or inf / inf (documented)
+        assert [math.isnan(e) for e in ends] == [math.isnan(plain.lower.item()),
+                                                 math.isnan(plain.upper.item())]
+        for q in qs:
+            assert not plain.lower.item() > q and not q > plain.upper.item(), (q, plain)

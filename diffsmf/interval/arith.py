@@ -49,7 +49,8 @@ from diffsmf.utils import checking, tracing
 
 __all__ = [
     "TORCH_IMPL", "IntervalArray", "absolute", "add", "as_interval", "clamp", "div",
-    "is_number", "is_point", "matmul", "monotone", "mul", "power", "reciprocal", "relu",
+    "is_number", "is_point", "matmul", "monotone", "mul", "power", "quotient_nonneg",
+    "reciprocal", "relu",
     "rpow", "scale", "shift", "square", "sub", "total", "trig", "wrap_out",
 ]
 
@@ -444,6 +445,35 @@ def tensor_of(a: Iv) -> Tensor:
 def is_number(x: Any) -> bool:
     """A finite Python int or float (not a bool)."""
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def quotient_nonneg(num: float | Iv, x: Iv) -> Any:
+    """``num / [x]`` for ``x >= 0`` and ``num >= 0`` (a number, or an interval array): a
+    quotient of non-negative numbers falls with ``x`` and grows with ``num``, so its range is
+    ``[num_lo / x_hi, num_hi / x_lo]``, rounded outward, with ``c / 0 = inf`` for ``c > 0``.
+
+    The derivative rules of monotone functions (sqrt, log, rsqrt) call it on arguments
+    clamped to their domain: three ops in stacked mode where `reciprocal` takes a dozen to
+    cover intervals that meet or cross 0. The caller guarantees the signs (a negative bound
+    gives a wrong range, not an error); ``0 / 0`` (``num`` and ``x`` both meeting 0 at the
+    same end) and NaN bounds give NaN. Rounding: one ulp, the quotient being one division
+    (a number is divided as a constant tensor: torch computes ``c / t`` for a number ``c``
+    as a reciprocal and a product, two roundings).
+    """
+    sx = _st(x)
+    if sx is None and _M.stack and not is_point(x):
+        sx = _as_stacked(x)
+    if sx is not None:
+        if isinstance(num, IntervalArray):
+            top = num.lower if is_point(num) else _st(num)
+            top = _as_stacked(num) if top is None else top
+        else:
+            top = pair_const(sx, sx.dim(), float(num), float(num))
+        return x._pair(outward(top / _flip(sx)))
+    if isinstance(num, IntervalArray):
+        return x._make(down(num.lower / x.upper), up(num.upper / x.lower))
+    top = pair_const(x.upper, x.upper.dim() + 1, float(num), float(num))[0]  # [1, ..., 1]
+    return x._make(down(top / x.upper), up(top / x.lower))
 
 
 def reciprocal(b: Iv) -> Any:

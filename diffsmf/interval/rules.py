@@ -582,30 +582,35 @@ def _domain(a: Jet, low: float, strict: bool) -> tuple[Interval, Tensor]:
     return cl, bad
 
 
+# The derivatives of log, sqrt and rsqrt are quotients of non-negative numbers on the clamped
+# domain (`_domain`), enclosed by `arith.quotient_nonneg` (the range from the end points)
+# instead of the general interval reciprocal, which also covers intervals that cross 0.
 def _log_j(a: Jet) -> Jet:
     x, bad = _domain(a, 0.0, strict=False)
-    r = x.reciprocal()
+    r = arith.quotient_nonneg(1.0, x)
     return chain(a, x.log(), r, -r.square())
 
 
 def _log1p_j(a: Jet) -> Jet:
     x, bad = _domain(a, -1.0, strict=False)
-    r = (x + 1.0).reciprocal()
+    # x + 1 >= 0 for x >= -1; the clamp keeps a sum rounded below 0 out of the quotient
+    r = arith.quotient_nonneg(1.0, arith.clamp(x + 1.0, min=0.0))
     return chain(a, x.log1p(), r, -r.square())
 
 
 def _sqrt_j(a: Jet) -> Jet:
     x, bad = _domain(a, 0.0, strict=False)
-    v = x.sqrt()
-    d1 = v.reciprocal() * 0.5 if _o(a, 1) else None
-    d2 = -(d1 * x.reciprocal()) * 0.5 if _o(a, 2) else None
+    v = arith.monotone(x, torch.sqrt, 1, clamp_min=0.0)  # x >= 0: `Interval.sqrt` unchecked
+    # sqrt' = 1 / (2 sqrt x), sqrt'' = -1 / (4 sqrt x) / x: falling magnitudes on x >= 0
+    d1 = arith.quotient_nonneg(0.5, v) if _o(a, 1) else None
+    d2 = -arith.quotient_nonneg(arith.quotient_nonneg(0.25, v), x) if _o(a, 2) else None
     return chain(a, v, d1, d2)
 
 
 def _rsqrt_j(a: Jet) -> Jet:
     x, bad = _domain(a, 0.0, strict=False)
-    v = x.sqrt().reciprocal()
-    r = x.reciprocal()
+    v = arith.quotient_nonneg(1.0, arith.monotone(x, torch.sqrt, 1, clamp_min=0.0))
+    r = arith.quotient_nonneg(1.0, x)
     d1 = v * r * (-0.5) if _o(a, 1) else None
     d2 = v * r.square() * 0.75 if _o(a, 2) else None
     return chain(a, v, d1, d2)
