@@ -275,7 +275,9 @@ def _inductor(fn, example):
 
     with torch.no_grad():  # as `DirectSteps` captures
         gm = make_fx(fn, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
-        return inductor_compile(gm, example, options={"cpp_wrapper": True})
+        from diffsmf.filters.runtime import compile_options
+
+        return inductor_compile(gm, example, options=compile_options())  # as `compile()`
 
 
 def test_entry_calls_inductors_code_directly_only_where_the_wrappers_do_nothing():
