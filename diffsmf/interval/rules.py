@@ -35,6 +35,7 @@ from diffsmf.interval.errors import EngineError
 from diffsmf.interval.jet import EXACT_SUMS, Jet, chain, hadd, hull, move, mul, nonsmooth, point
 from diffsmf.interval.rounding import down, up
 from diffsmf.sets.interval import Interval
+from diffsmf.utils import broadcast_shapes
 
 __all__ = ["CATEGORIES", "RULES", "BoolBox", "Ctx", "register", "supported_ops"]
 
@@ -308,7 +309,7 @@ def _broadcast_except(parts: list[Tensor], d: int) -> list[Tensor]:
     shapes = [list(t.shape) for t in parts]
     for sh in shapes:
         sh[d] = 1
-    full = list(torch.broadcast_shapes(*shapes))
+    full = list(broadcast_shapes(*shapes))
     out = []
     for t in parts:
         full[d] = t.shape[d]
@@ -323,7 +324,7 @@ def _join(op: Callable[..., Tensor], parts: list[Tensor], d: int) -> Tensor:
         s0 = parts[0].shape
         if all(t.shape == s0 for t in parts):
             return op(parts, d)
-        shape = torch.broadcast_shapes(*[t.shape for t in parts])
+        shape = broadcast_shapes(*[t.shape for t in parts])
         return op([t if t.shape == shape else t.expand(shape) for t in parts], d)
     if all(t.shape[:d] + t.shape[d + 1:] == parts[0].shape[:d] + parts[0].shape[d + 1:]
            for t in parts[1:]) and len({t.dim() for t in parts}) == 1:

@@ -427,12 +427,24 @@ def _extreme_points(S: ConvexSet, max_vertices: int) -> tuple[Tensor, bool]:
         if n == 2 and hasattr(S, "vertices_2d"):
             return S.vertices_2d(), True  # 2m vertices of a planar zonotope
         if 2**m <= max_vertices:
-            s = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=m)), dtype=G.dtype,
-                             device=G.device)  # [2^m, m]
+            s = _sign_vectors(m, G)  # [2^m, m]
             return S.center.unsqueeze(-2) + linalg.traced_matmul(s, G.mT), True
     if 2**n > max_vertices:
         raise ValueError(f"max_vertices: {max_vertices} < 2^{n} box corners")
     return S.interval_hull().vertices(), False
+
+
+def _sign_vectors(m: int, like: Tensor) -> Tensor:
+    """Every sign vector of length ``m`` ``[2^m, m]`` (-1 first) in ``like``'s dtype and
+    device (cached in eager mode: a constant, not a tensor built from Python per call)."""
+    key = ("signs", m, like.dtype, like.device)
+    t = None if tracing() else _SIGNS.get(key)
+    if t is None:
+        t = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=m)), dtype=like.dtype,
+                         device=like.device)
+        if not tracing():
+            _SIGNS[key] = t
+    return t
 
 
 def _front(V: Tensor) -> Tensor:
