@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from diffsmf.interval.arith import Stacked, deferred_checks, products_ok, stacking, tensor_of
 from diffsmf.interval.errors import EngineError
-from diffsmf.interval.jet import Jet, lead, move, point
+from diffsmf.interval.jet import Jet, lead, move, point, register_seed
 from diffsmf.interval.rules import RULES, BoolBox, Ctx, register
 from diffsmf.sets.interval import Interval
 from diffsmf.utils import tracing
@@ -466,6 +466,7 @@ def seed(box: Interval, order: int, n_total: int, offset: int) -> Jet:
         g = eye.reshape(n_total, *([1] * (rank - 1)), d)
         if not tracing():
             _SEEDS[key] = g
+            register_seed(g)
     return Jet(box, point(g), None, order, n_total)
 
 

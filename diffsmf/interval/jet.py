@@ -38,7 +38,8 @@ from diffsmf.interval.arith import Stacked
 from diffsmf.sets.interval import Interval
 from diffsmf.utils import tracing
 
-__all__ = ["Jet", "chain", "hadd", "hull", "move", "mul", "nonsmooth", "point", "scaled"]
+__all__ = ["Jet", "chain", "hadd", "hull", "move", "mul", "nonsmooth", "point", "register_seed",
+           "scaled"]
 
 
 class Jet:
@@ -158,11 +159,44 @@ def hadd(*hs: Interval | None) -> Interval | None:
     return out
 
 
+def register_seed(g: Tensor) -> None:
+    """Declare ``g [n, 1.., d]`` (a cached constant, eagerly) the gradient of an input box: a
+    0 / 1 matrix with one 1 per column (column j is the variable of input element j). `chain`
+    then forms ``phi'`` times it, and ``phi''`` times its outer product, by selection."""
+    if tracing():
+        return
+    mask = g != 0
+    both = mask.unsqueeze(1) & mask.unsqueeze(0)  # [n, n, 1.., d]: g_i g_j != 0
+    _SEED_MASKS[id(g)] = (g, mask, both)
+
+
+#: id of a seed gradient -> (the gradient, its non-zero mask, that of its outer product)
+_SEED_MASKS: dict[int, tuple[Tensor, Tensor, Tensor]] = {}
+
+
+def _select(mask: Tensor, d: Interval) -> Interval:
+    """``g d`` for a 0 / 1 array ``g`` (``mask`` its non-zeros, tangent dims leading) and an
+    enclosure ``d [*E, *s]``: ``d`` where ``g`` is 1, 0 elsewhere (``0 * inf := 0``, as
+    `arith.mul` defines it), exactly: no product, no rounding."""
+    sd = arith._st(d)
+    if sd is not None:
+        k = mask.dim() - (sd.dim() - 1)  # the tangent dims in front of d's
+        lifted = sd.reshape(2, *([1] * k), *sd.shape[1:])
+        return d._pair(torch.where(mask, lifted, 0.0))
+    return Interval._make(torch.where(mask, d.lower, 0.0), torch.where(mask, d.upper, 0.0))
+
+
 def chain(a: Jet, v: Interval, d1: Interval | None, d2: Interval | None) -> Jet:
     """``phi(a)`` from enclosures of ``phi``, ``phi'``, ``phi''`` over ``a.val`` (the factors
-    ``[*E, *s]`` broadcast against the leading tangent dims)."""
+    ``[*E, *s]`` broadcast against the leading tangent dims). On an input box itself
+    (`register_seed`: gradient 0 / 1, Hessian 0) the derivatives are selected, not
+    multiplied."""
     if a.grad is None or d1 is None:
         return a.like(v, None, None)
+    seed = _SEED_MASKS.get(id(a.grad.lower)) if a.hess is None and _SEED_MASKS else None
+    if seed is not None and seed[0] is a.grad.lower and a.grad.upper is a.grad.lower:
+        hess = _select(seed[2], d2) if a.order >= 2 and d2 is not None else None
+        return a.like(v, _select(seed[1], d1), hess)
     grad = arith.mul(a.grad, d1)
     hess = None
     if a.order >= 2:
