@@ -322,3 +322,25 @@ def test_quotient_of_nonnegative_intervals_encloses_the_quotients(x, n, num, t):
                                                  math.isnan(plain.upper.item())]
         for q in qs:
             assert not plain.lower.item() > q and not q > plain.upper.item(), (q, plain)
+
+
+@pytest.mark.parametrize("fn", [torch.sqrt, torch.exp, torch.sin, torch.tanh])
+def test_unary_of_the_input_box_selects_its_derivatives(fn):
+    """A unary function of the input box itself takes its derivative enclosures by selection
+    (`jet.register_seed`): zero off the diagonal exactly, inside the enclosures of the same
+    function reached through an interval product (``x * 1.0``), and containing the sampled
+    autograd derivatives."""
+    lo = torch.tensor([[0.3, 1.0, 2.5]])
+    box = Interval(lo, lo + torch.tensor([[0.2, 0.5, 1e-3]]))
+    sel = enclose(fn, box, 2)
+    prod = enclose(lambda x: fn(x * 1.0), box, 2)
+    eye = torch.eye(3, dtype=torch.bool)
+    assert torch.equal(sel.grad.lower[0][~eye], torch.zeros(6))
+    hess_off = ~eye.reshape(1, 3, 3) | ~eye.reshape(3, 3, 1)  # all but (i, i, i)
+    assert torch.equal(sel.hess.lower[0][hess_off], torch.zeros(int(hess_off.sum())))
+    for a, b in ((sel.grad, prod.grad), (sel.hess, prod.hess)):
+        assert bool((a.lower >= b.lower).all() and (a.upper <= b.upper).all())
+    xs = box.lower + torch.rand(64, 3) * (box.upper - box.lower)
+    _, J, H = _derivatives(fn, xs)
+    assert bool(((sel.grad.lower <= J) & (J <= sel.grad.upper)).all())
+    assert bool(((sel.hess.lower <= H) & (H <= sel.hess.upper)).all())
