@@ -304,3 +304,25 @@ def test_best_basis_cramer_is_least_volume(n: int, m: int) -> None:
         assert vols[tuple(best[b].tolist())] == pytest.approx(least, rel=1e-9)
         one, _ = _best_basis(G[b])
         assert one.tolist() == best[b].tolist()
+
+
+@pytest.mark.parametrize("n,m", [(2, 5), (3, 7), (4, 8), (6, 12), (8, 10)])
+def test_all_minors_match_determinants_and_the_lu_search(n: int, m: int, monkeypatch) -> None:
+    """`_all_minors` (Laplace expansion, row by row) gives every n x n minor in the order of
+    `_combinations`, against numpy's determinants, with a repeated column (zero minors) and
+    columns of 1e-12; the basis search chooses the same bases with it as with one LU per
+    basis (`MINOR_ELEMS = 0`)."""
+    from diffsmf.sets import zonotope as zono
+
+    g = torch.Generator().manual_seed(7 * n + m)
+    G = torch.randn(4, n, m, generator=g, dtype=torch.float64)
+    G[1, :, 1] = G[1, :, 0]
+    G[2, :, n:] *= 1e-12  # a remainder box's tiny axis generators, say
+    M = zono._all_minors(G)
+    idx = zono._combinations(m, n)
+    ref = np.array([[np.linalg.det(G[b][:, S].numpy()) for S in idx.tolist()] for b in range(4)])
+    np.testing.assert_allclose(M.numpy(), ref, rtol=1e-10, atol=1e-13 * np.abs(ref).max())
+    best, ok = _best_basis(G)
+    monkeypatch.setattr(zono, "MINOR_ELEMS", 0)
+    best_lu, ok_lu = _best_basis(G)
+    assert best.tolist() == best_lu.tolist() and ok.tolist() == ok_lu.tolist()

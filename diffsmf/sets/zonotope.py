@@ -699,9 +699,15 @@ def _basis_T(G: Tensor, basis: Tensor) -> Tensor:
     """
     n = G.shape[-2]
     B = torch.gather(G, -1, basis.unsqueeze(-2).expand(*G.shape[:-1], n))
-    X = linalg.solve(B, G)
-    R = G - linalg.traced_matmul(B, X)
-    X2 = linalg.solve(B, R)
+    if n <= 2:  # `linalg.solve`'s closed form (fused when compiled)
+        X = linalg.solve(B, G)
+        R = G - linalg.traced_matmul(B, X)
+        X2 = linalg.solve(B, R)
+    else:  # one LU for both solves, without the error check's host sync (the basis is regular)
+        LU, piv, _ = torch.linalg.lu_factor_ex(B)
+        X = torch.linalg.lu_solve(LU, piv, G)
+        R = G - linalg.traced_matmul(B, X)
+        X2 = torch.linalg.lu_solve(LU, piv, R)
     s = (X + X2).abs().sum(-1) + X2.abs().sum(-1)
     s = s * (1 + 8 * n * _EPS)
     return B * s.unsqueeze(-2)
@@ -819,12 +825,21 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
     return basis, torch.isfinite(best_val)
 
 
+#: Elements (batch x subsets x n) up to which `_abs_dets` expands every n x n minor of
+#: ``G [..., n, m]`` row by row (`_all_minors`) instead of one LU factorisation per subset.
+MINOR_ELEMS = 1 << 18
+
+
 def _abs_dets(G: Tensor, idx: Tensor) -> Tensor:
     """``|det G[..., :, S]|`` for the subsets ``S`` (rows of ``idx [K, n]``), subsets first:
-    ``[K, ...]``. One LU factorisation of each transposed basis (rows gather faster than
-    columns): the product of ``|U_ii|``, the number ``torch.linalg.det`` computes."""
-    n = G.shape[-2]
+    ``[K, ...]``. For all ``C(m, n)`` subsets of a small batch, by Laplace expansion
+    (`_all_minors`); else one LU factorisation of each transposed basis (rows gather faster
+    than columns): the product of ``|U_ii|``, the number ``torch.linalg.det`` computes."""
+    n, m = G.shape[-2], G.shape[-1]
     nb = int(math.prod(G.shape[:-2])) or 1
+    K = idx.shape[0]
+    if 2 <= n and K == math.comb(m, n) and nb * K * n <= MINOR_ELEMS:
+        return _all_minors(G).abs().movedim(-1, 0)
     starts, step = _chunks(idx.shape[0], nb * n * n)
     out = []
     for s in starts:
@@ -832,6 +847,58 @@ def _abs_dets(G: Tensor, idx: Tensor) -> Tensor:
         LU = torch.linalg.lu_factor_ex(Bt)[0]
         out.append(LU.diagonal(dim1=-2, dim2=-1).prod(-1).abs().movedim(-1, 0))
     return out[0] if len(out) == 1 else torch.cat(out)
+
+
+def _all_minors(G: Tensor) -> Tensor:
+    """Every ``n x n`` minor ``det G[..., :, S]`` of ``G [..., n, m]`` over the n-subsets
+    ``S`` of its columns in lexicographic order (`_combinations`) -> ``[..., C(m, n)]``.
+
+    Laplace expansion along the last row, one row at a time: the minors of the first ``r``
+    rows on the r-subsets ``T`` are ``sum_k (-1)^(r - 1 + k) G[r - 1, T_k] M_(r-1)(T - T_k)``,
+    a gather of the previous level and one product with the signs per row (about 25 ops for
+    n = 6 where 924 LU factorisations cost a library call). Without pivoting: the error of a
+    minor is within about ``n! eps`` of its terms' magnitudes, which moves a volume that
+    `_best_basis_cramer` compares by far less than `BASIS_TIE_RTOL` unless the basis is
+    nearly singular (such bases have large volumes, and every basis gives a guaranteed
+    parallelotope: the choice only affects its size)."""
+    M = G[..., 0, :]
+    for r, (prev, cols, signs) in enumerate(_minor_plan(G.shape[-1], G.shape[-2], G), start=2):
+        terms = M[..., prev] * G[..., r - 1, :][..., cols]  # [..., C(m, r), r]
+        M = (terms * signs).sum(-1) if tracing() else terms @ signs  # (fused when traced)
+    return M
+
+
+def _minor_plan(m: int, n: int, like: Tensor) -> list[tuple[Tensor, Tensor, Tensor]]:
+    """`_all_minors`' tables per row ``r = 2 .. n``: ``prev [C(m, r), r]`` (the index of
+    ``T - T_k`` among the (r-1)-subsets), ``cols [C(m, r), r]`` (``T_k``) and ``signs [r]``
+    (``(-1)^(r - 1 + k)``, ``like``'s dtype) -- cached eagerly per (m, n, dtype, device); built
+    directly while traced (graph constants)."""
+    key = (m, n, like.dtype, like.device)
+    plan = None if tracing() else _MINOR_PLANS.get(key)
+    if plan is None:
+        plan = [(p.to(like.device), c.to(like.device),
+                 torch.tensor(sg, dtype=like.dtype, device=like.device))
+                for p, c, sg in _minor_lists(m, n)]
+        if not tracing():
+            _MINOR_PLANS[key] = plan
+    return plan
+
+
+_MINOR_PLANS: dict = {}
+
+
+@functools.lru_cache(maxsize=16)
+def _minor_lists(m: int, n: int) -> tuple[tuple[Tensor, Tensor, list[float]], ...]:
+    """The index lists of `_minor_plan` on the CPU (lexicographic subsets)."""
+    out = []
+    where_prev = {(j,): j for j in range(m)}
+    for r in range(2, n + 1):
+        subsets = list(itertools.combinations(range(m), r))
+        prev = [[where_prev[S[:k] + S[k + 1:]] for k in range(r)] for S in subsets]
+        out.append((torch.tensor(prev, dtype=torch.long), torch.tensor(subsets, dtype=torch.long),
+                    [(-1.0) ** (r - 1 + k) for k in range(r)]))
+        where_prev = {S: i for i, S in enumerate(subsets)}
+    return tuple(out)
 
 
 def _exchange_table(m: int, n: int, device: torch.device) -> Tensor:
