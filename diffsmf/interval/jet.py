@@ -178,8 +178,8 @@ def _select(mask: Tensor, d: Interval) -> Interval:
     """``g d`` for a 0 / 1 array ``g`` (``mask`` its non-zeros, tangent dims leading) and an
     enclosure ``d [*E, *s]``: ``d`` where ``g`` is 1, 0 elsewhere (``0 * inf := 0``, as
     `arith.mul` defines it), exactly: no product, no rounding."""
-    sd = arith._st(d)
-    if sd is not None:
+    if isinstance(d, Stacked):
+        sd = d.both
         k = mask.dim() - (sd.dim() - 1)  # the tangent dims in front of d's
         lifted = sd.reshape(2, *([1] * k), *sd.shape[1:])
         return d._pair(torch.where(mask, lifted, 0.0))
