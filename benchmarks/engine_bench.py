@@ -232,10 +232,10 @@ def main() -> None:
     ref = time_numpy(system, args.steps, args.numpy_trajectories, args.repeats)
     print(f"numpy Alamo loop: {ref:,.0f} trajectory-steps/s")
     rows: list[tuple[str, str, str, str]] = []
-    # the six tanks first, before any compile in this process: after Inductor has compiled
-    # (here 8 graphs) the same eager step runs 10-25 % slower, spread over every op (memory
-    # and caches of a larger process; not Python's collector, which the loop pauses). The
-    # figure after the compiled rows is printed beside it.
+    # the six tanks first, before any compile in this process: after Inductor's compiles of
+    # the rows below, the same eager step ran 5-25 % slower, spread over every op (a larger,
+    # more fragmented process; not Python's collector, which the loop pauses). The figure
+    # after the compiled rows is printed beside it.
     tanks_ms = eager_step_ms(six_tanks(), "hsnsmf", args.steps, args.repeats)
     for name in args.filters:
         calls = aten_calls(name)
