@@ -162,9 +162,7 @@ def eigvalsh(S: Tensor) -> Tensor:
         # the tiny floor keeps the gradient finite at a double eigenvalue (sqrt'(0) = inf)
         r = torch.sqrt(h * h + b * b + torch.finfo(S.dtype).tiny)
         return torch.stack([m - r, m + r], -1)
-    if not tracing() and S.device.type == "cpu" and math.isfinite(float(S.sum())):
-        # eagerly on the CPU, one host read: every entry finite (a NaN or inf makes the sum
-        # non-finite; a sum that overflows only takes the masked path)
+    if not tracing() and S.device.type == "cpu" and _all_finite(S):
         return torch.linalg.eigvalsh(S)
     bad, safe = _finite_or_eye(S)
     return torch.where(bad.unsqueeze(-1), torch.nan, torch.linalg.eigvalsh(safe))
@@ -198,6 +196,14 @@ def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
     evals, V = torch.linalg.eigh(safe)
     return (torch.where(bad.unsqueeze(-1), torch.nan, evals),
             torch.where(bad[..., None, None], torch.nan, V))
+
+
+def _all_finite(S: Tensor) -> bool:
+    """Eagerly, one host read: every entry of ``S`` finite (a NaN or inf makes the sum
+    non-finite; a sum that overflows only takes the caller's masked path). Read without the
+    gradient, so no warning while autograd records."""
+    with torch.no_grad():
+        return math.isfinite(float(S.sum()))
 
 
 def _finite_or_eye(S: Tensor) -> tuple[Tensor, Tensor]:

@@ -326,3 +326,26 @@ def test_all_minors_match_determinants_and_the_lu_search(n: int, m: int, monkeyp
     monkeypatch.setattr(zono, "MINOR_ELEMS", 0)
     best_lu, ok_lu = _best_basis(G)
     assert best.tolist() == best_lu.tolist() and ok.tolist() == ok_lu.tolist()
+
+
+def test_eigvalsh_of_a_matrix_with_gradient_warns_nothing_and_flags_non_finite() -> None:
+    """`linalg.eigvalsh` (n >= 3, eager): a matrix that records a gradient gives numpy's
+    eigenvalues and its gradient without a warning from the finiteness read, and a non-finite
+    matrix of the batch gives NaN eigenvalues while the others are unaffected."""
+    import warnings
+
+    A = torch.randn(2, 4, 4, dtype=torch.float64)
+    S = (A + A.mT).requires_grad_(True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ev = linalg.eigvalsh(S)
+        ev.sum().backward()
+    np.testing.assert_allclose(ev.detach().numpy(), np.linalg.eigvalsh(S.detach().numpy()),
+                               rtol=1e-12, atol=1e-12)
+    assert S.grad is not None and bool(torch.isfinite(S.grad).all())
+    bad = S.detach().clone()
+    bad[1, 0, 0] = torch.inf
+    out = linalg.eigvalsh(bad)
+    assert bool(torch.isnan(out[1]).all())
+    np.testing.assert_allclose(out[0].numpy(), np.linalg.eigvalsh(bad[0].numpy()), rtol=1e-12,
+                               atol=1e-12)
