@@ -8,9 +8,9 @@ import importlib.util
 import math
 import numbers
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Hashable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 import torch.nn.functional as F
@@ -23,6 +23,7 @@ __all__ = [
     "StrictlyPositive",
     "check_half_widths",
     "check_strictly_positive",
+    "eager_constant",
     "fix_dynamo_matmul",
     "inv_softplus",
     "load_object",
@@ -77,6 +78,19 @@ def tracing() -> bool:
 
 
 _TRACED = False  # set by traced()
+_T = TypeVar("_T")
+
+
+def eager_constant(cache: dict, key: Hashable, make: Callable[[], _T]) -> _T:
+    """``make()`` kept in ``cache`` under ``key`` in eager mode (a constant tensor made once,
+    not ops per call); while traced, made afresh (a graph constant: no lookup of host state
+    for ``torch.compile`` to guard on)."""
+    if tracing():
+        return make()
+    value = cache.get(key)
+    if value is None:
+        value = cache[key] = make()
+    return value
 _EVENTS = 0  # depth of numerical_events() blocks
 
 

@@ -12,7 +12,7 @@ from diffsmf.filters.base import MAX_SET_RADIUS
 from diffsmf.filters.events import FilterEvent
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
-from diffsmf.utils import tracing
+from diffsmf.utils import eager_constant
 
 __all__ = [
     "ROUND_REL",
@@ -68,13 +68,9 @@ _CODES: dict = {}
 def _event_codes(device: torch.device) -> tuple[Tensor, Tensor]:
     """The codes ``DOMAIN`` and ``DIVERGED`` as 0-dim int64 tensors (cached eagerly: constants,
     not ops per call)."""
-    codes = None if tracing() else _CODES.get(device)
-    if codes is None:
-        codes = tuple(torch.tensor(int(e), dtype=torch.int64, device=device)
-                      for e in (FilterEvent.DOMAIN, FilterEvent.DIVERGED))
-        if not tracing():
-            _CODES[device] = codes
-    return codes
+    return eager_constant(_CODES, device, lambda: tuple(
+        torch.tensor(int(e), dtype=torch.int64, device=device)
+        for e in (FilterEvent.DOMAIN, FilterEvent.DIVERGED)))
 
 
 def checked_remainder(R: Interval) -> tuple[Interval, Tensor]:

@@ -21,7 +21,7 @@ from diffsmf.interval.arith import shape_of, tensor_of
 from diffsmf.interval.capture import EngineError, Program, capture, seed, stacks, to_trailing
 from diffsmf.interval.jet import Jet, point
 from diffsmf.sets.interval import Interval
-from diffsmf.utils import tracing
+from diffsmf.utils import eager_constant
 
 __all__ = ["Enclosure", "StepModel", "enclose", "enclose_dynamics", "program_for",
            "register_row_model"]
@@ -286,13 +286,8 @@ _EXAMPLES: dict = {}
 def _example(n: int, like: Tensor) -> Tensor:
     """Zeros ``[1, n]`` like ``like``: the example input that keys a step model's program
     (cached eagerly: a constant, not an op per call)."""
-    key = (n, like.dtype, like.device)
-    t = None if tracing() else _EXAMPLES.get(key)
-    if t is None:
-        t = torch.zeros(1, n, dtype=like.dtype, device=like.device)
-        if not tracing():
-            _EXAMPLES[key] = t
-    return t
+    return eager_constant(_EXAMPLES, (n, like.dtype, like.device),
+                          lambda: torch.zeros(1, n, dtype=like.dtype, device=like.device))
 
 
 def _row(box: Interval) -> Interval:

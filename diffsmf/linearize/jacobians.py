@@ -16,7 +16,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from diffsmf.utils import broadcast_shapes, tracing
+from diffsmf.utils import broadcast_shapes, eager_constant, tracing
 
 __all__ = [
     "hessian", "jacobian", "stirling_jacobian", "stirling_value_jacobian", "value_and_jacobian",
@@ -216,16 +216,14 @@ def _stencil_points(x: Tensor, h: Tensor, center: bool) -> Tensor:
     same values as adding ``+-h_j`` to coordinate j alone; ``h`` finite, ``[..., n]``
     broadcastable to ``x``)."""
     n, nb = x.shape[-1], x.dim() - 1
-    key = (n, nb, center, x.dtype, x.device)
-    E = None if tracing() else _STENCILS.get(key)
-    if E is None:
+
+    def make() -> Tensor:
         with torch.no_grad():
             eye = torch.eye(n, dtype=x.dtype, device=x.device)
             rows = [eye, -eye] if not center else [eye.new_zeros(1, n), eye, -eye]
-            E = torch.cat(rows).reshape(-1, *([1] * nb), n)
-        if not tracing():
-            _STENCILS[key] = E
-    return x + E * h
+            return torch.cat(rows).reshape(-1, *([1] * nb), n)
+
+    return x + eager_constant(_STENCILS, (n, nb, center, x.dtype, x.device), make) * h
 
 
 def _central_slopes(plus: Tensor, minus: Tensor, hx: Tensor) -> Tensor:

@@ -29,7 +29,7 @@ from diffsmf.linearize.jacobians import jacobian, value_and_jacobian
 from diffsmf.linearize.jets import Jet, JetError, jet_eval
 from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
-from diffsmf.utils import materialize, tracing
+from diffsmf.utils import eager_constant, materialize, tracing
 
 __all__ = [
     "AUTO_LAGRANGE_MAX_N",
@@ -374,14 +374,10 @@ def _weyl2(Hcr: Tensor) -> tuple[Tensor, Tensor]:
 def _pm1(like: Tensor) -> Tensor:
     """``[1, -1]`` shaped ``[2, 1, .., 1]`` against ``[2, *like.shape[1:]]`` (cached like
     `_form_signs`)."""
-    key = ("pm1", like.dtype, like.device, like.dim())
-    t = None if tracing() else _SIGNS.get(key)
-    if t is None:
-        t = torch.tensor([1.0, -1.0], dtype=like.dtype, device=like.device)
-        t = t.reshape(2, *([1] * (like.dim() - 1)))
-        if not tracing():
-            _SIGNS[key] = t
-    return t
+    return eager_constant(
+        _SIGNS, ("pm1", like.dtype, like.device, like.dim()),
+        lambda: torch.tensor([1.0, -1.0], dtype=like.dtype, device=like.device).reshape(
+            2, *([1] * (like.dim() - 1))))
 
 
 _EYES: dict = {}
@@ -389,24 +385,14 @@ _EYES: dict = {}
 
 def _one(like: Tensor) -> Tensor:
     """A 0-dim 1 like ``like`` (cached in eager mode: a constant, not an op per call)."""
-    key = ("one", like.dtype, like.device)
-    t = None if tracing() else _SIGNS.get(key)
-    if t is None:
-        t = torch.ones((), dtype=like.dtype, device=like.device)
-        if not tracing():
-            _SIGNS[key] = t
-    return t
+    return eager_constant(_SIGNS, ("one", like.dtype, like.device),
+                          lambda: torch.ones((), dtype=like.dtype, device=like.device))
 
 
 def _eye(n: int, device: torch.device) -> Tensor:
     """Boolean identity ``[n, n]`` (cached in eager mode: a constant, not an op per call)."""
-    key = (n, device)
-    t = None if tracing() else _EYES.get(key)
-    if t is None:
-        t = torch.eye(n, dtype=torch.bool, device=device)
-        if not tracing():
-            _EYES[key] = t
-    return t
+    return eager_constant(_EYES, (n, device),
+                          lambda: torch.eye(n, dtype=torch.bool, device=device))
 
 
 def _extreme_points(S: ConvexSet, max_vertices: int) -> tuple[Tensor, bool]:
@@ -437,14 +423,10 @@ def _extreme_points(S: ConvexSet, max_vertices: int) -> tuple[Tensor, bool]:
 def _sign_vectors(m: int, like: Tensor) -> Tensor:
     """Every sign vector of length ``m`` ``[2^m, m]`` (-1 first) in ``like``'s dtype and
     device (cached in eager mode: a constant, not a tensor built from Python per call)."""
-    key = ("signs", m, like.dtype, like.device)
-    t = None if tracing() else _SIGNS.get(key)
-    if t is None:
-        t = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=m)), dtype=like.dtype,
-                         device=like.device)
-        if not tracing():
-            _SIGNS[key] = t
-    return t
+    return eager_constant(
+        _SIGNS, ("signs", m, like.dtype, like.device),
+        lambda: torch.tensor(list(itertools.product((-1.0, 1.0), repeat=m)), dtype=like.dtype,
+                             device=like.device))
 
 
 def _front(V: Tensor) -> Tensor:
@@ -572,16 +554,12 @@ def _form_signs(like: Tensor, positive: bool = False) -> Tensor:
     """``[-1, -1, 1, 1]`` shaped ``[4, 1, .., 1]`` against ``[4, *like.shape[1:]]`` (cached
     per dtype, device and rank in eager mode: a constant, not an op per call);
     ``positive``: the boolean ``[True, True, False, False]`` (the signs < 0) instead."""
-    key = (like.dtype, like.device, like.dim(), positive)
-    t = None if tracing() else _SIGNS.get(key)
-    if t is None:
+    def make() -> Tensor:
         t = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=like.dtype, device=like.device)
         t = t.reshape(4, *([1] * (like.dim() - 1)))
-        if positive:
-            t = t < 0
-        if not tracing():
-            _SIGNS[key] = t
-    return t
+        return t < 0 if positive else t
+
+    return eager_constant(_SIGNS, (like.dtype, like.device, like.dim(), positive), make)
 
 
 def dc_remainder(

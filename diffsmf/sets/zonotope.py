@@ -34,7 +34,7 @@ from diffsmf.sets.base import (
 )
 from diffsmf.sets.czono_lp import certify_feasible
 from diffsmf.sets.strip import strip_batch, strip_fields
-from diffsmf.utils import HIGHS_OPTIONS, broadcast_shapes, materialize, tracing
+from diffsmf.utils import HIGHS_OPTIONS, broadcast_shapes, eager_constant, materialize, tracing
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -873,15 +873,10 @@ def _minor_plan(m: int, n: int, like: Tensor) -> list[tuple[Tensor, Tensor, Tens
     ``T - T_k`` among the (r-1)-subsets), ``cols [C(m, r), r]`` (``T_k``) and ``signs [r]``
     (``(-1)^(r - 1 + k)``, ``like``'s dtype) -- cached eagerly per (m, n, dtype, device); built
     directly while traced (graph constants)."""
-    key = (m, n, like.dtype, like.device)
-    plan = None if tracing() else _MINOR_PLANS.get(key)
-    if plan is None:
-        plan = [(p.to(like.device), c.to(like.device),
-                 torch.tensor(sg, dtype=like.dtype, device=like.device))
-                for p, c, sg in _minor_lists(m, n)]
-        if not tracing():
-            _MINOR_PLANS[key] = plan
-    return plan
+    return eager_constant(_MINOR_PLANS, (m, n, like.dtype, like.device), lambda: [
+        (p.to(like.device), c.to(like.device),
+         torch.tensor(sg, dtype=like.dtype, device=like.device))
+        for p, c, sg in _minor_lists(m, n)])
 
 
 _MINOR_PLANS: dict = {}
@@ -927,7 +922,7 @@ def _best_basis_cramer(G: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
     """`_best_basis` over all ``K = C(m, n)`` bases of ``G [..., n, m]`` (``idx [K, n]``) by
     Cramer's rule: ``(B^-1 G)_ij = det(B with column i replaced by g_j) / det B``, and that
     matrix is the basis ``S - s_i + j``. So ``|det T| = |det B| prod_i sum_j |(B^-1 G)_ij|``
-    (Chisci 1996) needs only the K determinants, one LU each, and no solve (the term at
+    (Chisci 1996) needs only the K determinants (`_abs_dets`) and no solve (the term at
     ``j = s_i`` is 1). The same choice as the solves up to rounding, which `BASIS_TIE_RTOL`
     absorbs: the first basis within it of the least volume."""
     n, m = G.shape[-2], G.shape[-1]
