@@ -391,20 +391,55 @@ def test_point_intervals_enclose_exact_values():
             assert mpmath.mpf(res.lower[i].item()) <= v <= mpmath.mpf(res.upper[i].item()), fn
 
 
-def test_traced_next_float_matches_nextafter_bit_for_bit() -> None:
-    """The compiled rounding step (integer steps of the bits) equals torch.nextafter, also at
-    0, subnormals, the largest float and the infinities."""
-    import math
+def _kth_neighbour(x: np.ndarray, k: int, direction: float) -> np.ndarray:
+    out = x.copy()
+    with np.errstate(over="ignore"):  # the largest float's neighbour is inf
+        for _ in range(k):
+            out = np.nextafter(out, direction)
+    return out
 
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_traced_rounding_moves_k_ulps_and_never_makes_a_subnormal(dtype) -> None:
+    """The compiled rounding step moves a bound out by at least k ulps (numpy's nextafter k
+    times, an overflowed bound made finite), by at most (2k - 1) eps max(|x|, floor / eps) and
+    one rounding; NaN stays NaN, an infinity in the direction stays, and no result is
+    subnormal, also at 0, subnormals, the largest float and the infinities. `down`, `up` and
+    `outward` take this step while traced."""
     from diffsmf.interval import rounding
 
     g = torch.Generator().manual_seed(0)
     x = torch.randn(20_000, generator=g, dtype=torch.float64)
     x = x * torch.exp(100 * torch.randn(20_000, generator=g, dtype=torch.float64))
-    special = torch.tensor([0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308,
-                            1.7976931348623157e308, -1.7976931348623157e308, math.inf,
-                            -math.inf], dtype=torch.float64)
-    for t in (torch.cat([x, special]), torch.cat([x, special]).float()):
+    fi = torch.finfo(dtype)
+    special = torch.tensor([0.0, -0.0, fi.tiny * fi.eps, -fi.tiny * fi.eps, fi.tiny, 1.0,
+                            fi.max, -fi.max, math.inf, -math.inf, math.nan], dtype=dtype)
+    t = torch.cat([x.to(dtype), special])
+    tn = t.numpy()
+    nan, fin = np.isnan(tn), ~np.isnan(tn)
+    floor = rounding.traced_floor(dtype)
+    assert floor * floor >= fi.tiny
+    for k in (1, 2, 5):
         for d in (-math.inf, math.inf):
-            ref = torch.nextafter(t, torch.tensor(d, dtype=t.dtype))
-            assert torch.equal(rounding._next_float(t, d), ref)
+            on = rounding._traced_step(t, k, d).numpy()
+            assert np.array_equal(np.isnan(on), nan)
+            clipped = np.clip(tn, -fi.max, fi.max)
+            ref = _kth_neighbour(clipped, k, d)
+            assert ((on[fin] >= ref[fin]) if d > 0 else (on[fin] <= ref[fin])).all()
+            keep = np.isinf(tn) & (np.sign(tn) == np.sign(d))
+            assert np.array_equal(on[keep], tn[keep])
+            f = fin & ~np.isinf(on)
+            mag = np.maximum(np.abs(tn[f]), floor / fi.eps)
+            bound = (2 * k - 1) * fi.eps * mag * (1 + 4 * fi.eps) + np.spacing(np.abs(on[f]))
+            assert (np.abs(on[f] - clipped[f]) <= bound).all()
+            assert not ((on != 0) & (np.abs(on) < fi.tiny)).any()  # no subnormal result
+
+    def traced(v):
+        return (rounding.down(v, 2), rounding.up(v), rounding.outward(torch.stack([v, v])),
+                rounding.outward(v, point=True))
+
+    lo, hi, both, point = torch.compile(traced, backend="eager", fullgraph=True)(t)
+    for got, k, d in ((lo, 2, -math.inf), (hi, 1, math.inf), (both[0], 1, -math.inf),
+                      (both[1], 1, math.inf), (point[0], 1, -math.inf), (point[1], 1, math.inf)):
+        ref = rounding._traced_step(t, k, d)
+        torch.testing.assert_close(got, ref, rtol=0, atol=0, equal_nan=True)
