@@ -608,7 +608,7 @@ def _outer_parallelogram(G: Tensor) -> Tensor:
     basis ``(i, j)`` has ``B^-1 g_l = (D_lj, D_il) / D_ij``, so ``s = (S_j, S_i) / |D_ij|`` and
     ``|det T| = S_i S_j / |D_ij|``: one ``m x m`` table instead of a solve per basis. The
     choice (least ``|det T|``, ties within `BASIS_TIE_RTOL` to the first pair in lexicographic
-    order, regular pairs ``|D_ij| > 1e-12 |g_i| |g_j|`` only) is made on the detached table;
+    order, regular pairs ``|D_ij| > 1e-12 |g_i|_1 |g_j|_1`` only) is made on the detached table;
     the first near-least entry of the symmetric table in row-major order is that pair. ``s`` is
     padded by the rounding of the table (``|fl(D_kl) - D_kl| <= 2 eps P_kl``, ``P_kl = |a_k
     b_l| + |b_k a_l|``, counted twice) and a relative ``(m + 8) eps``. Elements without a
@@ -653,7 +653,7 @@ def _pair_T(G: Tensor) -> tuple[Tensor, Tensor, bool]:
     Dabs = (p - p.mT).abs()  # |det [g_k, g_l]|: symmetric, 0 diagonal
     S = Dabs.sum(-1)
     with torch.no_grad():
-        nrm = torch.hypot(a, b)  # elementwise: a norm over dim -2 is slow
+        nrm = a.abs() + b.abs()  # 1-norms: a norm over dim -2, or hypot, is slow
         regular = Dabs > 1e-12 * (nrm.unsqueeze(-1) * nrm.unsqueeze(-2))
         val = torch.where(regular, S.unsqueeze(-1) * S.unsqueeze(-2) / Dabs, math.inf)
         flat = val.flatten(-2)
