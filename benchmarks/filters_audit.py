@@ -5,7 +5,9 @@ runs over the system's horizon (``system.horizon``: the papers' horizons), and t
 the (trajectory, step) pairs outside the set (tolerance 1e-9 on the normalised distance, see
 `diffsmf.audit`), the worst normalised distance outside, the mean volume and the wall
 time. ``--trials-for fermenter=100`` lowers the count for a slow system (stated in the table).
-Output: a markdown table on stdout (pasted into docs/filters.md).
+Output: a markdown table on stdout (pasted into docs/filters.md). ``--compile inductor``
+audits the compiled step (``filt.compile()``; ``--compile eager``: the traced step run by
+torch's eager backend, without Inductor's compile time).
 
     python benchmarks/filters_audit.py --trials 1000 --trials-for fermenter=100
 
@@ -199,6 +201,9 @@ def main() -> int:
                     help="built-in names; NAME:N for a sized system (oscillator_chain:16)")
     ap.add_argument("--filters", nargs="*", default=["hsnsmf", "mszm", "cdsmf", "esmf"])
     ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--compile", default=None, metavar="BACKEND",
+                    help="audit the compiled step: filt.compile(backend=BACKEND), e.g. "
+                         "'inductor' or 'eager' (the traced step without Inductor)")
     ap.add_argument("--filter-kwargs", default=None, metavar="JSON",
                     help='keyword arguments for every audited filter, e.g. \'{"max_generators": '
                     '30, "max_constraints": 5, "elimination": "propagation"}\' (CZSMF caps); '
@@ -247,6 +252,9 @@ def main() -> int:
             for noise in args.noises:
                 filt = filters.by_name(fname)(system, **kw)
                 label = type(filt).__name__ + (f" {json.dumps(kw, sort_keys=True)}" if kw else "")
+                if args.compile:
+                    filt.compile(backend=args.compile)
+                    label += f" (compiled, {args.compile})"
                 on_chunk = None
                 if args.log:
                     meta = {

@@ -112,6 +112,23 @@ def test_many_compiled_filters_in_one_process():
             assert res.lower.shape == (b, 3, 2)
 
 
+def test_compiled_zonotope_volumes_of_two_systems_in_one_process():
+    """The compiled hull and volume graphs of MSZM keep only the batch dynamic: after a 2-D
+    system's, a 3-D system's sets (other n and m) compile again instead of tracing
+    ``math.comb`` of a symbolic generator count (which raised ``Unsupported``), and the
+    volumes equal the eager ones."""
+    with torch.no_grad():
+        for name in ("bilinear", "cstr"):
+            s = ds.systems.get(name)
+            tr = s.simulate(steps=4, batch=5, seed=1, noise="vertex")
+            filt = ds.filters.by_name("mszm")(s).compile(backend="eager")
+            for b in (5, 3):  # two batch sizes: the batch dimension becomes dynamic
+                u = None if tr.u is None else tr.u[:b]
+                rc = filt(tr.y[:b], u=u)
+                re = ds.filters.by_name("mszm")(s)(tr.y[:b], u=u)
+                torch.testing.assert_close(rc.volume, re.volume, rtol=1e-9, atol=0.0)
+
+
 def test_inductor_default_options_match_eager():
     """The real default path, Inductor with `COMPILE_OPTIONS` (scalar C++ kernels and
     the C++ wrapper), 2 steps per call on a 5-step horizon: the eager EKF's results (the EKF:

@@ -661,8 +661,10 @@ def compiled_hull_and_volume(
     if hull_fn is None:  # both None when the filter is not compiled
         return None
     fields = [t.reshape(-1, *t.shape[len(batch):]) for t in sets._tensors()]
-    for t in fields:
+    for t in fields:  # only the batch is dynamic: n and m pick Python branches (math.comb)
         torch._dynamo.maybe_mark_dynamic(t, 0)
+        for d in range(1, t.dim()):
+            torch._dynamo.mark_static(t, d)
     lo, hi = hull_fn(*fields, set_type=type(sets))
     vol = volume_fn(*fields, set_type=type(sets))
     return lo.reshape(*batch, -1), hi.reshape(*batch, -1), vol.reshape(batch)
