@@ -265,7 +265,7 @@ def stirling_strip_update(
     `FilterEvent` codes ``[B]``: ``DOMAIN`` / ``DIVERGED`` of the remainder of ``h``, whose
     update is then skipped, and ``DEGENERATE_STRIP``; none of them loses the guarantee).
 
-    An affine ``h`` (`is_affine`, eager only) takes its exact slopes instead (the Stirling
+    An affine ``h`` (`is_affine`) takes its exact slopes instead (the Stirling
     slopes of an affine function, up to rounding) and a remainder that is the float padding
     alone (`_affine_strips`): the same strips to rounding, without the Stirling points and
     the remainder's machinery.

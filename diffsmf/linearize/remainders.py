@@ -79,11 +79,15 @@ def is_affine(fn: Fn, S: ConvexSet) -> bool:
     set ``S`` has a structurally zero Hessian (a property of the function, not of the set;
     the hull is only computed for the probe). Probed once per
     function and remembered (weakly, by identity) with what the remainder bounds learn, so
-    that the first call and every later one agree; False while tracing (host state: the
-    traced graph takes the general path), for an unhashable callable and for a function the
-    engine cannot enclose."""
+    that the first call and every later one agree; False for an unhashable callable and for a
+    function the engine cannot enclose. While traced the probe runs every time and nothing is
+    remembered (no host state); the flag is structural, and the probe's tensors are dead code
+    that the compiler drops."""
     if tracing():
-        return False
+        try:
+            return jet_eval(fn, S.interval_hull(), order=2).hess_is_zero
+        except JetError:
+            return False
     try:
         known = _AFFINE.get(fn)
     except TypeError:  # unhashable callable
