@@ -267,6 +267,27 @@ def test_streaming_compiles_with_the_filters_options_at_any_batch(monkeypatch):
     assert small["aot_inductor.allow_stack_allocation"] is True
     assert "aot_inductor.allow_stack_allocation" not in large
     assert not small["memory_planning"] and not large.get("memory_planning", False)
+    # a small step stores values read twice or made by more than 8 ops (faster to compile),
+    # unless it sorts (MSZM's reduction): those keep tensor handles, one per stored value
+    assert small["realize_reads_threshold"] == 1 and small["realize_opcount_threshold"] == 8
+    assert "realize_reads_threshold" not in large
+    mszm = ds.filters.MSZM(s).compile()
+    y = s.simulate(steps=2, batch=2, seed=0).y
+    with torch.no_grad(), mszm.streaming():
+        _close(_run(mszm, y, 2), _run(ds.filters.MSZM(s), y, 2))
+    assert seen[-1]["aot_inductor.allow_stack_allocation"] is True
+    assert "realize_reads_threshold" not in seen[-1]
+
+
+def test_has_sort_finds_sorts_in_a_captured_graph():
+    from torch.fx.experimental.proxy_tensor import make_fx
+
+    from diffsmf.filters.streaming import _has_sort
+
+    x = torch.randn(5, dtype=torch.float64)
+    assert _has_sort(make_fx(lambda t: torch.sort(t).values * 2)(x))
+    assert _has_sort(make_fx(lambda t: t[torch.argsort(t)])(x))
+    assert not _has_sort(make_fx(lambda t: (t * 2).exp().amax())(x))
 
 
 def _inductor(fn, example):
