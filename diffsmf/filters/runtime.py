@@ -643,8 +643,10 @@ def compiled_hull_and_volume(
     volume sums the generator-pair table in one fused loop (`PAIR_TABLE_MAX_M`) instead of
     the eager angle sort, which was about a quarter of a compiled MSZM ``forward`` at
     B = 10,000. The two volumes agree to a few ``m eps`` relative; the sets are untouched.
-    Other set types (one batched determinant for their volume) and recorded gradients stay
-    eager.
+    From n = 3 the volume stays eager: it sums determinants over the n-subsets of the
+    generators, or searches the bases of the outer parallelotope, and tracing that with a
+    symbolic batch took over 15 minutes for MSZM on a 6-state model. Other set types (one
+    batched determinant for their volume) and recorded gradients stay eager.
     """
     from diffsmf.sets.zonotope import Zonotope
 
@@ -657,7 +659,8 @@ def compiled_hull_and_volume(
     # two graphs: fused into one, the two reductions ran at 54 ms instead of 12 + 12
     # (B = 110,000, m = 24, 1 thread, the filter's scalar-code options)
     hull_fn = compiled_function(filt, "hull", _flat_hull, dynamic=None)
-    volume_fn = compiled_function(filt, "volume", _flat_volume, dynamic=None)
+    volume_fn = (compiled_function(filt, "volume", _flat_volume, dynamic=None)
+                 if sets.dim == 2 else None)
     if hull_fn is None:  # both None when the filter is not compiled
         return None
     fields = [t.reshape(-1, *t.shape[len(batch):]) for t in sets._tensors()]
@@ -666,5 +669,5 @@ def compiled_hull_and_volume(
         for d in range(1, t.dim()):
             torch._dynamo.mark_static(t, d)
     lo, hi = hull_fn(*fields, set_type=type(sets))
-    vol = volume_fn(*fields, set_type=type(sets))
+    vol = volume_fn(*fields, set_type=type(sets)) if sets.dim == 2 else sets.volume()
     return lo.reshape(*batch, -1), hi.reshape(*batch, -1), vol.reshape(batch)
