@@ -29,7 +29,7 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.filters.state import FilterState, flat_args, flat_step, flat_steps
-from diffsmf.filters.streaming import CaptureError, DirectSteps, config_key
+from diffsmf.filters.streaming import CaptureError, DirectSteps, config_key, known_options
 from diffsmf.sets.base import ConvexSet
 from diffsmf.utils import retain_freed_memory, tracing
 
@@ -96,12 +96,8 @@ COMPILE_OPTIONS: dict[str, Any] = {
 
 
 def compile_options() -> dict[str, Any]:
-    """`COMPILE_OPTIONS` that this torch's Inductor knows (older releases may lack one;
-    ``torch.compile`` rejects an option missing from ``get_config_copy()``, as checked here)."""
-    import torch._inductor.config as cfg
-
-    known = cfg.get_config_copy()
-    return {k: v for k, v in COMPILE_OPTIONS.items() if k in known}
+    """`COMPILE_OPTIONS` that this torch's Inductor knows (`streaming.known_options`)."""
+    return known_options(COMPILE_OPTIONS)
 
 
 def _check_options(options: Any) -> dict[str, Any]:
@@ -660,8 +656,8 @@ def compiled_hull_and_volume(
     # (B = 110,000, m = 24, 1 thread, the filter's scalar-code options)
     hull_fn = compiled_function(filt, "hull", _flat_hull, dynamic=None)
     volume_fn = (compiled_function(filt, "volume", _flat_volume, dynamic=None)
-                 if sets.dim == 2 else None)
-    if hull_fn is None:  # both None when the filter is not compiled
+                 if sets.dim == 2 else None)  # None from n = 3 too (an eager volume)
+    if hull_fn is None:  # None when the filter is not compiled
         return None
     fields = [t.reshape(-1, *t.shape[len(batch):]) for t in sets._tensors()]
     for t in fields:  # only the batch is dynamic: n and m pick Python branches (math.comb)
@@ -669,5 +665,5 @@ def compiled_hull_and_volume(
         for d in range(1, t.dim()):
             torch._dynamo.mark_static(t, d)
     lo, hi = hull_fn(*fields, set_type=type(sets))
-    vol = volume_fn(*fields, set_type=type(sets)) if sets.dim == 2 else sets.volume()
+    vol = sets.volume() if volume_fn is None else volume_fn(*fields, set_type=type(sets))
     return lo.reshape(*batch, -1), hi.reshape(*batch, -1), vol.reshape(batch)

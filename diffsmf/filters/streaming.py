@@ -251,12 +251,12 @@ class DirectSteps:
             gm = make_fx(flat_step, tracing_mode="fake", _allow_non_fake_inputs=True)(*example)
         options = self._options
         stack = options.get("cpp_wrapper") and _intermediate_bytes(gm) <= STACK_BYTES
+        small = known_options(SMALL_STEP_OPTIONS) if stack and not _has_sort(gm) else {}
         with warnings.catch_warnings(), _stack_arrays(stack) as on:
             # torch 2.13's lowering calls its own deprecated check
             warnings.filterwarnings("ignore", ".*_prims_common.check", FutureWarning)
             compiled = inductor_compile(gm, example, options={
-                **(_small_step_options() if stack and not _has_sort(gm) else {}), **options,
-                **(_STACK_OPTIONS if on else {})})
+                **small, **options, **(_STACK_OPTIONS if on else {})})
         (n_out, out_extras), = out_keys
         out_struct = (self._module.filt._out_type, n_out, out_extras)
         call, head = _entry(compiled, example)
@@ -323,12 +323,14 @@ def _entry(
     return (entry, consts) if same else public
 
 
-def _small_step_options() -> dict[str, Any]:
-    """`SMALL_STEP_OPTIONS` that this torch's Inductor knows."""
+def known_options(options: dict[str, Any]) -> dict[str, Any]:
+    """The entries of ``options`` that this torch's Inductor knows (older releases may lack
+    one; ``torch._inductor.compile`` and ``torch.compile`` reject an option missing from
+    ``get_config_copy()``)."""
     import torch._inductor.config as cfg
 
     known = cfg.get_config_copy()
-    return {k: v for k, v in SMALL_STEP_OPTIONS.items() if k in known}
+    return {k: v for k, v in options.items() if k in known}
 
 
 def _has_sort(gm: torch.fx.GraphModule) -> bool:

@@ -113,9 +113,14 @@ def _traced_step(x: Tensor, k: int, direction: float) -> Tensor:
     nearest, which cannot fall below the float it exceeds. Gradients pass through ``x``."""
     fi = torch.finfo(x.dtype)
     x = x.clamp(min=-fi.max) if direction > 0 else x.clamp(max=fi.max)
-    mag = _nograd(x).abs().clamp_min(traced_floor(x.dtype) / fi.eps)
     step = (2 * k - 1) * fi.eps
-    return torch.add(x, mag, alpha=step if direction > 0 else -step)
+    return torch.add(x, _traced_magnitude(x), alpha=step if direction > 0 else -step)
+
+
+def _traced_magnitude(x: Tensor) -> Tensor:
+    """``max(|x|, floor / eps)`` without gradient: what `_traced_step` scales by
+    ``(2k - 1) eps``."""
+    return _nograd(x).abs().clamp_min(traced_floor(x.dtype) / torch.finfo(x.dtype).eps)
 
 
 #: the 0-dim ``+-inf`` targets of ``nextafter`` per dtype and device (made once, eagerly)
@@ -187,11 +192,9 @@ def outward(both: Tensor, k: int = 1, absolute: bool = True, point: bool = False
         e = eps(both)
         return torch.addcmul(t, _pair_const(both, rank, -e, e), _nograd(t).abs())
     if tracing():  # _traced_step on both bounds: [-1, 1] (2k - 1) eps max(|x|, floor / eps)
-        fi = torch.finfo(both.dtype)
         x = finite_inner(torch.stack([both, both]) if point else both)
-        mag = _nograd(x).abs().clamp_min(traced_floor(x.dtype) / fi.eps)
-        e = (2 * k - 1) * fi.eps
-        return torch.addcmul(x, _pair_const(x, rank, -e, e), mag)
+        e = (2 * k - 1) * eps(x)
+        return torch.addcmul(x, _pair_const(x, rank, -e, e), _traced_magnitude(x))
     out = torch.nextafter(both, _target(both, rank))
     if k > 1:  # then k - 1 ulps more, relatively (see _step); the first step made inf finite
         pad = _nograd(out).abs() * (2.0 * (k - 1) * eps(both))
