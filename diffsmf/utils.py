@@ -23,6 +23,7 @@ __all__ = [
     "StrictlyPositive",
     "check_half_widths",
     "check_strictly_positive",
+    "descending_order",
     "eager_constant",
     "fix_dynamo_matmul",
     "inv_softplus",
@@ -205,6 +206,31 @@ def materialize(x: Tensor) -> Tensor:
     import torch._inductor.inductor_prims  # noqa: F401  (registers the prim)
 
     return torch.ops.prims.inductor_force_stride_order(x, x.stride())
+
+
+def descending_order(score: Tensor) -> Tensor:
+    """The permutation ``[..., m]`` that sorts ``score [..., m]`` in descending order along
+    the last dim, stable (equal scores keep their order; NaN counts as the largest, as in
+    ``torch.sort``): ``torch.sort(score, descending=True, stable=True).indices``.
+
+    While traced, the same permutation by ranks: element j goes to position ``#{i : s_i >
+    s_j} + #{i < j : s_i = s_j}``, one ``m x m`` table of comparisons. Inductor fuses that
+    table with the rest of a step, where a library sort is a separate call that keeps tensor
+    handles (and the small-step compile options off, `diffsmf.filters.streaming`). For the
+    few generators of a reduction (m of 4 to 40) the table is cheap.
+    """
+    if not tracing():
+        return torch.sort(score, dim=-1, descending=True, stable=True).indices
+    m = score.shape[-1]
+    nan = score.isnan()
+    si, sj = score.unsqueeze(-1), score.unsqueeze(-2)  # [..., i, 1], [..., 1, j]
+    ni, nj = nan.unsqueeze(-1), nan.unsqueeze(-2)
+    idx = torch.arange(m, device=score.device)
+    earlier = idx.unsqueeze(-1) < idx  # [i, j]: i < j
+    ahead = (si > sj) | (ni & ~nj) | (((si == sj) | (ni & nj)) & earlier)  # i before j
+    rank = ahead.sum(-2)  # [..., j]: the position of element j
+    hit = rank.unsqueeze(-2) == idx.unsqueeze(-1)  # [..., r, j]: element j at position r
+    return (hit * idx).sum(-1)  # [..., r]
 
 
 @contextlib.contextmanager

@@ -349,3 +349,41 @@ def test_eigvalsh_of_a_matrix_with_gradient_warns_nothing_and_flags_non_finite()
     assert bool(torch.isnan(out[1]).all())
     np.testing.assert_allclose(out[0].numpy(), np.linalg.eigvalsh(bad[0].numpy()), rtol=1e-12,
                                atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.sampled_from([0.0, 1.0, -2.5, 3.0, np.inf, -np.inf, np.nan]), min_size=1,
+             max_size=24),
+    st.integers(1, 3),
+)
+def test_descending_order_is_torch_stable_sort_eager_and_traced(values, rows):
+    """`descending_order` against ``torch.sort(descending=True, stable=True)``: ties (many,
+    from a few distinct values), +-inf and NaN (the largest), eagerly and by the rank table
+    that a traced step uses; the traced result is a permutation."""
+    from diffsmf.utils import descending_order
+
+    score = torch.tensor(values, dtype=torch.float64).roll(1).expand(rows, -1).clone()
+    score[0] = torch.tensor(values, dtype=torch.float64)
+    ref = torch.sort(score, dim=-1, descending=True, stable=True).indices
+    assert torch.equal(descending_order(score), ref)
+    with traced():
+        got = descending_order(score)
+    assert torch.equal(got, ref)
+    assert torch.equal(got.sort(-1).values, torch.arange(len(values)).expand(rows, -1))
+
+
+def test_reduction_orders_generators_the_same_eager_and_traced():
+    """Girard's reduction of zonotopes with tied scores (axis-aligned generators score 0) keeps
+    and boxes the same generators whether the order comes from a sort or from ranks."""
+    from diffsmf.sets.zonotope import Zonotope
+
+    g = torch.Generator().manual_seed(3)
+    G = torch.randn(5, 3, 14, generator=g, dtype=torch.float64)
+    G[..., 6:] = torch.diag_embed(torch.rand(5, 3, generator=g, dtype=torch.float64)).repeat(
+        1, 1, 3)[..., :8]  # 8 axis-aligned columns: tied scores
+    Z = Zonotope(torch.zeros(5, 3, dtype=torch.float64), G)
+    eager = Z.reduce(3)
+    with traced():
+        rank = Z.reduce(3)
+    assert torch.equal(eager.generators, rank.generators)

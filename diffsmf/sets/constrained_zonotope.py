@@ -28,7 +28,7 @@ from torch import Tensor
 from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_count, check_finite
 from diffsmf.sets.czono_lp import LP_ITERS, LP_TOL, box_lp, support_value
 from diffsmf.sets.strip import strip_fields
-from diffsmf.utils import HIGHS_OPTIONS, is_int
+from diffsmf.utils import HIGHS_OPTIONS, descending_order, is_int
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.interval import Interval
@@ -707,7 +707,7 @@ class ConstrainedZonotope(ConvexSet):
             La = L.detach().abs()
             La = torch.cat([La[..., :n, :], CONSTRAINT_WEIGHT * La[..., n:, :]], -2)
             score = La.sum(-2) - La.amax(-2) if method == "girard" else La.square().sum(-2)
-            order = torch.sort(score, dim=-1, descending=True, stable=True).indices
+            order = descending_order(score)
         Ls = torch.gather(L, -1, order.unsqueeze(-2).expand(*batch, n + k, m))
         kept, dropped = Ls[..., :keep], Ls[..., keep:]
         s = dropped.abs().sum(-1)  # box of the dropped lifted generators [..., n + k]

@@ -34,7 +34,14 @@ from diffsmf.sets.base import (
 )
 from diffsmf.sets.czono_lp import certify_feasible
 from diffsmf.sets.strip import strip_batch, strip_fields
-from diffsmf.utils import HIGHS_OPTIONS, broadcast_shapes, eager_constant, materialize, tracing
+from diffsmf.utils import (
+    HIGHS_OPTIONS,
+    broadcast_shapes,
+    descending_order,
+    eager_constant,
+    materialize,
+    tracing,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -454,7 +461,7 @@ class Zonotope(ConvexSet):
                 score = As.norm(dim=-2)
             else:
                 score = As.sum(-2) - As.amax(-2)
-            perm = score.argsort(-1, descending=True)
+            perm = descending_order(score)  # a stable order (ties by index)
         keep_k = target - n
         Gp = torch.gather(G, -1, perm.unsqueeze(-2).expand_as(G))
         kept, rest = Gp[..., :keep_k], Gp[..., keep_k:]
