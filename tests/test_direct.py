@@ -267,9 +267,9 @@ def test_streaming_compiles_with_the_filters_options_at_any_batch(monkeypatch):
     assert small["aot_inductor.allow_stack_allocation"] is True
     assert "aot_inductor.allow_stack_allocation" not in large
     assert not small["memory_planning"] and not large.get("memory_planning", False)
-    # a small step stores values read twice or made by more than 8 ops (faster to compile),
-    # unless it sorts (a library sort keeps tensor handles, one per stored value)
-    assert small["realize_reads_threshold"] == 1 and small["realize_opcount_threshold"] == 8
+    # a small step stores values read more than twice or made by more than 16 ops (faster to
+    # compile), unless it sorts (a library sort keeps tensor handles, one per stored value)
+    assert small["realize_reads_threshold"] == 2 and small["realize_opcount_threshold"] == 16
     assert "realize_reads_threshold" not in large
     # MSZM's reduction orders its generators by ranks while traced, not by a sort: the
     # small-step options apply to it too
@@ -278,7 +278,7 @@ def test_streaming_compiles_with_the_filters_options_at_any_batch(monkeypatch):
     with torch.no_grad(), mszm.streaming():
         _close(_run(mszm, y, 2), _run(ds.filters.MSZM(s), y, 2))
     assert seen[-1]["aot_inductor.allow_stack_allocation"] is True
-    assert seen[-1]["realize_reads_threshold"] == 1
+    assert seen[-1]["realize_reads_threshold"] == 2
 
 
 def test_has_sort_finds_sorts_in_a_captured_graph():

@@ -59,14 +59,18 @@ STACK_BYTES = 1 << 20
 _STACK_OPTIONS = {"aot_inductor.allow_stack_allocation": True, "memory_planning": False}
 
 #: Inductor options for a small captured step (`STACK_BYTES`) without library sorts, under
-#: the filter's own: an intermediate read more than once, or computed by more than 8 ops, is
+#: the filter's own: an intermediate read more than twice, or computed by more than 16 ops, is
 #: stored once instead of recomputed inside every loop that reads it. The code to generate
 #: and compile shrinks, and at batch 1 the step is no slower where the stored values live in
-#: stack arrays: HSNSMF on spring_damper, cold compile 21.5-21.6 -> 13.7-14.0 s, 28.0-28.2 ->
-#: 27.8-28.2 us per online step (two alternating runs). A step with sorts (MSZM's reduction)
-#: keeps tensor handles, one more per stored value at every call (85 -> 95 us per MSZM step),
-#: and a large batch pays for the stores (30 % slower at B = 10,000): both keep the defaults.
-SMALL_STEP_OPTIONS = {"realize_reads_threshold": 1, "realize_opcount_threshold": 8}
+#: stack arrays. Measured on spring_damper (B = 1, cold cache, one thread, each step paired
+#: with the numpy Alamo loop, alternating runs on a loaded machine): MSZM compiles in 20.6-21.8
+#: s instead of 25.2-29.2 s with Inductor's defaults, and its step runs at 0.42x the numpy loop
+#: (0.41-0.44x with the defaults; 0.38x with thresholds of 1 read and 8 ops, which compile as
+#: fast); HSNSMF compiles as fast as with (1, 8), which took its cold compile from 21.5 to 14 s
+#: on a quieter machine, at 1.09-1.12x against 1.08-1.09x. A step with sorts keeps tensor
+#: handles, one more per stored value at every call, and a large batch pays for the stores
+#: (30 % slower at B = 10,000 with (1, 8)): both keep the defaults.
+SMALL_STEP_OPTIONS = {"realize_reads_threshold": 2, "realize_opcount_threshold": 16}
 _SORTS = ("sort", "argsort", "topk", "kthvalue", "msort")
 
 

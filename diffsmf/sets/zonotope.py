@@ -433,7 +433,8 @@ class Zonotope(ConvexSet):
 
         Methods (the generators to remove are chosen on detached scores, computed for the
         generators normalised by the interval hull's half-widths, ``diag(r)^-1 G``: the same
-        choice whatever the units of the states):
+        choice whatever the units of the states; equal scores keep the generators' order,
+        `diffsmf.utils.descending_order`):
           * ``"girard"`` (Girard 2005): keep the ``N - n`` generators with largest
             ``||g||_1 - ||g||_inf``, box the rest (``diag(sum |g|)``).
           * ``"combastel"`` (Combastel 2003): same with score ``||g||_2``.
