@@ -61,7 +61,7 @@ from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.conversions import as_zonotope
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, is_int, tracing
+from diffsmf.utils import Positive, descending_order, is_int, tracing
 
 __all__ = ["MSZM"]
 
@@ -150,7 +150,7 @@ class MSZM(SetFilter):
                 return Z.reduce(self.order, method=self.reduce_method)
             if hi <= q:  # nothing to reduce: the stable partition's first q columns
                 with torch.no_grad():
-                    perm = torch.argsort(nonzero, dim=-1, descending=True, stable=True)[..., :q]
+                    perm = descending_order(nonzero)[..., :q]
                 idx = perm.unsqueeze(-2).expand(*G.shape[:-1], q)
                 return Zonotope._make(Z.center, torch.gather(G, -1, idx))
         with torch.no_grad():
