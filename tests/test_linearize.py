@@ -307,6 +307,71 @@ def test_dc_without_vertex_tangents_and_in_chunks_encloses_sampled_errors(monkey
     assert torch.equal(one.lower, many.lower) and torch.equal(one.upper, many.upper)
 
 
+def _f5(x):
+    """A smooth R^n -> R^3 map of every coordinate (n >= 3)."""
+    a, b, c = x[..., 0], x[..., 1], x[..., 2]
+    rest = (x[..., 3:] ** 2).sum(-1)
+    return torch.stack([a * b * c + torch.sin(rest), torch.exp(0.4 * a) * b - rest * c,
+                        torch.cos(a + x[..., -1]) + c**3], -1)
+
+
+def _vertex_tangent_cases():
+    """Sets whose vertex tangents fill at least `_GEMM_MIN_PAIRS` (tangent, vertex) pairs: a
+    5-D parallelotope (32 vertices) and a 3-D zonotope of 6 generators (64 sign vectors)."""
+    c5 = torch.randn(2, 5, generator=GEN) * 0.3
+    T5 = torch.randn(2, 5, 5, generator=GEN) * 0.06 + 0.12 * torch.eye(5)
+    c3 = torch.randn(3, 3, generator=GEN) * 0.3
+    G3 = torch.randn(3, 3, 6, generator=GEN) * 0.07
+    return [Parallelotope(c5, T5), Zonotope(c3, G3)]
+
+
+@pytest.mark.parametrize("case", [0, 1])
+def test_dc_matrix_product_table_encloses_and_matches_the_broadcast_table(case, monkeypatch):
+    """From 32 x 33 (tangent, vertex) pairs the eager table is a matrix product of the
+    vertices' features and each tangent plane's coefficients; it encloses sampled and
+    vertex errors, and it gives the broadcast table's bounds to rounding (both are padded)."""
+    import diffsmf.linearize.remainders as rem
+
+    S = _vertex_tangent_cases()[case]
+    c = S.center
+    J = stirling_jacobian(_f5, c, 0.05)
+    pts = torch.cat([S.sample(3000, generator=GEN), S.sample_extreme(1000, generator=GEN)],
+                    -2).movedim(-2, 0)
+    err = _f5(pts) - _f5(c) - ((pts - c).unsqueeze(-2) * J).sum(-1)
+    calls = []
+    gemm = rem._dc_bounds_gemm
+    monkeypatch.setattr(rem, "_dc_bounds_gemm", lambda *a: calls.append(1) or gemm(*a))
+    with torch.no_grad():
+        R = dc_remainder(_f5, S, c, J)
+        assert calls, "the matrix-product table was not used"
+        assert _encloses(R, err)
+        monkeypatch.setattr(rem, "_GEMM_MIN_PAIRS", 1 << 40)
+        ref = dc_remainder(_f5, S, c, J)
+    scale = ref.upper.abs().amax() + ref.lower.abs().amax()
+    torch.testing.assert_close(R.lower, ref.lower, rtol=0, atol=1e-14 * float(scale))
+    torch.testing.assert_close(R.upper, ref.upper, rtol=0, atol=1e-14 * float(scale))
+    # and in chunks of one batch element
+    monkeypatch.setattr(rem, "_GEMM_MIN_PAIRS", 1 << 10)
+    monkeypatch.setattr(rem, "_TANGENT_ELEMS", 1)
+    with torch.no_grad():
+        one = dc_remainder(_f5, S, c, J)
+    assert torch.equal(one.lower, R.lower) and torch.equal(one.upper, R.upper)
+
+
+def test_dc_matrix_product_table_gradcheck():
+    # a generic parallelotope (a symmetric one ties vertices, where the bound has kinks)
+    g = torch.Generator().manual_seed(3)
+    c0 = (0.3 * torch.randn(1, 5, generator=g)).requires_grad_()
+    T0 = (0.1 * torch.eye(5) + 0.03 * torch.randn(5, 5, generator=g)).unsqueeze(0)
+    T0.requires_grad_()
+
+    def bounds(c, T):
+        R = dc_remainder(_f5, Parallelotope(c, T), c, stirling_jacobian(_f5, c, 0.05))
+        return torch.cat([R.lower, R.upper], -1)
+
+    assert torch.autograd.gradcheck(bounds, (c0, T0))
+
+
 def test_value_and_jacobian_with_stacked_points_matches_jacobian():
     from diffsmf.linearize.jacobians import value_and_jacobian
 
