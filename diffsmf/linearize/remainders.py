@@ -584,15 +584,24 @@ def _dc_bounds_gemm(
     k, n = gP.shape[-2], gP.shape[-1]
     batch = broadcast_shapes(dP.shape[1:-1], gP.shape[1:-2], W.shape[1:-2])
     b = math.prod(batch)
-    d = dP.expand(1 + N, *batch, n).reshape(1 + N, b, n).transpose(0, 1)  # [b, 1 + N, n]
-    g = gP.expand(P, *batch, k, n).reshape(P, b, k, n).transpose(0, 1)  # [b, P, k, n]
-    r = rP.expand(1 + N, *batch, k).reshape(1 + N, b, k).transpose(0, 1)  # [b, 1 + N, k]
-    w = W.expand(4, *batch, k, n).reshape(4, b, k, n).transpose(0, 1)  # [b, 4, k, n]
+
+    def front(t: Tensor, lead: int, inner: tuple[int, ...]) -> Tensor:  # [b, lead, *inner]
+        if len(batch) != 1 or t.shape[1:-len(inner)] != batch:
+            t = t.expand(lead, *batch, *inner).reshape(lead, b, *inner)
+        return t.transpose(0, 1)
+
+    d, g = front(dP, 1 + N, (n,)), front(gP, P, (k, n))  # [b, 1 + N, n], [b, P, k, n]
+    r, w = front(rP, 1 + N, (k,)), front(W, 4, (k, n))  # [b, 1 + N, k], [b, 4, k, n]
     rows = max(1, _TANGENT_ELEMS // (N * P * 4 * k))  # batch elements per chunk of the table
-    parts = [_gemm_chunk(d[s : s + rows], g[s : s + rows], r[s : s + rows], w[s : s + rows])
-             for s in range(0, max(b, 1), rows)]
-    V4, M = (torch.cat(t) if len(t) > 1 else t[0] for t in zip(*parts))
-    V4, M = (t.transpose(0, 1).reshape(4, *batch, k) for t in (V4, M))
+    if b <= rows:
+        V4, M = _gemm_chunk(d, g, r, w)
+    else:
+        parts = [_gemm_chunk(d[s : s + rows], g[s : s + rows], r[s : s + rows],
+                             w[s : s + rows]) for s in range(0, b, rows)]
+        V4, M = (torch.cat(t) for t in zip(*parts))
+    V4, M = (t.transpose(0, 1) for t in (V4, M))  # [4, b, k]
+    if len(batch) != 1:
+        V4, M = (t.reshape(4, *batch, k) for t in (V4, M))
     return _tightest_forms(V4, M, bad)
 
 
@@ -602,7 +611,7 @@ def _gemm_chunk(d: Tensor, g: Tensor, r: Tensor, w: Tensor) -> tuple[Tensor, Ten
     ``[b, 4, k]`` each (eq. 15 and eq. 16's ``min_p max_v``)."""
     b, P, k, n = g.shape
     N = d.shape[1] - 1
-    sgn = _form_signs(w[0, 0])  # [4, 1]: against [b, P, 4, k]
+    sgn = _form_signs(w, rank=2)  # [4, 1]: against [b, P, 4, k]
     x, p = d[:, 1:], d[:, :P].unsqueeze(-2)  # [b, N, n], [b, P, 1, n]
     wp = w.unsqueeze(1) * p.unsqueeze(-2)  # [b, P, 4, k, n]
     lin = torch.addcmul(wp * -2.0, sgn.unsqueeze(-1), g.unsqueeze(2))
@@ -622,16 +631,19 @@ def _gemm_chunk(d: Tensor, g: Tensor, r: Tensor, w: Tensor) -> tuple[Tensor, Ten
 _SIGNS: dict = {}
 
 
-def _form_signs(like: Tensor, positive: bool = False) -> Tensor:
-    """``[-1, -1, 1, 1]`` shaped ``[4, 1, .., 1]`` against ``[4, *like.shape[1:]]`` (cached
-    per dtype, device and rank in eager mode: a constant, not an op per call);
-    ``positive``: the boolean ``[True, True, False, False]`` (the signs < 0) instead."""
+def _form_signs(like: Tensor, positive: bool = False, rank: int | None = None) -> Tensor:
+    """``[-1, -1, 1, 1]`` shaped ``[4, 1, .., 1]`` against ``[4, *like.shape[1:]]`` (``rank``
+    dims, ``like``'s rank by default; cached per dtype, device and rank in eager mode: a
+    constant, not an op per call); ``positive``: the boolean ``[True, True, False, False]``
+    (the signs < 0) instead."""
+    rank = like.dim() if rank is None else rank
+
     def make() -> Tensor:
         t = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=like.dtype, device=like.device)
-        t = t.reshape(4, *([1] * (like.dim() - 1)))
+        t = t.reshape(4, *([1] * (rank - 1)))
         return t < 0 if positive else t
 
-    return eager_constant(_SIGNS, (like.dtype, like.device, like.dim(), positive), make)
+    return eager_constant(_SIGNS, (like.dtype, like.device, rank, positive), make)
 
 
 def dc_remainder(
