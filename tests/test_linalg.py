@@ -331,8 +331,8 @@ def test_cramer_volumes_sparse_sum_matches_the_gathered_table(n: int, m: int, mo
 def test_all_minors_match_determinants_and_the_lu_search(n: int, m: int, monkeypatch) -> None:
     """`_all_minors` (Laplace expansion, row by row) gives every n x n minor in the order of
     `_combinations`, against numpy's determinants, with a repeated column (zero minors) and
-    columns of 1e-12; the basis search chooses the same bases with it as with one LU per
-    basis (`MINOR_ELEMS = 0`)."""
+    columns of 1e-12, also in chunks of the batch; the basis search chooses the same bases
+    with it as with one LU per basis (`_lu_abs_dets`)."""
     from diffsmf.sets import zonotope as zono
 
     g = torch.Generator().manual_seed(7 * n + m)
@@ -344,7 +344,10 @@ def test_all_minors_match_determinants_and_the_lu_search(n: int, m: int, monkeyp
     ref = np.array([[np.linalg.det(G[b][:, S].numpy()) for S in idx.tolist()] for b in range(4)])
     np.testing.assert_allclose(M.numpy(), ref, rtol=1e-10, atol=1e-13 * np.abs(ref).max())
     best, ok = _best_basis(G)
-    monkeypatch.setattr(zono, "MINOR_ELEMS", 0)
+    # eagerly, a batch above MINOR_ELEMS is expanded in chunks: the same minors, bit for bit
+    monkeypatch.setattr(zono, "MINOR_ELEMS", 1)
+    assert torch.equal(zono._abs_dets(G, idx), M.abs().movedim(-1, 0))
+    monkeypatch.setattr(zono, "_abs_dets", zono._lu_abs_dets)
     best_lu, ok_lu = _best_basis(G)
     assert best.tolist() == best_lu.tolist() and ok.tolist() == ok_lu.tolist()
 

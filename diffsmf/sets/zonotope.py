@@ -835,20 +835,36 @@ def _best_basis(G: Tensor) -> tuple[Tensor, Tensor]:
 
 
 #: Elements (batch x subsets x n) up to which `_abs_dets` expands every n x n minor of
-#: ``G [..., n, m]`` row by row (`_all_minors`) instead of one LU factorisation per subset.
+#: ``G [..., n, m]`` row by row (`_all_minors`) instead of one LU factorisation per subset;
+#: eagerly, a larger batch is expanded in chunks of this many elements (n = 3-8, m <= 14,
+#: batch 1,000: 1.2-3.9x faster than the LUs, one thread).
 MINOR_ELEMS = 1 << 18
 
 
 def _abs_dets(G: Tensor, idx: Tensor) -> Tensor:
     """``|det G[..., :, S]|`` for the subsets ``S`` (rows of ``idx [K, n]``), subsets first:
-    ``[K, ...]``. For all ``C(m, n)`` subsets of a small batch, by Laplace expansion
-    (`_all_minors`); else one LU factorisation of each transposed basis (rows gather faster
-    than columns): the product of ``|U_ii|``, the number ``torch.linalg.det`` computes."""
+    ``[K, ...]``. For all ``C(m, n)`` subsets, by Laplace expansion (`_all_minors`; eagerly
+    in chunks of the batch, while traced for a small batch only); else one LU factorisation
+    of each transposed basis (rows gather faster than columns): the product of ``|U_ii|``,
+    the number ``torch.linalg.det`` computes."""
     n, m = G.shape[-2], G.shape[-1]
     nb = int(math.prod(G.shape[:-2])) or 1
     K = idx.shape[0]
-    if 2 <= n and K == math.comb(m, n) and nb * K * n <= MINOR_ELEMS:
-        return _all_minors(G).abs().movedim(-1, 0)
+    if 2 <= n and K == math.comb(m, n):
+        if nb * K * n <= MINOR_ELEMS:
+            return _all_minors(G).abs().movedim(-1, 0)
+        if not tracing():  # eagerly in chunks of the batch: 1.5-4x faster than the LUs
+            Gf = G.reshape(nb, n, m)
+            rows = max(1, MINOR_ELEMS // (K * n))
+            M = torch.cat([_all_minors(Gf[s : s + rows]) for s in range(0, nb, rows)])
+            return M.abs().mT.reshape(K, *G.shape[:-2])
+    return _lu_abs_dets(G, idx)
+
+
+def _lu_abs_dets(G: Tensor, idx: Tensor) -> Tensor:
+    """`_abs_dets` by one LU factorisation per subset, chunked over the subsets."""
+    n = G.shape[-2]
+    nb = int(math.prod(G.shape[:-2])) or 1
     starts, step = _chunks(idx.shape[0], nb * n * n)
     out = []
     for s in starts:
