@@ -352,7 +352,7 @@ def test_dc_matrix_product_table_encloses_and_matches_the_broadcast_table(case, 
     torch.testing.assert_close(R.upper, ref.upper, rtol=0, atol=1e-14 * float(scale))
     # and in chunks of one batch element
     monkeypatch.setattr(rem, "_GEMM_MIN_PAIRS", 1 << 10)
-    monkeypatch.setattr(rem, "_TANGENT_ELEMS", 1)
+    monkeypatch.setattr(rem, "_GEMM_CHUNK_ELEMS", 1)
     with torch.no_grad():
         one = dc_remainder(_f5, S, c, J)
     assert torch.equal(one.lower, R.lower) and torch.equal(one.upper, R.upper)
