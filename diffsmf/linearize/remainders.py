@@ -56,8 +56,8 @@ _MAX_TANGENTS = 64
 #: Elements per chunk of the tangent-plane evaluation.
 _TANGENT_ELEMS = 4_000_000
 #: Eagerly, `_dc_bounds` evaluates its table as matrix products (`_dc_bounds_gemm`) from this
-#: many (tangent point, vertex) pairs on: 1.4-4x faster from 32 x 33 pairs on (n = 2-6, batch
-#: 1-1,000, one thread), slower for fewer pairs or a single tangent point.
+#: many (tangent point, vertex) pairs on: 1.0-4.2x faster from 32 x 33 pairs on (n = 2-6,
+#: batch 1-1,000, one thread), slower for fewer pairs or a single tangent point.
 _GEMM_MIN_PAIRS = 1 << 10
 #: Table entries per chunk of `_dc_bounds_gemm` (8 MB in float64: 1.7-2x faster than 4M at
 #: n = 5-6, batch 100-1,000).
@@ -526,7 +526,9 @@ def _dc_bounds(
     The forms of ``-r`` give the upper bound ``min_p max_v (L + Q)`` and the lower bound
     ``min_v (r(v) - q(v))`` the same way. Rounding: the terms are at most ``|r(p)|``,
     ``2 |grad r(p)| |x - c|`` and ``4 W |x - c|^2`` in magnitude, which the caller's padding
-    covers. The tangent points go in chunks (memory ``chunk x N x 4 x batch x k``).
+    covers. The tangent points go in chunks (memory ``chunk x N x 4 x batch x k``). Eagerly,
+    from `_GEMM_MIN_PAIRS` (tangent point, vertex) pairs, the table is `_dc_bounds_gemm`'s
+    matrix products instead.
     """
     P = gP.shape[0]
     dv = dP[1:]  # [N, ..., n]
