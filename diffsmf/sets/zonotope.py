@@ -865,9 +865,9 @@ def _abs_dets(G: Tensor, idx: Tensor) -> Tensor:
 def _laplace_pays(m: int, n: int) -> bool:
     """Whether the row-by-row expansion of every n x n minor of n x m matrices beats one LU
     per basis for a large batch: its products, ``sum_r r C(m, r)`` over the rows r = 2..n, at
-    most 1.1 times the LUs' ``C(m, n) n^2``. Measured at batch 1,000-30,000, one thread: 1.2-3.8x
-    faster where this holds (n = 4-8, m - n >= 1 with ratio 0.34-1.0), 0.73-0.95x where it
-    fails (n = 6, m = 7; n = 7, m = 9; n = 8, m = 10: ratio 1.3-1.7)."""
+    most 1.1 times the LUs' ``C(m, n) n^2``. Measured at batches of 1,000-30,000, one thread:
+    1.2-3.8x faster than the LUs where this holds (work ratios 0.34-1.0, n = 4-8), 0.73-0.95x
+    where it fails (ratios 1.3-1.7: n = 6, m = 7; n = 7, m = 9; n = 8, m = 10)."""
     work = sum(r * math.comb(m, r) for r in range(2, n + 1))
     return work <= 1.1 * math.comb(m, n) * n * n
 
