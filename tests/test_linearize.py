@@ -358,6 +358,31 @@ def test_dc_matrix_product_table_encloses_and_matches_the_broadcast_table(case, 
     assert torch.equal(one.lower, R.lower) and torch.equal(one.upper, R.upper)
 
 
+def test_dc_matrix_product_table_while_traced_matches_eager(monkeypatch):
+    """A compiled step takes the matrix-product table too (Dynamo with the eager backend):
+    the same bounds as the eager call to rounding."""
+    import diffsmf.linearize.remainders as rem
+
+    S = _vertex_tangent_cases()[0]
+    J = stirling_jacobian(_f5, S.center, 0.05)
+
+    def bounds(c, T):
+        R = dc_remainder(_f5, Parallelotope(c, T), c, J)
+        return R.lower, R.upper
+
+    calls = []
+    gemm = rem._dc_bounds_gemm
+    monkeypatch.setattr(rem, "_dc_bounds_gemm", lambda *a: calls.append(1) or gemm(*a))
+    with torch.no_grad():
+        lo, up = bounds(S.center, S.T)
+        n_eager = len(calls)
+        tlo, tup = torch.compile(bounds, backend="eager", fullgraph=True)(S.center, S.T)
+    assert n_eager == 1 and len(calls) == 2
+    scale = float(up.abs().amax() + lo.abs().amax())
+    torch.testing.assert_close(tlo, lo, rtol=0, atol=1e-14 * scale)
+    torch.testing.assert_close(tup, up, rtol=0, atol=1e-14 * scale)
+
+
 def test_dc_matrix_product_table_gradcheck():
     # a generic parallelotope (a symmetric one ties vertices, where the bound has kinks)
     g = torch.Generator().manual_seed(3)
