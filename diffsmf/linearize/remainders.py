@@ -575,8 +575,8 @@ def _dc_bounds_gemm(
     tangent point p, vertex v and form as one matrix product per batch element.
 
     Expanded about ``c`` (``x`` = ``x_v - c``, ``p`` = ``p - c``), the quantity maximised
-    over the vertices, ``q(v) - sgn (r(p) + g.(x - p))`` with ``q = sum_j W_j (x_j - p_j)^2``
-    and ``sgn = -1`` for the forms of r, +1 for those of -r, is
+    over the vertices, ``q(v) + sgn (r(p) + g.(x - p))`` with ``q = sum_j W_j (x_j - p_j)^2``
+    and ``sgn = -1`` for the forms of r, +1 for those of -r (`_dc_bounds`' ``Q -+ L``), is
     ``[x^2, x, 1] . [W, -2 W p + sgn g, sum_j W_j p_j^2 + sgn (r(p) - g.p)]``: the vertices'
     features ``[N, 2n + 1]`` times the coefficients of each (tangent point, form, output)
     ``[2n + 1, P 4 k]``. Rounding: the ``2n + 1`` terms and the coefficients' own sums are
