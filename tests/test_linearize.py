@@ -381,6 +381,28 @@ def test_dc_matrix_product_table_while_traced_matches_eager(monkeypatch):
     scale = float(up.abs().amax() + lo.abs().amax())
     torch.testing.assert_close(tlo, lo, rtol=0, atol=1e-14 * scale)
     torch.testing.assert_close(tup, up, rtol=0, atol=1e-14 * scale)
+    # a large batch in small chunks: eagerly one chunk per element, while traced at most one
+    # per tangent point (the chunks are unrolled in the graph)
+    chunks = []
+    chunk = rem._gemm_chunk
+    monkeypatch.setattr(rem, "_gemm_chunk", lambda *a: chunks.append(1) or chunk(*a))
+    monkeypatch.setattr(rem, "_GEMM_CHUNK_ELEMS", 1)
+    c40 = S.center[:1].expand(40, 5) + 0.01 * torch.randn(40, 5, generator=GEN)
+    T40 = S.T[:1].expand(40, 5, 5)
+    J40 = stirling_jacobian(_f5, c40, 0.05)
+
+    def bounds40(c, T):
+        R = dc_remainder(_f5, Parallelotope(c, T), c, J40)
+        return R.lower, R.upper
+
+    with torch.no_grad():
+        elo, eup = bounds40(c40, T40)
+        assert len(chunks) == 40
+        chunks.clear()
+        tlo, tup = torch.compile(bounds40, backend="eager", fullgraph=True)(c40, T40)
+    assert len(chunks) == 20  # 40 elements, at most 33 chunks: 2 per chunk
+    torch.testing.assert_close(tlo, elo, rtol=0, atol=1e-14 * float(eup.abs().amax()))
+    torch.testing.assert_close(tup, eup, rtol=0, atol=1e-14 * float(eup.abs().amax()))
 
 
 def test_dc_matrix_product_table_gradcheck():

@@ -599,6 +599,8 @@ def _dc_bounds_gemm(
     d, g = front(dP, 1 + N, (n,)), front(gP, P, (k, n))  # [b, 1 + N, n], [b, P, k, n]
     r, w = front(rP, 1 + N, (k,)), front(W, 4, (k, n))  # [b, 1 + N, k], [b, 4, k, n]
     rows = max(1, _GEMM_CHUNK_ELEMS // (N * P * 4 * k))  # batch elements per chunk of the table
+    if tracing():  # the chunks are unrolled in the graph: at most P of them, as `_dc_bounds`
+        rows = max(rows, -(-b // P))
     if b <= rows:
         V4, M = _gemm_chunk(d, g, r, w)
     else:
