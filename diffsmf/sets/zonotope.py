@@ -981,9 +981,9 @@ def _cramer_volumes_sparse(flat: Tensor, m: int, n: int) -> Tensor:
     `BASIS_TIE_RTOL` absorbs. Chunked over the batch."""
     K = flat.shape[0]
     A = _exchange_matrix(m, n, flat.dtype, flat.device)
-    cols = max(1, _CHUNK_ELEMS // (K * n))
+    starts, cols = _chunks(flat.shape[1], K * n)
     vals = []
-    for s in range(0, flat.shape[1], cols):
+    for s in starts:
         f = flat[:, s : s + cols] if flat.shape[1] > cols else flat
         sums = torch.sparse.mm(A, f).view(K, n, -1)  # [K, n, nb]: sum_j |det B_(S - s_i + j)|
         vals.append(f * (sums / f.unsqueeze(1)).prod(1))
