@@ -344,3 +344,76 @@ def test_unary_of_the_input_box_selects_its_derivatives(fn):
     _, J, H = _derivatives(fn, xs)
     assert bool(((sel.grad.lower <= J) & (J <= sel.grad.upper)).all())
     assert bool(((sel.hess.lower <= H) & (H <= sel.hess.upper)).all())
+
+
+_SPECIAL = st.sampled_from([0.0, -0.0, math.inf, -math.inf, math.nan, 1e-300, -2.5, 3.0])
+
+
+def _special_interval(draw_vals, shape):
+    """Interval ``[shape]`` from sorted pairs of drawn values (a NaN bound kept as drawn)."""
+    t = torch.tensor(draw_vals, dtype=torch.float64).reshape(2, *shape)
+    lo, hi = torch.minimum(t[0], t[1]), torch.maximum(t[0], t[1])  # NaN propagates: NaN bounds
+    return Interval._make(lo, hi)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(_SPECIAL, min_size=12, max_size=12), st.lists(_SPECIAL, min_size=6, max_size=6),
+       st.booleans())
+def test_stacked_branch_free_products_equal_the_general_rule(va, vb, point):
+    """`arith._mul_stacked_general` (the traced engine's product of stacked bounds) gives the
+    bits of the general rule, ``0 * inf := 0`` and NaN operands (NaN results) included, for
+    two intervals and for a point times an interval."""
+    from diffsmf.interval import arith
+
+    a = _special_interval(va, (2, 3))  # [2, 3] against [3]: broadcasting
+    b = _special_interval(vb, (3,))
+    if point:
+        b = Interval._make(b.lower, b.lower)
+    ref = arith._mul_general(a, b)
+    prev = arith.stacking(True)
+    try:
+        sa = Interval._pair(torch.stack([a.lower, a.upper]))
+        sb = b if point else Interval._pair(torch.stack([b.lower, b.upper]))
+        ta, tb = arith._stacked_pair(sa, sb, outer=True)
+        got = arith._mul_stacked_general(sa, sb, ta, tb)
+    finally:
+        arith.stacking(prev)
+    for g, r in ((got.lower, ref.lower), (got.upper, ref.upper)):
+        assert torch.equal(torch.isnan(g), torch.isnan(r))
+        assert torch.equal(g.nan_to_num(7.0), r.nan_to_num(7.0))
+
+
+def test_traced_programs_stacked_and_separate_give_the_same_enclosures(monkeypatch):
+    """While traced (Dynamo, eager backend), the engine evaluates stacked bounds
+    (`capture.TRACED_STACKING`): the same bits as separate bounds, for an unbounded box with
+    exact zeros (``0 * inf``) and a box partly outside sqrt's domain; a NaN bound gives no
+    output two finite bounds in either mode."""
+    from diffsmf.interval import capture
+
+    def f(x):
+        x1, x2 = x[..., 0], x[..., 1]
+        return torch.stack([x1 * torch.tensor(0.0) + x1 * x2, torch.sqrt(x2 + 1.0) * torch.tanh(x1),
+                            x2 / (2.0 + x1 * x1) - 0.3 * x1**3 + x2**2], -1)
+
+    lo = torch.tensor([[-math.inf, 0.0], [-0.4, -0.5], [-3.0, -2.0], [math.nan, 0.1]],
+                      dtype=torch.float64)
+    hi = torch.tensor([[1.0, 0.0], [0.3, 0.6], [-2.0, 0.5], [0.2, 0.3]], dtype=torch.float64)
+
+    def run(lo, hi):
+        e = enclose(f, Interval._make(lo, hi), 2)  # (no validation: a NaN bound on purpose)
+        return [t for iv in (e.val, e.grad, e.hess) for t in (iv.lower, iv.upper)]
+
+    with torch.no_grad():
+        enclose(f, Interval._make(lo, hi), 2)  # captured eagerly first
+        out = {}
+        for flag in (True, False):
+            monkeypatch.setattr(capture, "TRACED_STACKING", flag)
+            torch._dynamo.reset()
+            out[flag] = torch.compile(run, backend="eager", fullgraph=True)(lo, hi)
+    torch._dynamo.reset()
+    for s, p in zip(out[True], out[False]):  # rows 0-2: the same bits
+        assert torch.equal(s[:3], p[:3])
+    assert not torch.isnan(out[True][0][0]).any()  # 0 * inf := 0 on the unbounded row
+    for flag in (True, False):  # the NaN bound: no output enclosed by two finite bounds
+        lo_, hi_ = out[flag][0][3], out[flag][1][3]
+        assert not bool((torch.isfinite(lo_) & torch.isfinite(hi_)).any())

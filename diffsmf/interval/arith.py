@@ -140,8 +140,9 @@ class _Mode(threading.local):
     eagerly; every non-point result is stacked, plain operands are stacked on first use) and
     ``checks`` (see `deferred_checks`)."""
 
-    stack = False
-    checks: list | None = None
+    def __init__(self) -> None:  # (instance attributes from the start: Dynamo guards on them)
+        self.stack = False
+        self.checks: list | None = None
 
 
 _M = _Mode()
@@ -299,9 +300,11 @@ def mul(a: Iv, b: Iv) -> Any:
     if pa and pb:
         p = a.lower * b.lower
         return a._pair(outward(p, point=True)) if _M.stack else a._make(down(p), up(p))
-    if tracing() or tensor_of(a).device.type != "cpu":  # (no view of stacked bounds)
-        return _mul_general(a, b)
     st = _stacked_pair(a, b, outer=True)
+    if tracing() or tensor_of(a).device.type != "cpu":  # (no view of stacked bounds)
+        if st is not None:
+            return _mul_stacked_general(a, b, st[0], st[1])
+        return _mul_general(a, b)
     if st is not None:
         return _mul_stacked(a, b, st[0], st[1])
     if pa or pb:
@@ -355,6 +358,24 @@ def mul_sum(x1: Iv, y1: Iv, x2: Iv, y2: Iv) -> Any | None:
     elif math.isnan(both.sum().item()):
         return None
     return x1._pair(outward(outward(both).sum(1)))
+
+
+def _mul_stacked_general(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
+    """`_mul_general` on stacked operands ``[2, ...]`` (a point as ``[...]``; two stacked
+    operands lifted to ``[2, 1, ...]`` and ``[1, 2, ...]``): the products with ``0 * inf :=
+    0``, their least and greatest, rounded outward in one op; NaN where an operand is NaN.
+    No host read (traced, or on an accelerator)."""
+    pa, pb = is_point(a), is_point(b)
+    p = ta * tb
+    if not (pa or pb):
+        p = p.flatten(0, 1)
+    lo, hi = torch.aminmax(torch.nan_to_num(p, nan=0.0, posinf=math.inf, neginf=-math.inf), dim=0)
+    both = outward(torch.stack([lo, hi]))
+    na = torch.isnan(ta) if pa else torch.isnan(ta).any(0)
+    nb = torch.isnan(tb) if pb else torch.isnan(tb).any(1 if not pa else 0)
+    if not (pa or pb):
+        na, nb = na.squeeze(0), nb.squeeze(0)
+    return a._pair(torch.where(na | nb, math.nan, both))
 
 
 def _mul_general(a: Iv, b: Iv) -> Any:
@@ -605,7 +626,9 @@ def square(x: Iv) -> Any:
     if sx is not None:
         # [min(-lo, hi), max(-lo, hi)] sorted, the first clamped to <= 0: [-min |x|, max |x|]
         # (min |x| is 0 where the interval meets 0; the square of -min |x| is min |x|^2)
-        m = torch.sort(sx * pair_signs(sx, sx.dim()), dim=0).values
+        m = sx * pair_signs(sx, sx.dim())
+        # (while traced, no sort: a graph that sorts is compiled with other options)
+        m = torch.stack(torch.aminmax(m, dim=0)) if tracing() else torch.sort(m, dim=0).values
         both = m.clamp(max=pair_const(m, m.dim(), 0.0, math.inf))
         return x._pair(outward(both * both).clamp_min(0.0))
     lo, hi = x.lower, x.upper

@@ -33,6 +33,9 @@ argument; offsets are computed on detached values and added).
 from __future__ import annotations
 
 import math
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -40,7 +43,7 @@ from torch import Tensor
 from diffsmf.utils import tracing
 
 __all__ = ["down", "eps", "finite_inner", "nan_to_zero", "outward", "pair_const", "pair_signs",
-           "subnormal", "tiny", "traced_floor", "up"]
+           "subnormal", "tiny", "traced_constants", "traced_floor", "up"]
 
 
 def eps(t: Tensor) -> float:
@@ -148,14 +151,38 @@ def _target(x: Tensor, rank: int) -> Tensor:
 
 
 def _pair_const(x: Tensor, rank: int, lo: float, hi: float) -> Tensor:
-    """``[lo, hi]`` shaped ``[2, 1, ..., 1]`` (``rank`` dims) like ``x`` (cached eagerly)."""
+    """``[lo, hi]`` shaped ``[2, 1, ..., 1]`` (``rank`` dims) like ``x`` (cached eagerly, and
+    within a `traced_constants` block while traced)."""
     key = (lo, hi, rank, x.dtype, x.device)
-    t = _TARGETS.get(key)
+    traced = tracing()
+    memo = _MEMO.consts if traced else _TARGETS
+    t = None if memo is None else memo.get(key)
     if t is None:
         t = torch.tensor([lo, hi], dtype=x.dtype, device=x.device).reshape(2, *([1] * (rank - 1)))
-        if not tracing():
-            _TARGETS[key] = t
+        if memo is not None:
+            memo[key] = t
     return t
+
+
+class _Memo(threading.local):
+    def __init__(self) -> None:  # (an instance attribute from the start: Dynamo guards on it)
+        self.consts: dict | None = None
+
+
+_MEMO = _Memo()
+
+
+@contextmanager
+def traced_constants() -> Iterator[None]:
+    """While traced: within, each per-bound constant (`pair_const`) is made once and reused,
+    one graph constant instead of one per rounding (the block's memo is dropped at its end,
+    so no traced tensor outlives the trace)."""
+    prev = _MEMO.consts
+    _MEMO.consts = {}
+    try:
+        yield
+    finally:
+        _MEMO.consts = prev
 
 
 def pair_const(x: Tensor, rank: int, lo: float, hi: float) -> Tensor:
