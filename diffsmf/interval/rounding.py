@@ -40,7 +40,7 @@ from contextlib import contextmanager
 import torch
 from torch import Tensor
 
-from diffsmf.utils import tracing
+from diffsmf.utils import materialize, tracing
 
 __all__ = ["down", "eps", "finite_inner", "nan_to_zero", "outward", "pair_const", "pair_signs",
            "subnormal", "tiny", "traced_constants", "traced_floor", "up"]
@@ -221,7 +221,12 @@ def outward(both: Tensor, k: int = 1, absolute: bool = True, point: bool = False
     if tracing():  # _traced_step on both bounds: [-1, 1] (2k - 1) eps max(|x|, floor / eps)
         x = finite_inner(torch.stack([both, both]) if point else both)
         e = (2 * k - 1) * eps(x)
-        return torch.addcmul(x, _pair_const(x, rank, -e, e), _traced_magnitude(x))
+        out = torch.addcmul(x, _pair_const(x, rank, -e, e), _traced_magnitude(x))
+        # in a program run, each rounded result is computed once into a buffer: Inductor would
+        # otherwise inline the chains of stacked ops into every consumer (MSZM on cstr: cold
+        # compile 133 -> 105 s; HSNSMF on spring_damper at B = 1 24-27 -> 21 s and a faster
+        # step, at B = 10,000 the same)
+        return materialize(out) if _MEMO.consts is not None else out
     out = torch.nextafter(both, _target(both, rank))
     if k > 1:  # then k - 1 ulps more, relatively (see _step); the first step made inf finite
         pad = _nograd(out).abs() * (2.0 * (k - 1) * eps(both))
