@@ -14,8 +14,10 @@ matrix products add the classical a-priori bound ``gamma_k * sum |terms|``
 (``gamma_k = (k + 4) eps``) before rounding. Gradients of ``lower``/``upper`` flow unchanged.
 
 Stacked mode (`Stacked`, `stacking`): while the engine evaluates a captured program eagerly
-on a small box, non-point results are stored as one tensor ``[2, ...]`` (lower, upper), so that
-the elementwise operations here treat both bounds in one op.
+on a small box, or at any size while traced, non-point results are stored as one tensor
+``[2, ...]`` (lower, upper), so that the elementwise operations here treat both bounds in one
+op. Eagerly, the products defer their check for ``0 * inf`` to one read of the host per
+program run; while traced (or on an accelerator) each takes a branch-free rule instead.
 
 `TORCH_IMPL` maps torch functions to their interval extensions (the ``__torch_function__``
 hook of ``Interval``), so that ``diffsmf.sets.interval.interval_eval`` evaluates a plain torch
@@ -136,8 +138,8 @@ def _lift(both: Tensor, rank: int, outer: int = -1) -> Tensor:
 
 
 class _Mode(threading.local):
-    """Per-thread state: ``stack`` (stacked mode: the engine's evaluation of a program,
-    eagerly; every non-point result is stacked, plain operands are stacked on first use) and
+    """Per-thread state: ``stack`` (stacked mode: the engine's evaluation of a program;
+    every non-point result is stacked, plain operands are stacked on first use) and
     ``checks`` (see `deferred_checks`)."""
 
     def __init__(self) -> None:  # (instance attributes from the start: Dynamo guards on them)
@@ -294,14 +296,15 @@ def mul(a: Iv, b: Iv) -> Any:
     combined by NaN-propagating min/max; only where that meets a NaN (``0 * inf`` or a NaN
     operand; one host read of the lower bounds' sum: an eager-only shortcut on the CPU that
     saves about ten ops a product) is the general rule taken, which it always is while
-    tracing and on an accelerator (no host sync there).
+    tracing and on an accelerator (no host sync there): `_mul_stacked_general` for stacked
+    operands, `_mul_general` for separate bounds.
     """
     pa, pb = is_point(a), is_point(b)
     if pa and pb:
         p = a.lower * b.lower
         return a._pair(outward(p, point=True)) if _M.stack else a._make(down(p), up(p))
     st = _stacked_pair(a, b, outer=True)
-    if tracing() or tensor_of(a).device.type != "cpu":  # (no view of stacked bounds)
+    if tracing() or tensor_of(a).device.type != "cpu":
         if st is not None:
             return _mul_stacked_general(a, b, st[0], st[1])
         return _mul_general(a, b)
@@ -363,7 +366,7 @@ def mul_sum(x1: Iv, y1: Iv, x2: Iv, y2: Iv) -> Any | None:
 def _mul_stacked_general(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
     """`_mul_general` on stacked operands ``[2, ...]`` (a point as ``[...]``; two stacked
     operands lifted to ``[2, 1, ...]`` and ``[1, 2, ...]``): the products with ``0 * inf :=
-    0``, their least and greatest, rounded outward in one op; NaN where an operand is NaN.
+    0``, their least and greatest, both rounded outward at once; NaN where an operand is NaN.
     No host read (traced, or on an accelerator)."""
     pa, pb = is_point(a), is_point(b)
     p = ta * tb
