@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import importlib.util
+import inspect
 import math
 import numbers
 import sys
@@ -436,7 +437,23 @@ def load_object(spec: str, what: str = "--model") -> object:
                        getattr(v, "__module__", None) == mod_name)
         raise ValueError(f"{what}: {str(path)!r} has no function {func!r} (functions there: "
                          f"{found})")
+    needs = _required_parameters(factory)
+    if needs:  # e.g. the dynamics f(x) itself instead of a function that builds the model
+        raise ValueError(f"{what}: {func} must take no arguments and return the model, but it "
+                         f"takes {', '.join(needs)}; write a function without arguments that "
+                         f"builds it (e.g. make_system() returning diffsmf.System(f, h, ...))")
     try:
         return factory()
     except Exception as exc:
         raise ValueError(f"{what}: {func}() failed: {type(exc).__name__}: {exc}") from exc
+
+
+def _required_parameters(fn: Callable[..., object]) -> list[str]:
+    """Names of the parameters of ``fn`` without a default (``*args`` / ``**kwargs`` do not
+    count); empty where the signature cannot be read."""
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return []
+    return [p.name for p in params if p.default is inspect.Parameter.empty
+            and p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)]

@@ -239,11 +239,14 @@ def test_data_errors_are_one_line(case, capsys, data, outputs, inputs, expect):
         ("{d}/log.csv:make_system", ["--model", "not a Python file"]),
         ("{d}/my_model.py:make_autonomous", ["--inputs", "has no inputs"]),
         ("{d}/my_model.py:make_branchy", ["f:", "reads a value of the state in Python"]),
+        ("{d}/dynamics.py:f", ["--model", "f must take no arguments", "takes x, u",
+                               "make_system()"]),
     ],
 )
 def test_model_errors_are_one_line(case, capsys, spec, expect):
     d, model, log, *_ = case
     (d / "broken.py").write_text("x = undefined_name\n")
+    (d / "dynamics.py").write_text("def f(x, u, theta=None):\n    return x\n")
     line = _error(capsys, "--model", spec.format(d=d), "--data", str(log), "--outputs", "y1",
                   "--inputs", "u1", "--out", str(d / "err"))
     for piece in expect:
