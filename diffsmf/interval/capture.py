@@ -410,10 +410,10 @@ class Program:
 
 
 #: while traced, programs are evaluated in stacked mode at every size: both bounds of an
-#: enclosure in one tensor, so that the graph holds about half the operations (spring_damper's
-#: HSNSMF step: the interval jet of its model 481 -> 299 of 1,457 -> 1,281 traced operations;
-#: cstr's MSZM step 6,399 -> 4,584), with the same bounds (the products take their branch-free
-#: rule for 0 * inf and NaN operands, `arith._mul_stacked_general`)
+#: enclosure in one tensor, so that a jet's graph holds about 40 % fewer operations
+#: (spring_damper's HSNSMF step: the interval jet of its model 481 -> 300 of 1,457 -> 1,282
+#: traced operations; cstr's MSZM step 6,399 -> 4,584), with the same bounds (the products
+#: take their branch-free rule for 0 * inf and NaN operands, `arith._mul_stacked_general`)
 TRACED_STACKING = True
 
 #: boxes of at most this many elements are evaluated in stacked mode (fewer ops; for larger
