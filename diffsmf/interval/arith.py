@@ -365,10 +365,24 @@ def mul_sum(x1: Iv, y1: Iv, x2: Iv, y2: Iv) -> Any | None:
 
 def _mul_stacked_general(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
     """`_mul_general` on stacked operands ``[2, ...]`` (a point as ``[...]``; two stacked
-    operands lifted to ``[2, 1, ...]`` and ``[1, 2, ...]``): the products with ``0 * inf :=
-    0``, their least and greatest, both rounded outward at once; NaN where an operand is NaN.
-    No host read (traced, or on an accelerator)."""
-    pa, pb = is_point(a), is_point(b)
+    operands lifted to ``[2, 1, ...]`` and ``[1, 2, ...]``, as `_stacked_pair` gives them)."""
+    return a._pair(_products_hull(ta, tb, is_point(a), is_point(b)))
+
+
+def _mul_general(a: Iv, b: Iv) -> Any:
+    """`mul` of separate bounds (any shapes, traceable): the bounds stacked as ``[2, 1, ...]``
+    and ``[1, 2, ...]`` for `_products_hull`."""
+    al, au, bl, bu = torch.broadcast_tensors(a.lower, a.upper, b.lower, b.upper)
+    both = _products_hull(torch.stack([al, au]).unsqueeze(1),
+                          torch.stack([bl, bu]).unsqueeze(0), False, False)
+    return a._make(both[0], both[1])
+
+
+def _products_hull(ta: Tensor, tb: Tensor, pa: bool, pb: bool) -> Tensor:
+    """The product rule without a host read: the endpoint products of ``ta`` and ``tb``
+    (stacked ``[2, 1, ...]`` and ``[1, 2, ...]``, or a point ``[...]`` (``pa`` / ``pb``) and
+    a stacked ``[2, ...]``) with ``0 * inf := 0``, their least and greatest, rounded outward
+    -> ``[2, ...]``; NaN where an operand is NaN."""
     p = ta * tb
     if not (pa or pb):
         p = p.flatten(0, 1)
@@ -378,18 +392,7 @@ def _mul_stacked_general(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
     nb = torch.isnan(tb) if pb else torch.isnan(tb).any(1 if not pa else 0)
     if not (pa or pb):
         na, nb = na.squeeze(0), nb.squeeze(0)
-    return a._pair(torch.where(na | nb, math.nan, both))
-
-
-def _mul_general(a: Iv, b: Iv) -> Any:
-    # the four products, 0 * inf := 0, NaN operands kept NaN (any shapes, traceable)
-    al, au, bl, bu = torch.broadcast_tensors(a.lower, a.upper, b.lower, b.upper)
-    p = torch.stack([al, au]).unsqueeze(1) * torch.stack([bl, bu]).unsqueeze(0)  # [2, 2, ...]
-    p = torch.nan_to_num(p.flatten(0, 1), nan=0.0, posinf=math.inf, neginf=-math.inf)
-    lo, hi = torch.aminmax(p, dim=0)
-    nan = torch.isnan(al) | torch.isnan(au) | torch.isnan(bl) | torch.isnan(bu)
-    return a._make(torch.where(nan, al + au + bl + bu, down(lo)),
-                   torch.where(nan, al + au + bl + bu, up(hi)))
+    return torch.where(na | nb, math.nan, both)
 
 
 def scale(a: Iv, s: float) -> Any:
