@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from diffsmf.interval.arith import Stacked, deferred_checks, products_ok, stacking, tensor_of
 from diffsmf.interval.errors import EngineError
 from diffsmf.interval.jet import Jet, lead, move, point, register_seed
-from diffsmf.interval.rounding import traced_constants
+from diffsmf.interval.rounding import traced_program
 from diffsmf.interval.rules import RULES, BoolBox, Ctx, register
 from diffsmf.sets.interval import Interval
 from diffsmf.utils import tracing
@@ -384,7 +384,7 @@ class Program:
         if tracing() and TRACED_STACKING:  # stacked; each product with its own NaN rule
             prev = stacking(True)
             try:
-                with traced_constants():
+                with traced_program():
                     self._steps(env)
             finally:
                 stacking(prev)

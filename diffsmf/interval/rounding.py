@@ -43,7 +43,7 @@ from torch import Tensor
 from diffsmf.utils import materialize, tracing
 
 __all__ = ["down", "eps", "finite_inner", "nan_to_zero", "outward", "pair_const", "pair_signs",
-           "subnormal", "tiny", "traced_constants", "traced_floor", "up"]
+           "subnormal", "tiny", "traced_floor", "traced_program", "up"]
 
 
 def eps(t: Tensor) -> float:
@@ -152,10 +152,9 @@ def _target(x: Tensor, rank: int) -> Tensor:
 
 def _pair_const(x: Tensor, rank: int, lo: float, hi: float) -> Tensor:
     """``[lo, hi]`` shaped ``[2, 1, ..., 1]`` (``rank`` dims) like ``x`` (cached eagerly, and
-    within a `traced_constants` block while traced)."""
+    within a `traced_program` block while traced)."""
     key = (lo, hi, rank, x.dtype, x.device)
-    traced = tracing()
-    memo = _MEMO.consts if traced else _TARGETS
+    memo = _MEMO.consts if tracing() else _TARGETS
     t = None if memo is None else memo.get(key)
     if t is None:
         t = torch.tensor([lo, hi], dtype=x.dtype, device=x.device).reshape(2, *([1] * (rank - 1)))
@@ -166,23 +165,28 @@ def _pair_const(x: Tensor, rank: int, lo: float, hi: float) -> Tensor:
 
 class _Memo(threading.local):
     def __init__(self) -> None:  # (an instance attribute from the start: Dynamo guards on it)
-        self.consts: dict | None = None
+        self.consts: dict | None = None  # a dict inside a `traced_program` block, else None
 
 
 _MEMO = _Memo()
 
 
 @contextmanager
-def traced_constants() -> Iterator[None]:
-    """While traced: within, each per-bound constant (`pair_const`) is made once and reused,
-    one graph constant instead of one per rounding (the block's memo is dropped at its end,
-    so no traced tensor outlives the trace)."""
+def traced_program() -> Iterator[None]:
+    """While traced, the block of one program run of the engine. Within it, each per-bound
+    constant (`pair_const`) is made once and reused (one graph constant instead of one per
+    rounding; the memo is dropped at the block's end, so no traced tensor outlives the trace),
+    and each result of `outward` is realised into a buffer (`utils.materialize`)."""
     prev = _MEMO.consts
     _MEMO.consts = {}
     try:
         yield
     finally:
         _MEMO.consts = prev
+
+
+def _in_traced_program() -> bool:
+    return _MEMO.consts is not None
 
 
 def pair_const(x: Tensor, rank: int, lo: float, hi: float) -> Tensor:
@@ -226,7 +230,7 @@ def outward(both: Tensor, k: int = 1, absolute: bool = True, point: bool = False
         # otherwise inline the chains of stacked ops into every consumer (MSZM on cstr: cold
         # compile 133 -> 105 s; HSNSMF on spring_damper at B = 1 24-27 -> 21 s and a faster
         # step, at B = 10,000 the same)
-        return materialize(out) if _MEMO.consts is not None else out
+        return materialize(out) if _in_traced_program() else out
     out = torch.nextafter(both, _target(both, rank))
     if k > 1:  # then k - 1 ulps more, relatively (see _step); the first step made inf finite
         pad = _nograd(out).abs() * (2.0 * (k - 1) * eps(both))
