@@ -39,9 +39,10 @@ from diffsmf.pwl import as_system, certify_error, fit_scplnn, simplex_error  # n
 from diffsmf.pwl.certified import simplex_hessian_bound  # noqa: E402
 
 G_L, DAMPING, DT = 9.81, 0.5, 0.05
-DOMAIN = (torch.tensor([-1.5, -4.0]), torch.tensor([1.5, 4.0]))
+F64 = torch.float64  # set bounds in float64: 0.002 in float32 is 0.0020000000949949026
+DOMAIN = (torch.tensor([-1.5, -4.0], dtype=F64), torch.tensor([1.5, 4.0], dtype=F64))
 W_BOUND, V_BOUND = 0.002, 0.05
-X0 = ds.Interval(torch.tensor([0.6, -0.3]), torch.tensor([1.0, 0.3]))
+X0 = ds.Interval([0.6, -0.3], [1.0, 0.3])
 
 
 def _rhs(z):
@@ -62,9 +63,9 @@ def angle(x):
 
 
 def true_system() -> ds.System:
-    w = torch.full((2,), W_BOUND)
+    w = torch.full((2,), W_BOUND, dtype=F64)
     return ds.System(lambda x, u, th: pendulum(x), angle, X0, ds.Interval(-w, w),
-                     ds.Interval(torch.tensor([-V_BOUND]), torch.tensor([V_BOUND])),
+                     ds.Interval([-V_BOUND], [V_BOUND]),
                      name="pendulum")
 
 
@@ -81,9 +82,9 @@ def fit(samples: int = 20_000, eps: float = 0.004, seed: int = 0):
 
 
 def model_system(model, cert, X, Y) -> ds.System:
-    w = torch.full((2,), W_BOUND)
+    w = torch.full((2,), W_BOUND, dtype=F64)
     return as_system(model, angle, X0, ds.Interval(-w, w),
-                     ds.Interval(torch.tensor([-V_BOUND]), torch.tensor([V_BOUND])),
+                     ds.Interval([-V_BOUND], [V_BOUND]),
                      certificate=cert, samples=(X, Y), name="pendulum SCPLNN")
 
 

@@ -1,6 +1,9 @@
 """Tests of the shared pieces: System.simulate, Positive hyperparameters, the
 filter base loop (NaN handling, result assembly) and the CLI dispatcher."""
 
+import math
+import warnings
+
 import pytest
 import torch
 
@@ -201,10 +204,27 @@ def test_lazy_subpackages_resolve_and_unknown_names_raise():
 def test_sets_promote_lower_precision_inputs_to_float64():
     """The outward rounding margins are float64 margins: float32 input must not stay float32."""
     f32 = torch.float32
-    Z = ds.Zonotope(torch.tensor([0.4, 0.15], dtype=f32), torch.eye(2, dtype=f32))
+    with pytest.warns(UserWarning, match="center: a float32 tensor, in which 0.4 is 0.40000"):
+        Z = ds.Zonotope(torch.tensor([0.4, 0.15], dtype=f32), torch.eye(2, dtype=f32))
     E = ds.Ellipsoid(torch.zeros(2, dtype=f32), torch.eye(2, dtype=f32))
     I = ds.Interval(torch.zeros(2, dtype=f32), torch.ones(2, dtype=f32))
     P = ds.Parallelotope(torch.zeros(2, dtype=f32), torch.eye(2))
     for S in (Z, E, I, P):
         assert S.center.dtype == torch.float64
     assert I.contains(torch.full((2,), 0.5, dtype=f32))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16, torch.bfloat16])
+def test_a_rounded_lower_precision_set_bound_is_flagged_at_the_users_line(dtype):
+    """0.01 in float32 is 0.009999999776...: a noise bound written as 0.01 would be built on a
+    smaller number. The constructor warns, naming the argument, at the caller's line; values
+    that are their own decimals (0.5, integers, inf) and float64 or list input pass silently."""
+    with pytest.warns(UserWarning, match=r"^upper: a .* tensor, in which .* is") as rec:
+        ds.Interval(torch.tensor([-0.5, -2.0]), torch.tensor([0.5, 0.01], dtype=dtype))
+    assert [w.filename for w in rec] == [__file__]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds.Interval(torch.tensor([-0.5, -math.inf], dtype=dtype), torch.tensor([0.5, 3.0]))
+        ds.Interval([-0.01], [0.01])
+        ds.Interval(torch.tensor([-0.01], dtype=torch.float64), torch.tensor([0.01]).double())
+        ds.Zonotope(torch.zeros(2, dtype=dtype), 0.25 * torch.eye(2, dtype=dtype))

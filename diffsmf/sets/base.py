@@ -13,6 +13,9 @@ here from that declaration.
 
 from __future__ import annotations
 
+import os
+import sys
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar
 
@@ -65,17 +68,23 @@ def family(name: str) -> type:
     return _FAMILIES[name]
 
 
-def as_tensor(name: str, value: Any, *, like: Tensor | None = None, min_dim: int = 0) -> Tensor:
+def as_tensor(
+    name: str, value: Any, *, like: Tensor | None = None, min_dim: int = 0, field: bool = False
+) -> Tensor:
     """Convert ``value`` to a float64 tensor (or to ``like``'s dtype and device).
 
     Floating tensors of lower precision are promoted to float64: the guaranteed (outward)
     rounding margins of the sets are float64 margins, so a float32 set would silently lose
-    its guarantee. Raises ``ValueError`` naming ``name`` on NaN, on non-numeric input or on
-    too few dims.
+    its guarantee. ``field=True`` marks a tensor that defines a set (its bounds, centre,
+    generators): a lower-precision one whose values are not the decimals they print as is
+    flagged by a warning (`warn_rounded`). Raises ``ValueError`` naming ``name`` on NaN, on
+    non-numeric input or on too few dims.
     """
     if isinstance(value, Tensor):
         t = value
         if not t.is_floating_point() or torch.finfo(t.dtype).bits < 64:
+            if field and t.is_floating_point():
+                warn_rounded(name, t)
             t = t.to(like.dtype if like is not None else DEFAULT_DTYPE)
     else:
         try:
@@ -93,6 +102,46 @@ def as_tensor(name: str, value: Any, *, like: Tensor | None = None, min_dim: int
     if checking() and torch.isnan(t.detach()).any():
         raise ValueError(f"{name}: contains NaN")
     return t
+
+
+#: at most this many values of a lower-precision set field are compared with their decimals
+_ROUNDED_CHECK = 4096
+#: the folder of the diffsmf package (frames there are not the user's, `_user_stacklevel`)
+_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def warn_rounded(name: str, t: Tensor) -> None:
+    """Warn when the lower-precision tensor ``t`` (float32, float16, bfloat16) that defines a
+    set holds a value other than the decimal it prints as: ``torch.tensor(0.01)`` in float32
+    is 0.009999999776482582, so a noise bound or an initial box written as 0.01 would be
+    built on that number, up to half a float32 ulp inside (or outside) the bound the user
+    wrote, and the set's guarantee would hold for the rounded bound only. Values that print
+    exactly (0.5, 0.25, integers) pass silently. Host-side, on the first `_ROUNDED_CHECK`
+    values; never while traced."""
+    if tracing() or t.numel() == 0:
+        return
+    vals = t.detach().flatten()[:_ROUNDED_CHECK].cpu()
+    if t.dtype != torch.float32:  # float16 / bfloat16: exact in float32, printed as such
+        vals = vals.to(torch.float32)
+    for v in vals.numpy():
+        exact = float(v)
+        if exact == exact and float(str(v)) != exact:  # (NaN is reported by as_tensor)
+            warnings.warn(
+                f"{name}: a {str(t.dtype).removeprefix('torch.')} tensor, in which {v!s} is "
+                f"{exact!r}: the set is built on the rounded values, not on the decimals "
+                "written; create set bounds in float64 (dtype=torch.float64, or "
+                "torch.set_default_dtype(torch.float64) first)",
+                UserWarning, stacklevel=_user_stacklevel())
+            return
+
+
+def _user_stacklevel() -> int:
+    """The ``stacklevel`` of a warning raised here that points at the first caller outside
+    the diffsmf package (the user's line that built the set)."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_ROOT):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def as_vector(name: str, value: Any, like: Tensor, dim: int) -> Tensor:

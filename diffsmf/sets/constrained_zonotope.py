@@ -71,8 +71,9 @@ class ConstrainedZonotope(ConvexSet):
     b: Tensor
 
     def __init__(self, center: Any, generators: Any, A: Any = None, b: Any = None) -> None:
-        c = check_finite("center", as_tensor("center", center, min_dim=1))
-        G = check_finite("generators", as_tensor("generators", generators, like=c, min_dim=2))
+        c = check_finite("center", as_tensor("center", center, min_dim=1, field=True))
+        G = check_finite(
+            "generators", as_tensor("generators", generators, like=c, min_dim=2, field=True))
         n, m = c.shape[-1], G.shape[-1]
         if G.shape[-2] != n:
             raise ValueError(
@@ -84,8 +85,8 @@ class ConstrainedZonotope(ConvexSet):
         if A is None:
             A = c.new_zeros(0, m)
             b = c.new_zeros(0)
-        A = check_finite("A", as_tensor("A", A, like=c, min_dim=2))
-        b = check_finite("b", as_tensor("b", b, like=c, min_dim=1))
+        A = check_finite("A", as_tensor("A", A, like=c, min_dim=2, field=True))
+        b = check_finite("b", as_tensor("b", b, like=c, min_dim=1, field=True))
         if A.shape[-1] != m:
             raise ValueError(
                 f"A: expected shape [..., k, {m}] (m = generators), got {tuple(A.shape)}"

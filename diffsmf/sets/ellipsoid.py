@@ -60,8 +60,8 @@ class Ellipsoid(ConvexSet):
     shape: Tensor
 
     def __init__(self, center: Any, shape: Any) -> None:
-        c = as_tensor("center", center, min_dim=1)
-        S = as_tensor("shape", shape, like=c, min_dim=2)
+        c = as_tensor("center", center, min_dim=1, field=True)
+        S = as_tensor("shape", shape, like=c, min_dim=2, field=True)
         check_finite("center", c)
         check_finite("shape", S)
         n = c.shape[-1]

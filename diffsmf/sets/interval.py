@@ -47,8 +47,8 @@ class Interval(ConvexSet, IntervalArray):
     upper: Tensor
 
     def __init__(self, lower: Any, upper: Any = None) -> None:
-        lo = as_tensor("lower", lower)
-        hi = lo if upper is None else as_tensor("upper", upper, like=lo)
+        lo = as_tensor("lower", lower, field=True)
+        hi = lo if upper is None else as_tensor("upper", upper, like=lo, field=True)
         try:
             lo, hi = torch.broadcast_tensors(lo, hi)
         except RuntimeError as exc:
@@ -68,8 +68,8 @@ class Interval(ConvexSet, IntervalArray):
     @classmethod
     def from_center_radius(cls, center: Any, radius: Any) -> Interval:
         """Box ``[c - r, c + r]`` (bounds rounded outward); ``radius >= 0`` elementwise."""
-        c = as_tensor("center", center)
-        r = as_tensor("radius", radius, like=c)
+        c = as_tensor("center", center, field=True)
+        r = as_tensor("radius", radius, like=c, field=True)
         if checking() and (r.detach() < 0).any():
             raise ValueError("radius: must be >= 0")
         return cls._make(down(c - r), up(c + r))
@@ -77,7 +77,7 @@ class Interval(ConvexSet, IntervalArray):
     @classmethod
     def point(cls, x: Any) -> Interval:
         """Degenerate interval ``[x, x]``."""
-        t = as_tensor("x", x)
+        t = as_tensor("x", x, field=True)
         return cls._make(t, t)
 
     # ------------------------------------------------------------------ tensor-like structure

@@ -49,8 +49,8 @@ class Parallelotope(ConvexSet):
     _event_dims: ClassVar[tuple[int, ...]] = (1, 2)
 
     def __init__(self, center: Any, T: Any) -> None:
-        c = check_finite("center", as_tensor("center", center, min_dim=1))
-        T = check_finite("T", as_tensor("T", T, like=c, min_dim=2))
+        c = check_finite("center", as_tensor("center", center, min_dim=1, field=True))
+        T = check_finite("T", as_tensor("T", T, like=c, min_dim=2, field=True))
         n = c.shape[-1]
         if T.shape[-1] != T.shape[-2]:
             raise ValueError(f"T: must be square, got shape {tuple(T.shape)}")

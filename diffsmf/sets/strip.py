@@ -37,9 +37,9 @@ class Strip(ConvexSet):
     halfwidth: Tensor
 
     def __init__(self, normal: Any, offset: Any, halfwidth: Any) -> None:
-        a = as_tensor("normal", normal, min_dim=1)
-        o = as_tensor("offset", offset, like=a)
-        h = as_tensor("halfwidth", halfwidth, like=a)
+        a = as_tensor("normal", normal, min_dim=1, field=True)
+        o = as_tensor("offset", offset, like=a, field=True)
+        h = as_tensor("halfwidth", halfwidth, like=a, field=True)
         if checking():
             if (h.detach() < 0).any():
                 raise ValueError("halfwidth: must be >= 0")
@@ -76,8 +76,8 @@ class Strip(ConvexSet):
     @classmethod
     def from_bounds(cls, normal: Any, lower: Any, upper: Any) -> Strip:
         """Strip ``{x : lower <= normal . x <= upper}``."""
-        lo = as_tensor("lower", lower)
-        hi = as_tensor("upper", upper, like=lo)
+        lo = as_tensor("lower", lower, field=True)
+        hi = as_tensor("upper", upper, like=lo, field=True)
         if (lo.detach() > hi.detach()).any():
             raise ValueError("lower: must be <= upper")
         return cls(normal, 0.5 * (lo + hi), 0.5 * (hi - lo))

@@ -223,8 +223,9 @@ class Zonotope(ConvexSet):
     _event_dims: ClassVar[tuple[int, ...]] = (1, 2)
 
     def __init__(self, center: Any, generators: Any) -> None:
-        c = check_finite("center", as_tensor("center", center, min_dim=1))
-        G = check_finite("generators", as_tensor("generators", generators, like=c, min_dim=2))
+        c = check_finite("center", as_tensor("center", center, min_dim=1, field=True))
+        G = check_finite(
+            "generators", as_tensor("generators", generators, like=c, min_dim=2, field=True))
         if G.shape[-2] != c.shape[-1]:
             raise ValueError(
                 f"generators: expected shape [..., {c.shape[-1]}, m] to match center "
