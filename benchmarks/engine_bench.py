@@ -172,7 +172,7 @@ def aten_calls(name: str) -> int:
 
 def six_tanks() -> ds.System:
     """A cascade of six tanks (Torricelli outflow ``a sqrt(x)``), the last level measured."""
-    a = torch.tensor([0.5, 0.45, 0.4, 0.42, 0.38, 0.35])
+    a = torch.tensor([0.5, 0.45, 0.4, 0.42, 0.38, 0.35], dtype=torch.float64)
 
     def f(x: torch.Tensor) -> torch.Tensor:
         out = a * torch.sqrt(x)
@@ -182,10 +182,8 @@ def six_tanks() -> ds.System:
     def h(x: torch.Tensor) -> torch.Tensor:
         return x[..., -1:]
 
-    x0 = ds.Interval(torch.full((6,), 0.6), torch.full((6,), 1.0))
-    w = torch.full((6,), 1e-3)
-    return ds.System(f, h, x0, ds.Interval(-w, w), ds.Interval(torch.tensor([-0.01]),
-                                                               torch.tensor([0.01])),
+    x0 = ds.Interval([0.6] * 6, [1.0] * 6)
+    return ds.System(f, h, x0, ds.Interval([-1e-3] * 6, [1e-3] * 6), ds.Interval([-0.01], [0.01]),
                      name="six_tanks")
 
 

@@ -66,6 +66,26 @@ def test_simulate_gaussian_parts_have_their_covariance():
                   process_cov=-torch.eye(2))
 
 
+def test_simulated_data_carry_no_graph_unless_asked():
+    """A learnable model: the simulated trajectory is data (it feeds any number of training
+    steps, as torch.distributions' sample); ``differentiable=True`` keeps the graph (rsample):
+    the gradient of the final state's sum through one step of ``x + a x`` is ``x0`` summed."""
+    a = torch.nn.Parameter(torch.tensor(0.5))
+    sys_ = ds.System(lambda x: x + a * x, lambda x: x[..., :1], ds.Interval([1.0, 2.0], [1.0, 2.0]))
+    tr = sys_.simulate(steps=1)
+    assert not tr.x.requires_grad and not tr.y.requires_grad
+    opt = torch.optim.SGD([a], lr=0.1)
+    for _ in range(2):  # a second backward through the same data: no freed graph
+        opt.zero_grad()
+        ((tr.y - a) ** 2).sum().backward()
+        opt.step()
+    tr = sys_.simulate(steps=1, differentiable=True)
+    (g,) = torch.autograd.grad(tr.x[:, -1].sum(), a)
+    assert g.item() == pytest.approx(3.0)
+    with torch.no_grad():
+        assert not sys_.simulate(steps=1, differentiable=True).x.requires_grad
+
+
 def test_system_rejects_bad_sets():
     with pytest.raises(ValueError, match="x0_set"):
         ds.System(lambda x, u, t: x, lambda x: x, x0_set=torch.zeros(2))

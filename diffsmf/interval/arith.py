@@ -51,9 +51,9 @@ from diffsmf.utils import checking, tracing
 
 __all__ = [
     "TORCH_IMPL", "IntervalArray", "absolute", "add", "as_interval", "clamp", "div",
-    "is_number", "is_point", "matmul", "monotone", "mul", "power", "quotient_nonneg",
+    "is_number", "is_point", "matmul", "mm", "monotone", "mul", "power", "quotient_nonneg",
     "reciprocal", "relu",
-    "rpow", "scale", "shift", "square", "sub", "total", "trig", "wrap_out",
+    "rpow", "scale", "shift", "square", "sub", "times", "total", "trig", "wrap_out",
 ]
 
 _TWO_PI = 2.0 * math.pi
@@ -119,6 +119,108 @@ class Stacked:
 
 
 Iv = IntervalArray
+
+
+def _finite_part(t: Tensor) -> Tensor:
+    """``t`` with its infinite and NaN entries 0 (the operand of a product's gradient)."""
+    return torch.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+class _FiniteGradMul(torch.autograd.Function):
+    """``x * y`` whose gradients are those of the finite parts: ``g * y`` with the infinite
+    and NaN entries of ``y`` taken as 0 (and the same for ``x``). An unbounded enclosure (the
+    Hessian of a ReLU network at a kink, a set that diverged) is never used with a gradient
+    by the remainders, which mask it; its gradient is 0, and the plain product's backward
+    would turn that 0 into ``0 * inf = NaN`` in the gradients of the model's parameters.
+    The values are the plain product's, bit for bit."""
+
+    @staticmethod
+    def forward(x: Tensor, y: Tensor) -> Tensor:  # noqa: D102
+        return x * y
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:  # noqa: D102
+        ctx.save_for_backward(*inputs)
+
+    @staticmethod
+    def backward(ctx: Any, g: Tensor) -> tuple[Tensor | None, Tensor | None]:  # noqa: D102
+        x, y = ctx.saved_tensors
+        gx = _reduce_to(g * _finite_part(y), x) if ctx.needs_input_grad[0] else None
+        gy = _reduce_to(g * _finite_part(x), y) if ctx.needs_input_grad[1] else None
+        return gx, gy
+
+
+class _FiniteGradSquare(torch.autograd.Function):
+    """``x * x`` with the gradient ``2 g x`` of the finite part of ``x`` (`_FiniteGradMul`;
+    a Function of one input: Dynamo does not trace one applied to the same tensor twice)."""
+
+    @staticmethod
+    def forward(x: Tensor) -> Tensor:  # noqa: D102
+        return x * x
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:  # noqa: D102
+        ctx.save_for_backward(*inputs)
+
+    @staticmethod
+    def backward(ctx: Any, g: Tensor) -> Tensor:  # noqa: D102
+        (x,) = ctx.saved_tensors
+        return 2.0 * g * _finite_part(x)
+
+
+class _FiniteGradMatmul(torch.autograd.Function):
+    """``x @ y`` (``torch.matmul``) with the gradients of `_FiniteGradMul` (the operands'
+    finite parts)."""
+
+    @staticmethod
+    def forward(x: Tensor, y: Tensor) -> Tensor:  # noqa: D102
+        return x @ y
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:  # noqa: D102
+        ctx.save_for_backward(*inputs)
+
+    @staticmethod
+    def backward(ctx: Any, g: Tensor) -> tuple[Tensor | None, Tensor | None]:  # noqa: D102
+        x, y = ctx.saved_tensors
+        xs, ys = x, y
+        if x.dim() == 1:  # a vector on the left is a row, on the right a column
+            xs, g = x.unsqueeze(0), g.unsqueeze(-2)
+        if y.dim() == 1:
+            ys, g = y.unsqueeze(-1), g.unsqueeze(-1)
+        gx = gy = None
+        if ctx.needs_input_grad[0]:
+            gx = _reduce_to(g @ _finite_part(ys).mT, xs).reshape(x.shape)
+        if ctx.needs_input_grad[1]:
+            gy = _reduce_to(_finite_part(xs).mT @ g, ys).reshape(y.shape)
+        return gx, gy
+
+
+def _reduce_to(g: Tensor, like: Tensor) -> Tensor:
+    """The gradient ``g`` of a broadcast product summed to ``like``'s shape."""
+    if g.shape == like.shape:
+        return g
+    lead = g.dim() - like.dim()
+    dims = [i for i in range(g.dim()) if i < lead or like.shape[i - lead] == 1 != g.shape[i]]
+    return g.sum(dims, keepdim=True).reshape(like.shape) if dims else g.reshape(like.shape)
+
+
+def _needs_safe_grad(x: Tensor, y: Tensor) -> bool:
+    return torch.is_grad_enabled() and (x.requires_grad or y.requires_grad)
+
+
+def times(x: Tensor, y: Tensor) -> Tensor:
+    """``x * y`` of bound tensors: the plain product, with `_FiniteGradMul`'s gradients when
+    one records a gradient (the same values either way)."""
+    if not _needs_safe_grad(x, y):
+        return x * y
+    return _FiniteGradSquare.apply(x) if x is y else _FiniteGradMul.apply(x, y)
+
+
+def mm(x: Tensor, y: Tensor) -> Tensor:
+    """``x @ y`` of bound tensors, with `_FiniteGradMatmul`'s gradients when one records a
+    gradient (the same values either way)."""
+    return _FiniteGradMatmul.apply(x, y) if _needs_safe_grad(x, y) else x @ y
 
 
 def _st(a: Any) -> Tensor | None:
@@ -301,7 +403,7 @@ def mul(a: Iv, b: Iv) -> Any:
     """
     pa, pb = is_point(a), is_point(b)
     if pa and pb:
-        p = a.lower * b.lower
+        p = times(a.lower, b.lower)
         return a._pair(outward(p, point=True)) if _M.stack else a._make(down(p), up(p))
     st = _stacked_pair(a, b, outer=True)
     if tracing() or tensor_of(a).device.type != "cpu":
@@ -312,11 +414,11 @@ def mul(a: Iv, b: Iv) -> Any:
         return _mul_stacked(a, b, st[0], st[1])
     if pa or pb:
         c, x = (a.lower, b) if pa else (b.lower, a)
-        u, v = c * x.lower, c * x.upper
+        u, v = times(c, x.lower), times(c, x.upper)
         lo, hi = torch.minimum(u, v), torch.maximum(u, v)
     else:
-        p1, p2 = a.lower * b.lower, a.lower * b.upper
-        p3, p4 = a.upper * b.lower, a.upper * b.upper
+        p1, p2 = times(a.lower, b.lower), times(a.lower, b.upper)
+        p3, p4 = times(a.upper, b.lower), times(a.upper, b.upper)
         lo = torch.minimum(torch.minimum(p1, p2), torch.minimum(p3, p4))
         hi = torch.maximum(torch.maximum(p1, p2), torch.maximum(p3, p4))
     if math.isnan(lo.sum().item()):  # NaN-ness of lo and hi agree (same products); a sum of
@@ -327,9 +429,9 @@ def mul(a: Iv, b: Iv) -> Any:
 def _mul_stacked(a: Iv, b: Iv, ta: Tensor, tb: Tensor) -> Any:
     """`mul` with stacked operands ``[2, ...]`` (a point as ``[...]``), eagerly."""
     if is_point(a) or is_point(b):  # a point times a pair: the two products, sorted
-        both = torch.sort(ta * tb, dim=0).values
+        both = torch.sort(times(ta, tb), dim=0).values
     else:  # [2, 1, ...] * [1, 2, ...]: the four products, the smallest and the largest
-        both = torch.sort((ta * tb).flatten(0, 1), dim=0).values[::3]
+        both = torch.sort(times(ta, tb).flatten(0, 1), dim=0).values[::3]
     if _M.checks is not None:
         _M.checks.append(both)
     elif math.isnan(both.sum().item()):  # 0 * inf or a NaN operand: the general rule
@@ -355,7 +457,7 @@ def mul_sum(x1: Iv, y1: Iv, x2: Iv, y2: Iv) -> Any | None:
     # [2, 1, 2 terms, 1.., *sx] * [1, 2, 2 terms, 1.., *sy]: the four products of each term
     X = torch.stack([ts[0], ts[2]], 1).reshape(2, 1, 2, *([1] * (r - len(sx))), *sx)
     Y = torch.stack([ts[1], ts[3]], 1).reshape(1, 2, 2, *([1] * (r - len(sy))), *sy)
-    both = torch.sort((X * Y).flatten(0, 1), dim=0).values[::3]  # [2, 2 terms, ...]
+    both = torch.sort(times(X, Y).flatten(0, 1), dim=0).values[::3]  # [2, 2 terms, ...]
     if _M.checks is not None:
         _M.checks.append(both)
     elif math.isnan(both.sum().item()):
@@ -383,7 +485,7 @@ def _products_hull(ta: Tensor, tb: Tensor, pa: bool, pb: bool) -> Tensor:
     (stacked ``[2, 1, ...]`` and ``[1, 2, ...]``, or a point ``[...]`` (``pa`` / ``pb``) and
     a stacked ``[2, ...]``) with ``0 * inf := 0``, their least and greatest, rounded outward
     -> ``[2, ...]``; NaN where an operand is NaN."""
-    p = ta * tb
+    p = times(ta, tb)
     if not (pa or pb):
         p = p.flatten(0, 1)
     lo, hi = torch.aminmax(torch.nan_to_num(p, nan=0.0, posinf=math.inf, neginf=-math.inf), dim=0)
@@ -636,14 +738,14 @@ def square(x: Iv) -> Any:
         # (while traced, no sort: a graph that sorts is compiled with other options)
         m = torch.stack(torch.aminmax(m, dim=0)) if tracing() else torch.sort(m, dim=0).values
         both = m.clamp(max=pair_const(m, m.dim(), 0.0, math.inf))
-        return x._pair(outward(both * both).clamp_min(0.0))
+        return x._pair(outward(times(both, both)).clamp_min(0.0))
     lo, hi = x.lower, x.upper
     if is_point(x):
-        p = lo * lo
+        p = times(lo, lo)
         return x._make(down(p).clamp_min(0.0), up(p))
     small = torch.maximum(lo, -hi).clamp_min(0.0)  # min |x| (0 where the interval meets 0)
     big = torch.maximum(-lo, hi)  # max |x|
-    return x._make(down(small * small).clamp_min(0.0), up(big * big))
+    return x._make(down(times(small, small)).clamp_min(0.0), up(times(big, big)))
 
 
 def relu(x: Iv) -> Any:
@@ -725,11 +827,11 @@ def matmul(a: Any, b: Any) -> Any:
         A = as_tensor("other", b, like=a.lower)
         c, r = mid_rad(a)
         k = A.shape[0] if A.dim() == 1 else A.shape[-2]
-        return _mid_rad_out(a, c @ A, r @ A.abs(), c.abs() @ A.abs(), k)
+        return _mid_rad_out(a, mm(c, A), mm(r, A.abs()), mm(c.abs(), A.abs()), k)
     A = as_tensor("other", a, like=b.lower)
     c, r = mid_rad(b)
     k = A.shape[-1]
-    return _mid_rad_out(b, A @ c, A.abs() @ r, A.abs() @ c.abs(), k)
+    return _mid_rad_out(b, mm(A, c), mm(A.abs(), r), mm(A.abs(), c.abs()), k)
 
 
 def _mid_rad_out(like: Iv, mc: Tensor, mr: Tensor, mabs: Tensor, k: int) -> Any:

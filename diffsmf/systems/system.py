@@ -372,6 +372,7 @@ class System(nn.Module):
         theta: Tensor | Callable[[int], Tensor] | None = None,
         x0: Tensor | None = None,
         u: Tensor | None = None,
+        differentiable: bool = False,
     ) -> Trajectory:
         """Simulate ``batch`` trajectories of ``steps`` steps.
 
@@ -384,6 +385,11 @@ class System(nn.Module):
             u: inputs ``[B, T, p]`` (``u[:, k]`` drives ``x_k -> x_{k+1}``), checked by
                 `check_input`; overrides the ``inputs`` schedule. Required when
                 ``n_inputs > 0`` and the system has no schedule.
+            differentiable: ``False`` (default): the trajectory is data, with no autograd
+                history, so it can feed any number of training steps even when ``f`` or
+                ``h`` has learnable parameters (as ``torch.distributions``' ``sample``).
+                ``True``: gradients flow from ``x`` and ``y`` to the model's parameters,
+                ``theta``, ``x0`` and ``u`` (as ``rsample``; grad mode must be on).
 
         Returns:
             `Trajectory` with ``x [B, T+1, n]``, ``y [B, T, m]``, ``u``, ``theta``.
@@ -423,6 +429,16 @@ class System(nn.Module):
             z = torch.randn(batch, dim, generator=gen, dtype=cov.dtype, device=cov.device)
             return z @ root.mT
 
+        with torch.set_grad_enabled(differentiable and torch.is_grad_enabled()):
+            return self._run(steps, batch, draw, gauss, theta, x0, u_given)
+
+    def _run(
+        self, steps: int, batch: int, draw: Callable, gauss: Callable,
+        theta: Tensor | Callable[[int], Tensor] | None, x0: Tensor | None,
+        u_given: Tensor | None,
+    ) -> Trajectory:
+        """The loop of `simulate`, in the grad mode it chose: ``draw(set, dim)`` and
+        ``gauss(cov, dim)`` are its noise draws ``[B, dim]``."""
         schedule = _as_schedule("theta", theta) or self.theta_schedule
         x = draw(self.x0_set, self.n) if x0 is None else self._check_x0(x0, batch)
         xs, ys, us, ths = [x], [], [], []
