@@ -287,14 +287,7 @@ def test_ordinary_ways_of_writing_a_model_give_finite_gradients(name):
     """The 36 ways through HSNSMF with the Lagrange remainder (the interval Hessian is used
     directly, so unbounded entries meet the bounds' products): the gradients of the log set
     volume in the noise bounds, the Stirling step and a network's weights are finite."""
-    g = _COVERAGE.WAYS[name]
-    s = _COVERAGE.system(g)
-    y = s.simulate(steps=3, batch=2, seed=0, noise="vertex").y
-    filt = ds.filters.HSNSMF(s, remainder="lagrange")
-    filt(y).volume[:, 1:].log().mean().backward()
-    leaves = [*filt.parameters(), *(g.parameters() if isinstance(g, torch.nn.Module) else [])]
-    grads = [p.grad for p in leaves if p.grad is not None]
-    assert grads and all(bool(torch.isfinite(t).all()) for t in grads)
+    assert _COVERAGE.finite_gradients(_COVERAGE.WAYS[name], "hsnsmf", "lagrange", 2, 3)
 
 
 def test_inclusion_needs_a_rule_function():
