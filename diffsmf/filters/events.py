@@ -51,8 +51,9 @@ class FilterEvent(enum.IntFlag):
             ``MAX_SET_RADIUS`` (the set grew without bound, or reached a pole of the model):
             no bounded guaranteed set exists from this step on (``bounded`` False).
         DOMAIN: the set left the domain of the model (sqrt, log or a real power of a set
-            reaching below 0, asin / acos outside [-1, 1], atan2 meeting its branch cut): the
-            model's enclosure is NaN there, so no bound holds (``bounded`` False).
+            reaching below 0, asin / acos outside [-1, 1], atan2 meeting its branch cut, or
+            the box on which a fitted PWL model's error is certified): the model's enclosure
+            is NaN there, so no bound holds (``bounded`` False).
         DEGENERATE_STRIP: a measurement strip had a zero or non-finite normal (the
             linearised output does not depend on the state there, or overflowed): it was
             skipped, so the measurement did not shrink the set (the guarantee holds).
@@ -79,7 +80,8 @@ _TEXT = {
     FilterEvent.DIVERGED: "the set became unbounded (a remainder or the set grew without "
     "bound, e.g. at a pole of the model); bounds are -inf/+inf from here",
     FilterEvent.DOMAIN: "the set left the model's domain (sqrt/log/power below 0, asin/acos "
-    "outside [-1, 1] or an atan2 branch cut); bounds are -inf/+inf from here",
+    "outside [-1, 1], an atan2 branch cut, or a PWL model's certified domain); bounds are "
+    "-inf/+inf from here",
     FilterEvent.DEGENERATE_STRIP: "a measurement strip was degenerate (zero or non-finite "
     "normal) and was skipped; the bounds stay guaranteed",
     FilterEvent.NON_FINITE: "the set became NaN/inf (overflow); bounds are -inf/+inf from here",
