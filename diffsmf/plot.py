@@ -11,6 +11,7 @@ Nothing here calls ``plt.show``; pass an ``Axes`` (use the Agg backend for files
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -191,6 +192,7 @@ def bounds_figure(
     guaranteed: bool = True,
     state_names: list[str] | None = None,
     bounded: np.ndarray | Tensor | None = None,
+    skipped: Sequence[int] | None = None,
 ) -> Figure:
     """Bounds of every state over time for one trajectory -> a Figure (saved to ``path``).
 
@@ -205,6 +207,8 @@ def bounds_figure(
         bounded: ``[T+1]`` bool; from the first False step on the guarantee is lost (the set
             is unbounded, its bounds are -inf / +inf): that part is shaded grey and labelled,
             and no bound is drawn there (infinite bounds are never drawn as finite ones).
+        skipped: steps ``k`` (1..T) whose update was skipped (a missing measurement): marked
+            by grey dotted lines (the set there is the prediction, still guaranteed).
 
     One row per state: left, the bounds (shaded) and the truth; right, the bound width
     ``upper - lower`` on a log scale (bounds that are tight relative to the state's size are
@@ -243,6 +247,10 @@ def bounds_figure(
                 for j, kk in enumerate(bad):
                     a.axvline(kk, color="C3", lw=0.6, alpha=0.7,
                               label="inconsistent step" if j == 0 else None)
+        for a in (ax, axw) if skipped else ():
+            for j, kk in enumerate(skipped):
+                a.axvline(kk, color="0.45", lw=0.8, ls=":",
+                          label="update skipped (no measurement)" if j == 0 else None)
         if lost is not None:
             for a in (ax, axw):
                 a.axvspan(lost - 0.5, T1 - 0.5, color="0.6", alpha=0.35, linewidth=0,

@@ -68,7 +68,12 @@ def test_bounds_figure(tmp_path):
     assert len(fig.axes) == 2 * n and all(ax.get_ylabel() for ax in fig.axes)
     labels = [t.get_text() for t in fig.legends[0].get_texts()]
     assert "bounds (NOT guaranteed)" in labels and "inconsistent step" in labels
-    assert "true state" in labels
+    assert "true state" in labels and "update skipped (no measurement)" not in labels
+    fig = plot.bounds_figure(lo, up, skipped=[3, 7])
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels.count("update skipped (no measurement)") == 1
+    marks = [ln.get_xdata()[0] for ln in fig.axes[0].lines if ln.get_linestyle() == ":"]
+    assert marks == [3, 7]
     with pytest.raises(ValueError, match="lower, upper"):
         plot.bounds_figure(lo, up[:, :2], tmp_path / "bad.png")
 

@@ -452,20 +452,20 @@ def main(args: argparse.Namespace) -> int:
     files = {"bounds": bounds_path.name}
     name = type(filt).__name__
     guaranteed = ds.filters.is_guaranteed(filt)
+    skipped = [int(k) + 1 for k in np.flatnonzero(np.isnan(Y).any(1))]
     if args.figure:
         title = f"{name} on {system.name}: {T} steps of {Path(args.data).name}"
         names = state_names or [str(i) for i in range(system.n)]
         bounds_figure(run.lower, run.upper, out / "bounds.png", consistent=run.consistent,
                       title=title, guaranteed=guaranteed,
                       state_names=names if state_names else [f"state {c}" for c in names],
-                      bounded=run.bounded)
+                      bounded=run.bounded, skipped=skipped)
         files["figure"] = "bounds.png"
     inconsistent = [int(k) for k in np.flatnonzero(~run.consistent)]
     lost = int(np.flatnonzero(~run.bounded)[0]) if not run.bounded.all() else None
     status = EXIT_UNBOUNDED if lost is not None else (
         EXIT_INCONSISTENT if inconsistent else EXIT_OK
     )
-    skipped = [int(k) + 1 for k in np.flatnonzero(np.isnan(Y).any(1))]
     summary = {
         "filter": name,
         "guaranteed": guaranteed,
