@@ -126,7 +126,15 @@ def _finite_part(t: Tensor) -> Tensor:
     return torch.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-class _FiniteGradMul(torch.autograd.Function):
+class _SavesInputs(torch.autograd.Function):
+    """An autograd Function whose backward reads its inputs (``ctx.saved_tensors``)."""
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:  # noqa: D102
+        ctx.save_for_backward(*inputs)
+
+
+class _FiniteGradMul(_SavesInputs):
     """``x * y`` whose gradients are those of the finite parts: ``g * y`` with the infinite
     and NaN entries of ``y`` taken as 0 (and the same for ``x``). An unbounded enclosure (the
     Hessian of a ReLU network at a kink, a set that diverged) is never used with a gradient
@@ -139,10 +147,6 @@ class _FiniteGradMul(torch.autograd.Function):
         return x * y
 
     @staticmethod
-    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:  # noqa: D102
-        ctx.save_for_backward(*inputs)
-
-    @staticmethod
     def backward(ctx: Any, g: Tensor) -> tuple[Tensor | None, Tensor | None]:  # noqa: D102
         x, y = ctx.saved_tensors
         gx = _reduce_to(g * _finite_part(y), x) if ctx.needs_input_grad[0] else None
@@ -150,7 +154,7 @@ class _FiniteGradMul(torch.autograd.Function):
         return gx, gy
 
 
-class _FiniteGradSquare(torch.autograd.Function):
+class _FiniteGradSquare(_SavesInputs):
     """``x * x`` with the gradient ``2 g x`` of the finite part of ``x`` (`_FiniteGradMul`;
     a Function of one input: Dynamo does not trace one applied to the same tensor twice)."""
 
@@ -159,26 +163,18 @@ class _FiniteGradSquare(torch.autograd.Function):
         return x * x
 
     @staticmethod
-    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:  # noqa: D102
-        ctx.save_for_backward(*inputs)
-
-    @staticmethod
     def backward(ctx: Any, g: Tensor) -> Tensor:  # noqa: D102
         (x,) = ctx.saved_tensors
         return 2.0 * g * _finite_part(x)
 
 
-class _FiniteGradMatmul(torch.autograd.Function):
+class _FiniteGradMatmul(_SavesInputs):
     """``x @ y`` (``torch.matmul``) with the gradients of `_FiniteGradMul` (the operands'
     finite parts)."""
 
     @staticmethod
     def forward(x: Tensor, y: Tensor) -> Tensor:  # noqa: D102
         return x @ y
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:  # noqa: D102
-        ctx.save_for_backward(*inputs)
 
     @staticmethod
     def backward(ctx: Any, g: Tensor) -> tuple[Tensor | None, Tensor | None]:  # noqa: D102
