@@ -430,43 +430,34 @@ class System(nn.Module):
             return z @ root.mT
 
         with torch.set_grad_enabled(differentiable and torch.is_grad_enabled()):
-            return self._run(steps, batch, draw, gauss, theta, x0, u_given)
-
-    def _run(
-        self, steps: int, batch: int, draw: Callable, gauss: Callable,
-        theta: Tensor | Callable[[int], Tensor] | None, x0: Tensor | None,
-        u_given: Tensor | None,
-    ) -> Trajectory:
-        """The loop of `simulate`, in the grad mode it chose: ``draw(set, dim)`` and
-        ``gauss(cov, dim)`` are its noise draws ``[B, dim]``."""
-        schedule = _as_schedule("theta", theta) or self.theta_schedule
-        x = draw(self.x0_set, self.n) if x0 is None else self._check_x0(x0, batch)
-        xs, ys, us, ths = [x], [], [], []
-        for k in range(steps):
-            u = self.input_at(k, batch) if u_given is None else u_given[:, k]
-            th = None
-            if self.parameters is not None:
-                th = self.theta_nominal if schedule is None else schedule(k)
-                th = torch.as_tensor(th, dtype=x.dtype, device=x.device)
-                th = th.expand(batch, th.shape[-1])
-            w = draw(self.process_noise, self.n) + gauss(self.process_cov, self.n)
-            x = self.f(x, u, th) + w
-            v = draw(self.measurement_noise, self.m) + gauss(self.measurement_cov, self.m)
-            y = self.h(x) + v
-            if self.angle_outputs:  # reported as a sensor does: wrapped into [-pi, pi)
-                y = torch.where(self._angle_mask, wrap_angle(y), y)
-            xs.append(x)
-            ys.append(y)
-            us.append(u)
-            ths.append(th)
-        X, Y = torch.stack(xs, 1), torch.stack(ys, 1)
-        _check_finite_trajectory(X, Y)
-        return Trajectory(
-            x=X,
-            y=Y,
-            u=None if self.n_inputs == 0 else torch.stack(us, 1),
-            theta=None if self.parameters is None else torch.stack(ths, 1),
-        )
+            schedule = _as_schedule("theta", theta) or self.theta_schedule
+            x = draw(self.x0_set, self.n) if x0 is None else self._check_x0(x0, batch)
+            xs, ys, us, ths = [x], [], [], []
+            for k in range(steps):
+                u = self.input_at(k, batch) if u_given is None else u_given[:, k]
+                th = None
+                if self.parameters is not None:
+                    th = self.theta_nominal if schedule is None else schedule(k)
+                    th = torch.as_tensor(th, dtype=x.dtype, device=x.device)
+                    th = th.expand(batch, th.shape[-1])
+                w = draw(self.process_noise, self.n) + gauss(self.process_cov, self.n)
+                x = self.f(x, u, th) + w
+                v = draw(self.measurement_noise, self.m) + gauss(self.measurement_cov, self.m)
+                y = self.h(x) + v
+                if self.angle_outputs:  # reported as a sensor does: wrapped into [-pi, pi)
+                    y = torch.where(self._angle_mask, wrap_angle(y), y)
+                xs.append(x)
+                ys.append(y)
+                us.append(u)
+                ths.append(th)
+            X, Y = torch.stack(xs, 1), torch.stack(ys, 1)
+            _check_finite_trajectory(X, Y)
+            return Trajectory(
+                x=X,
+                y=Y,
+                u=None if self.n_inputs == 0 else torch.stack(us, 1),
+                theta=None if self.parameters is None else torch.stack(ths, 1),
+            )
 
 
 def scale_set(S: ConvexSet, d: Tensor) -> ConvexSet:
