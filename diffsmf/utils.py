@@ -31,11 +31,45 @@ __all__ = [
     "inv_softplus",
     "load_object",
     "materialize",
+    "progress_bar",
     "register_positive",
     "retain_freed_memory",
     "traced",
     "tracing",
+    "user_stacklevel",
 ]
+
+#: the folder of the diffsmf package (frames there are not the user's, `user_stacklevel`)
+_PACKAGE_ROOT = str(Path(__file__).resolve().parent)
+
+
+def progress_bar(progress: Any, total: int, desc: str, unit: str) -> Any:
+    """A progress bar over ``total`` units, or None when ``progress`` is falsy.
+
+    ``progress``: ``True`` (a `tqdm.auto.tqdm` bar that disappears when done), or a factory
+    called as ``progress(total=total, desc=desc, unit=unit)`` that returns an object with
+    ``update(n)`` and ``close()`` (e.g. ``functools.partial(tqdm, position=1)``, or your own
+    logger).
+    """
+    if progress is None or progress is False:
+        return None
+    if progress is True:
+        from tqdm.auto import tqdm
+
+        return tqdm(total=total, desc=desc, unit=unit, leave=False)
+    if not callable(progress):
+        raise ValueError(f"progress: expected True, False or a callable that makes a bar "
+                         f"(e.g. tqdm), got {type(progress).__name__}")
+    return progress(total=total, desc=desc, unit=unit)
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` for ``warnings.warn`` called by the caller of this function that
+    points at the first frame outside the diffsmf package (the user's line)."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_ROOT):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 #: scipy HiGHS options of the reference LPs (audits, exact-geometry fallbacks): feasibility to

@@ -32,3 +32,15 @@ def test_czsmf_example_runs_contains_and_plots(tmp_path):
     path = tmp_path / "cz.png"
     ex.figure(traj, out, path, (2, 4))
     assert path.stat().st_size > 10_000
+
+
+def test_learning_a_network_through_the_filter_fits_and_plots(tmp_path):
+    ex = _load("learn_model_through_filter")
+    out = ex.run(epochs=4, runs=6, steps=10, progress=False)
+    hist = out["history"]
+    assert len(hist) == 4 and all(torch.isfinite(torch.tensor(r["loss"])) for r in hist)
+    assert hist[-1]["prediction"] < hist[0]["prediction"]  # the network moved towards the data
+    assert {"area", "consistent", "inside"} <= set(out["after"])
+    path = tmp_path / "learned.png"
+    ex.figure(out, path)
+    assert path.stat().st_size > 10_000

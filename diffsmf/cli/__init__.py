@@ -109,8 +109,7 @@ def build_subparser(name: str, prog: str | None = None) -> tuple[argparse.Argume
 def run_command(name: str, argv: list[str], prog: str | None = None) -> int:
     """Parse ``argv`` for sub-command ``name`` and run it; user errors -> one line, status 2.
 
-    ``prog`` names the command in messages (default ``diffsmf NAME``; the script
-    ``training/tune.py`` uses its own).
+    ``prog`` names the command in messages (default ``diffsmf NAME``).
     """
     prog = prog or f"diffsmf {name}"
     try:

@@ -101,8 +101,9 @@ def main(args: argparse.Namespace) -> int:
     if outdir.exists() and not outdir.is_dir():
         raise ValueError(f"--out: {str(outdir)!r} exists and is not a folder")
     outdir.mkdir(parents=True, exist_ok=True)
-    for part in parts:
+    for i, part in enumerate(parts, 1):
         t0 = time.perf_counter()
+        print(f"[{i}/{len(parts)}] running the {part} part ...", flush=True)
         if part == "filters":
             text = filters_demo(outdir, getattr(args, "trials", 10), getattr(args, "steps", 60),
                                 getattr(args, "seed", 0))

@@ -46,6 +46,7 @@ from diffsmf.filters import names as filter_names
 from diffsmf.filters.events import describe_events
 from diffsmf.plot import bounds_figure
 from diffsmf.systems import System
+from diffsmf.tuning.bounds import bound_sets, read_bounds
 from diffsmf.utils import load_object  # the shared FILE.py:FUNC loader (re-exported)
 
 #: Exit statuses of ``diffsmf filter`` (see the module docstring).
@@ -63,6 +64,7 @@ __all__ = [
     "load_model",
     "load_object",
     "main",
+    "read_log",
     "read_table",
     "run_filter",
     "select_columns",
@@ -202,6 +204,45 @@ def select_columns(
 
 def _names(text: str | None) -> list[str]:
     return [] if not text else [c.strip() for c in text.split(",") if c.strip()]
+
+
+def read_log(
+    system: System, path: str | Path, outputs: list[str], inputs: list[str],
+    allow_blank: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """One logged trajectory of ``system`` from a data file (`read_table`):
+    ``y [T, m]`` from the ``outputs`` columns (in the order of ``h``) and ``u [T, p]`` from
+    the ``inputs`` columns, the system's ``inputs`` schedule, or None.
+
+    Raises:
+        ValueError: naming ``--outputs``, ``--inputs`` or ``--data``: a missing or
+            non-numeric column, a width that does not match ``h`` or ``n_inputs``.
+    """
+    source = repr(str(path))
+    table = read_table(path)
+    if not outputs:
+        raise ValueError("--outputs: name at least one measurement column")
+    Y = select_columns(table, outputs, "--outputs", source, allow_blank=allow_blank)
+    if Y.shape[1] != system.m:
+        raise ValueError(f"--outputs: {outputs} give {Y.shape[1]} measurement(s) per step, "
+                         f"the model's h(x) has {system.m}")
+    T = Y.shape[0]
+    y = torch.as_tensor(Y, dtype=system.x0_set.dtype)
+    if inputs:
+        if system.n_inputs == 0:
+            raise ValueError(f"--inputs: the model {system.name!r} has no inputs "
+                             "(build it with System(..., n_inputs=p))")
+        U = select_columns(table, inputs, "--inputs", source)
+        if U.shape[1] != system.n_inputs:
+            raise ValueError(f"--inputs: {inputs} give {U.shape[1]} input(s) per step, the "
+                             f"model has n_inputs={system.n_inputs}")
+        return y, system.check_input(torch.as_tensor(U), (T,))
+    if system.n_inputs > 0 and system.inputs is not None:
+        return y, torch.cat([system.input_at(k, 1) for k in range(T)], 0)  # the schedule
+    if system.n_inputs > 0:
+        raise ValueError(f"--inputs: the model {system.name!r} has n_inputs="
+                         f"{system.n_inputs} and no inputs schedule; name the input columns")
+    return y, None
 
 
 def _floats(text: str | None, what: str, dim: int) -> torch.Tensor | None:
@@ -370,6 +411,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--measurement-noise", default=None, metavar="V",
       help="measurement-noise half-widths, one number or one per output (default: the "
            "model's V); e.g. the tuned values of diffsmf tune")
+    a("--bounds", default=None, type=Path, metavar="FILE",
+      help="noise half-widths from the bounds.json that diffsmf tune writes (--process-noise "
+           "and --measurement-noise, when given, win)")
     a("--skip-missing", action="store_true",
       help="blank / NaN measurement cells skip that update (default: they are an error)")
     a("--no-figure", dest="figure", action="store_false", help="do not write bounds.png")
@@ -393,39 +437,17 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out: {str(out)!r} exists and is not a folder")
-    source = repr(str(args.data))
-    table = read_table(args.data)
     outs, ins = _names(args.outputs), _names(args.inputs)
-    if not outs:
-        raise ValueError("--outputs: name at least one measurement column")
-    Y = select_columns(table, outs, "--outputs", source, allow_blank=args.skip_missing)
-    if Y.shape[1] != system.m:
-        raise ValueError(f"--outputs: {outs} give {Y.shape[1]} measurement(s) per step, the "
-                         f"model's h(x) has {system.m}")
+    y, u = read_log(system, args.data, outs, ins, allow_blank=args.skip_missing)
+    Y = y.numpy()
     T = Y.shape[0]
-    dt = system.x0_set.dtype
-    y = torch.as_tensor(Y, dtype=dt)
-    if ins:
-        if system.n_inputs == 0:
-            raise ValueError(f"--inputs: the model {system.name!r} has no inputs "
-                             "(build it with System(..., n_inputs=p))")
-        U = select_columns(table, ins, "--inputs", source)
-        if U.shape[1] != system.n_inputs:
-            raise ValueError(f"--inputs: {ins} give {U.shape[1]} input(s) per step, the model "
-                             f"has n_inputs={system.n_inputs}")
-        if U.shape[0] != T:  # pragma: no cover  (same table: same length)
-            raise ValueError("--inputs: not as many rows as --outputs")
-        u = system.check_input(torch.as_tensor(U), (T,))
-    elif system.n_inputs > 0 and system.inputs is not None:
-        u = torch.cat([system.input_at(k, 1) for k in range(T)], 0)  # the model's schedule
-    elif system.n_inputs > 0:
-        raise ValueError(f"--inputs: the model {system.name!r} has n_inputs="
-                         f"{system.n_inputs} and no inputs schedule; name the input columns")
-    else:
-        u = None
     kw = {}
     wn = _floats(args.process_noise, "--process-noise", system.n)
     vn = _floats(args.measurement_noise, "--measurement-noise", system.m)
+    if getattr(args, "bounds", None) is not None:  # explicit --*-noise values win
+        tuned = read_bounds(args.bounds, system.n, system.m)
+        wn = tuned["process_noise"] if wn is None else wn
+        vn = tuned["measurement_noise"] if vn is None else vn
     if wn is not None:
         kw["process_noise"] = wn
     if vn is not None:
@@ -440,6 +462,8 @@ def main(args: argparse.Namespace) -> int:
             raise
         raise ValueError(f"{opts}: the {cls.__name__} filter does not take this option "
                          "(it has its own noise parameters)") from None
+    if getattr(args, "bounds", None) is not None:
+        _check_bounds_centres(args.bounds, filt)
     state_names = _state_names(getattr(args, "state_names", None), system.n)
     try:
         run = run_filter(filt, y, u, progress=not args.quiet)
@@ -481,6 +505,7 @@ def main(args: argparse.Namespace) -> int:
             if hasattr(filt, "process_noise") else None,
             "measurement_noise": filt.measurement_noise.detach().tolist()
             if hasattr(filt, "measurement_noise") else None,
+            "bounds_file": None if getattr(args, "bounds", None) is None else str(args.bounds),
             "skip_missing": bool(args.skip_missing),
             "format": args.format,
         },
@@ -517,6 +542,17 @@ def main(args: argparse.Namespace) -> int:
         print(f"  wrote {out / files['bounds']}, " +
               (f"{out / 'bounds.png'}, " if args.figure else "") + f"{out / 'summary.json'}")
     return status
+
+
+def _check_bounds_centres(path: Path, filt) -> None:
+    """The centres of a bounds file must be those of the model's noise sets (the file was
+    tuned for this model: tuning moves half-widths, never centres)."""
+    for name, S in bound_sets(path).items():
+        have = getattr(filt, f"{name}_center", None)
+        if have is not None and not torch.allclose(S.center, have, rtol=1e-12, atol=1e-15):
+            raise ValueError(f"--bounds: the {name} centre {S.center.tolist()} in "
+                             f"{str(path)!r} is not the model's ({have.tolist()}): the file "
+                             "was tuned for another model")
 
 
 def _event_reason(run: FilterRun) -> str:

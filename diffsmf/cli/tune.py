@@ -1,19 +1,28 @@
-"""Tune a filter's noise bounds (and step sizes) on simulated data of a built-in system.
+"""Tune a filter's noise bounds (and step sizes) on your logs, or on simulated data of a
+built-in system.
 
+    diffsmf tune --model my_model.py:make_system --data run1.csv run2.csv --outputs y1 \
+        [--inputs u1] --filter hsnsmf --epochs 100 --window 10 --out runs/mine
     diffsmf tune --system spring_damper --filter hsnsmf --epochs 200 --out runs/sd
     diffsmf tune --config sd.toml
     torchrun --nproc_per_node 2 -m diffsmf tune ...      # data-parallel (gloo / NCCL)
 
-Writes ``hyperparameters.json`` (initial, tuned and true bounds), ``report.json``,
-``loss_curve.csv`` and ``tuning.png`` (loss curve and mean set area before/after on held-out
-trajectories) to ``--out``. The loop itself is `diffsmf.tuning.loop.tune`.
+With ``--model``, the model's noise sets are the starting guess and each ``--data`` file is one
+logged run from ``x0_set`` (columns as ``diffsmf filter``); without true states the loss is
+the consistency loss with one shared scale for all noise bounds (`TuneConfig`).
+
+Writes to ``--out``: ``bounds.json`` (the tuned half-widths times ``--safety``, for
+``diffsmf filter --bounds`` and `diffsmf.tuning.bound_sets`), ``hyperparameters.json``
+(initial and tuned values; true bounds for a built-in), ``report.json``, ``loss_curve.csv``
+(per epoch: the losses and every tuned value) and ``tuning.png`` (the loss and the tuned
+bounds over the epochs, and for a built-in the mean set area before/after on held-out
+trajectories). The loop itself is `diffsmf.tuning.loop.tune`.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -23,6 +32,7 @@ import torch
 import diffsmf as ds
 from diffsmf.filters.base import SetFilter
 from diffsmf.tuning import ddp
+from diffsmf.tuning.bounds import consistent_scale, write_bounds
 from diffsmf.tuning.config import TuneConfig, load_config
 from diffsmf.tuning.loop import LOSS_MODES, Data, TuneReport, evaluate, simulate_finite, tune
 from diffsmf.tuning.losses import LossWeights
@@ -37,7 +47,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a = parser.add_argument
     a("--config", default=None, help="TOML file of options (command-line values win)")
     a("--system", default=d.system,
-      help="built-in system name (ds.systems.names()); NAME:N for a sized system")
+      help="built-in system name (ds.systems.names()); NAME:N for a sized system; tuned on "
+           "its simulated trajectories")
+    a("--model", default=d.model, metavar="FILE.py:FUNC",
+      help="your model instead of --system: the function in FILE.py that returns your "
+           "diffsmf.System (its noise sets are the starting guess); needs --data and --outputs")
+    a("--data", nargs="+", default=d.data, metavar="FILE",
+      help="with --model: logged runs, one file each (all of the same length), as for "
+           "diffsmf filter: .csv with a header row, .npz or .npy")
+    a("--outputs", default=d.outputs, metavar="COLS",
+      help="with --model: comma-separated measurement columns, in the order of h(x)")
+    a("--inputs", default=d.inputs, metavar="COLS",
+      help="with --model: comma-separated input columns, in the order of u")
+    a("--val-runs", type=int, default=d.val_runs,
+      help="with --model: the last N --data runs are held out for validation (0: none)")
+    a("--safety", type=float, default=d.safety,
+      help="factor >= 1 on the tuned half-widths written to bounds.json: tuned bounds are "
+           "the smallest the data do not refute and can lie below the true ones")
     a("--filter", default=d.filter, help="filter name (ds.filters.by_name)")
     a("--epochs", type=int, default=d.epochs)
     a("--batch-size", type=int, default=d.batch_size)
@@ -94,7 +120,14 @@ def _merge_config(args: argparse.Namespace) -> TuneConfig:
 
 def _check_config(cfg: TuneConfig) -> None:
     """One ``ValueError`` naming the option for each user error in a run configuration."""
-    ds.systems.check_name(cfg.system, option="--system")
+    if cfg.model is None:
+        ds.systems.check_name(cfg.system, option="--system")
+        for key in ("data", "outputs", "inputs"):
+            if getattr(cfg, key):
+                raise ValueError(f"--{key}: goes with --model (your model and its logs); a "
+                                 "built-in --system is tuned on its own simulated data")
+    else:
+        _check_model_config(cfg)
     try:
         ds.filters.by_name(cfg.filter)
     except ValueError:
@@ -128,15 +161,69 @@ def _check_config(cfg: TuneConfig) -> None:
         raise ValueError(f"--out: cannot create folder {str(out)!r} ({exc.strerror})") from None
 
 
-def build(cfg: TuneConfig) -> tuple[Any, SetFilter, dict[str, Any]]:
-    """System, filter (bounds scaled by ``init_scale``) and simulated data of a config."""
-    system = ds.systems.get(cfg.system)
+def _check_model_config(cfg: TuneConfig) -> None:
+    """The options of a run on the user's model and logs."""
+    if not cfg.data:
+        raise ValueError("--data: --model needs the logged runs (one file each)")
+    if not cfg.outputs:
+        raise ValueError("--outputs: name the measurement columns of the --data files")
+    if cfg.ground_truth:
+        raise ValueError("--ground-truth: logs hold no true states; --model tunes from the "
+                         "measurements (consistency loss)")
+    if cfg.val_runs < 0 or cfg.val_runs >= len(cfg.data):
+        raise ValueError(f"--val-runs: must be in 0..{len(cfg.data) - 1} (fewer than the "
+                         f"{len(cfg.data)} --data runs), got {cfg.val_runs}")
+    if not (cfg.safety >= 1 and cfg.safety < float("inf")):
+        raise ValueError(f"--safety: must be a number >= 1, got {cfg.safety}")
+
+
+def _logs(system: Any, cfg: TuneConfig) -> Data:
+    """The ``--data`` runs as ``Data(y [R, T, m], u [R, T, p] or None)``."""
+    from diffsmf.cli.filter import _names, read_log
+
+    ys, us = [], []
+    for path in cfg.data:
+        y, u = read_log(system, path, _names(cfg.outputs), _names(cfg.inputs))
+        if ys and y.shape[0] != ys[0].shape[0]:
+            raise ValueError(f"--data: {path!r} has {y.shape[0]} steps, {cfg.data[0]!r} has "
+                             f"{ys[0].shape[0]}; give runs of the same length (cut them to "
+                             "the shortest)")
+        ys.append(y)
+        us.append(u)
+    u = None if us[0] is None else torch.stack(us)
+    return Data(y=torch.stack(ys), u=u)
+
+
+def build_model_run(cfg: TuneConfig) -> tuple[Any, SetFilter, Data, Data, Data | None]:
+    """System (your ``--model``), filter (its noise sets times ``init_scale``), all the
+    runs, the training runs and the validation runs (the last ``val_runs`` of ``--data``, or
+    None)."""
+    from diffsmf.cli.filter import load_model
+
+    system = load_model(cfg.model)
+    filt = _make_filter(cfg, system)
+    if cfg.init_scale != 1.0:
+        filt.process_noise = filt.process_noise.detach() * cfg.init_scale
+        filt.measurement_noise = filt.measurement_noise.detach() * cfg.init_scale
+    logs = _logs(system, cfg)
+    k = len(logs) - cfg.val_runs
+    idx = torch.arange(len(logs))
+    return system, filt, logs, logs.take(idx[:k]), (logs.take(idx[k:]) if cfg.val_runs else None)
+
+
+def _make_filter(cfg: TuneConfig, system: Any) -> SetFilter:
     try:
-        filt = ds.filters.by_name(cfg.filter)(system, **cfg.filter_kwargs)
+        return ds.filters.by_name(cfg.filter)(system, **cfg.filter_kwargs)
     except TypeError as exc:
         if "unexpected keyword" not in str(exc):
             raise
         raise ValueError(f"config: filter_kwargs: {exc}") from None
+
+
+def build(cfg: TuneConfig) -> tuple[Any, SetFilter, dict[str, Any]]:
+    """System, filter (bounds scaled by ``init_scale``) and simulated data of a config."""
+    system = ds.systems.get(cfg.system)
+    filt = _make_filter(cfg, system)
     true = {
         "process_noise": filt.process_noise.detach().clone(),
         "measurement_noise": filt.measurement_noise.detach().clone(),
@@ -161,16 +248,15 @@ def _strip_x(traj: Any) -> Data:
 
 
 def _write_outputs(
-    out: Path, cfg: TuneConfig, report: TuneReport, before: Any, after: Any, test: Any, true: dict
+    out: Path, cfg: TuneConfig, report: TuneReport, filt: SetFilter, areas: tuple | None,
+    test: int, true: dict, record: dict,
 ) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """``bounds.json``, ``hyperparameters.json``, ``report.json``, ``loss_curve.csv`` and
+    ``tuning.png`` (loss; tuned values over the epochs; held-out areas before/after)."""
     out.mkdir(parents=True, exist_ok=True)
+    doc = write_bounds(out / "bounds.json", filt, cfg.safety, initial=report.initial, **record)
     hp = {
-        "system": cfg.system,
+        "system": cfg.system if cfg.model is None else cfg.model,
         "filter": cfg.filter,
         "true_bounds": {k: v.tolist() for k, v in true.items()},
         "initial": report.initial,
@@ -180,32 +266,70 @@ def _write_outputs(
     }
     (out / "hyperparameters.json").write_text(json.dumps(hp, indent=2))
     (out / "report.json").write_text(json.dumps(report.to_dict(), indent=2, default=str))
-    keys = sorted({k for r in report.history for k in r})
+    keys = ["epoch", *sorted({k for r in report.history for k in r} - {"epoch"})]
     with (out / "loss_curve.csv").open("w") as fh:
         fh.write(",".join(keys) + "\n")
         for r in report.history:
             fh.write(",".join("" if k not in r else f"{r[k]:.10g}" for k in keys) + "\n")
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
-    ep = [r["epoch"] for r in report.history]
-    ax[0].plot(ep, [r["loss"] for r in report.history], label="train loss")
-    vv = [(r["epoch"], r["val_loss"]) for r in report.history if "val_loss" in r]
+    written = {k: doc[k]["half_widths"] for k in ("process_noise", "measurement_noise")}
+    _tuning_figure(out / "tuning.png", cfg, report, areas, test, true, written)
+
+
+def _tuning_figure(
+    path: Path, cfg: TuneConfig, report: TuneReport, areas: tuple | None, test: int, true: dict,
+    written: dict,
+) -> None:
+    """The loss, each tuned value over the epochs (relative to its start; dashed: the value
+    written to bounds.json; dotted: the true bounds of a built-in) and, when held out, the
+    mean set area."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = 3 if areas is not None else 2
+    fig, ax = plt.subplots(1, panels, figsize=(5 * panels, 3.8))
+    hist = report.history
+    ep = [r["epoch"] for r in hist]
+    ax[0].plot(ep, [r["loss"] for r in hist], label="train loss")
+    vv = [(r["epoch"], r["val_loss"]) for r in hist if "val_loss" in r]
     if vv:
         ax[0].plot(*zip(*vv), "o-", label="validation loss")
-    ax[0].set_xlabel("epoch")
-    ax[0].set_ylabel(f"loss ({cfg.loss}: log-volume + penalty)")
+    if report.best_epoch:
+        ax[0].axvline(report.best_epoch, color="grey", ls=":", label="kept")
+    ax[0].set(xlabel="epoch", ylabel=f"loss ({cfg.loss}: log-volume + penalty)", title="loss")
     ax[0].xaxis.get_major_locator().set_params(integer=True)
     ax[0].legend()
-    ax[0].set_title("loss")
-    if before is not None and after is not None:
+    for name, start in report.initial.items():
+        for i, v0 in enumerate(start):
+            col = f"{name}[{i}]"
+            if v0 > 0 and all(col in r for r in hist):
+                line, = ax[1].semilogy([0, *ep], [1.0] + [r[col] / v0 for r in hist],
+                                       label=col)
+                tv = true.get(name)
+                if tv is not None and i < tv.numel():
+                    ax[1].axhline(float(tv[i]) / v0, color=line.get_color(), ls=":")
+                if name in written:
+                    ax[1].axhline(written[name][i] / v0, color=line.get_color(), ls="--",
+                                  lw=0.8)
+    if report.best_epoch:  # kept: after the best validated epoch, or at the best epoch's
+        # start when scored by its training loss
+        x_kept = report.best_epoch - (report.validation_before is None)
+        ax[1].axvline(x_kept, color="grey", ls=":", label="kept")
+    ax[1].set(xlabel="epoch", ylabel="value / starting value",
+              title="tuned values (dashed: bounds.json" + ("; dotted: true)" if true else ")"))
+    ax[1].xaxis.get_major_locator().set_params(integer=True)
+    ax[1].legend(fontsize="small")
+    if areas is not None:
+        before, after = areas
         k = torch.arange(before.shape[-1])
-        ax[1].semilogy(k, before, label="before tuning")
-        ax[1].semilogy(k, after, label="after tuning")
-        ax[1].set_xlabel("step k")
-        ax[1].set_ylabel("mean set area / volume")
-        ax[1].set_title(f"mean set area, {test} held-out trajectories")
-        ax[1].legend()
+        ax[2].semilogy(k, before, label="before tuning")
+        ax[2].semilogy(k, after, label="after tuning")
+        ax[2].set(xlabel="step k", ylabel="mean set area / volume",
+                  title=f"mean set area, {test} held-out trajectories")
+        ax[2].legend()
     fig.tight_layout()
-    fig.savefig(out / "tuning.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
@@ -218,24 +342,28 @@ def _tie(cfg: TuneConfig) -> str | None:
 
 
 def main(args: argparse.Namespace) -> int:
-    """Run the tuning command; writes hyperparameters.json, loss_curve.csv, tuning.png."""
+    """Run the tuning command; writes bounds.json, hyperparameters.json, report.json,
+    loss_curve.csv and tuning.png."""
     cfg = _merge_config(args)
     _check_config(cfg)
     torch.manual_seed(cfg.seed)
     ddp.init_from_env()
-    system, filt, sim = build(cfg)
-    train = sim["train"] if cfg.ground_truth else _strip_x(sim["train"])
-    val = sim.get("val")
-    if val is not None and not cfg.ground_truth:
-        val = _strip_x(val)
-    test = sim.get("test")
-    before = after = None
+    test = areas = audit = None
+    true: dict = {}
+    logs = None
+    if cfg.model is not None:
+        system, filt, logs, train, val = build_model_run(cfg)
+    else:
+        system, filt, sim = build(cfg)
+        true = sim["true"]
+        train = sim["train"] if cfg.ground_truth else _strip_x(sim["train"])
+        val = sim.get("val")
+        if val is not None and not cfg.ground_truth:
+            val = _strip_x(val)
+        test = sim.get("test")
     if test is not None:
         with torch.no_grad():
             before = filt(test.y, u=test.u).volume.mean(0)
-    if cfg.compile and cfg.progress and ddp.rank() == 0:
-        print("compiling the tuning step (once: 1-3 minutes on a CPU, seconds from the cache "
-              "of an earlier run)...", file=sys.stderr, flush=True)
     report, filt = tune(
         filt,
         train,
@@ -257,31 +385,41 @@ def main(args: argparse.Namespace) -> int:
         window=cfg.window or None,
         compile=cfg.compile,
     )
+    record = {}
+    if logs is not None:  # no logged measurement may refute what is written
+        with filt.eager():
+            record["consistency_scale"] = consistent_scale(filt, logs.y, logs.u)
     if test is not None:
         with filt.eager():  # once, on a new batch size: cheaper than another compile
             with torch.no_grad():
-                after = filt(test.y, u=test.u).volume.mean(0)
+                areas = (before, filt(test.y, u=test.u).volume.mean(0))
             audit = evaluate(filt, test, LossWeights(**cfg.weights), loss="both")
     if ddp.rank() == 0:
-        _write_outputs(
-            Path(cfg.out), cfg, report, before, after, cfg.test_trajectories, sim["true"]
-        )
-        print(
-            f"{cfg.filter} on {cfg.system}: {report.best_epoch} epochs kept, {report.seconds:.1f} s"
-        )
-        for k in report.final:
-            tv = sim["true"].get(k)
-            tv_s = "" if tv is None else f"   b* = {[round(t, 6) for t in tv.tolist()]}"
-            print(
-                f"  {k:<18} {[round(v, 6) for v in report.initial[k]]} -> "
-                f"{[round(v, 6) for v in report.final[k]]}{tv_s}"
-            )
-        if test is not None:
-            k0 = 1
-            print(
-                f"  mean area (held out, k>=1): {float(before[k0:].mean()):.4g} -> "
-                f"{float(after[k0:].mean()):.4g}; containment violations "
-                f"{audit.get('violations')} / {test.x.shape[0]} traj x {cfg.steps} steps"
-            )
-        print(f"  wrote {cfg.out}/hyperparameters.json, loss_curve.csv, tuning.png")
+        _write_outputs(Path(cfg.out), cfg, report, filt, areas, cfg.test_trajectories, true,
+                       record)
+        _print_summary(cfg, report, true, areas, audit, None if test is None else len(test.y))
     return 0
+
+
+def _print_summary(cfg: TuneConfig, report: TuneReport, true: dict, areas: tuple | None,
+                   audit: dict | None, tested: int | None) -> None:
+    what = cfg.system if cfg.model is None else f"{cfg.model} ({len(cfg.data)} logged runs)"
+    print(f"{cfg.filter} on {what}: {report.best_epoch} epochs kept, {report.seconds:.1f} s")
+    for k in report.final:
+        tv = true.get(k)
+        tv_s = "" if tv is None else f"   b* = {[round(t, 6) for t in tv.tolist()]}"
+        print(f"  {k:<18} {[round(v, 6) for v in report.initial[k]]} -> "
+              f"{[round(v, 6) for v in report.final[k]]}{tv_s}")
+    if areas is not None and audit is not None:
+        before, after = areas
+        print(f"  mean area (held out, k>=1): {float(before[1:].mean()):.4g} -> "
+              f"{float(after[1:].mean()):.4g}; containment violations "
+              f"{audit.get('violations')} / {tested} traj x {cfg.steps} steps")
+    doc = json.loads((Path(cfg.out) / "bounds.json").read_text())
+    c = doc.get("consistency_scale")
+    if c is not None and c > 1:
+        print(f"  the tuned noise bounds left logged measurements inconsistent: scaled by "
+              f"{c:.4g}, the smallest factor at which every one is consistent")
+    print(f"  bounds.json (tuned x {cfg.safety:g}): {doc['options']}")
+    print(f"  run the filter with them: diffsmf filter ... --bounds {cfg.out}/bounds.json")
+    print(f"  wrote {cfg.out}/bounds.json, hyperparameters.json, loss_curve.csv, tuning.png")

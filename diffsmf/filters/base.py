@@ -15,6 +15,7 @@ are `diffsmf.filters.state`.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -52,6 +53,7 @@ from diffsmf.utils import (
     numerical_events,
     register_positive,
     tracing,
+    user_stacklevel,
 )
 
 __all__ = [
@@ -120,6 +122,20 @@ def check_filter(name: str, filt: Any, system: System | None = None) -> Any:
     return filt
 
 
+def warn_uncertified_fit(system: System, filter_name: str) -> None:
+    """Warn, at the user's line, when ``system``'s dynamics are a fitted model (an SCPLNN)
+    without its certified error (``System.uncertified_fit``): the filter's sets then bound
+    the fitted model, not the plant it approximates."""
+    if getattr(system, "uncertified_fit", False):
+        warnings.warn(
+            f"system {system.name!r}: f is a fitted SCPLNN without a certified error, so "
+            f"{filter_name}'s sets bound the fitted model, not the plant it approximates; "
+            "build the system with ds.pwl.as_system(model, h, x0_set, W, V, "
+            "certificate=ds.pwl.certify_error(model, g)), which adds the model's error to the "
+            "process noise",
+            UserWarning, stacklevel=user_stacklevel())
+
+
 class SetFilter(nn.Module):
     """Base class of every filter (set-membership or Kalman).
 
@@ -146,7 +162,7 @@ class SetFilter(nn.Module):
     measurement_noise = Positive()
     #: Whether ``predict`` and ``update`` give sets of the same field shapes (False for CZSMF,
     #: whose predicted set is larger than its capped update); tuning compiles its guarded step
-    #: (`training.losses.filter_with_predictions`) only for such filters.
+    #: (`diffsmf.tuning.losses.filter_with_predictions`) only for such filters.
     _constant_set_size: bool = True
 
     def __init__(
@@ -160,6 +176,7 @@ class SetFilter(nn.Module):
     ) -> None:
         super().__init__()
         check_system("system", system)
+        warn_uncertified_fit(system, type(self).__name__)
         self.system = system
         self.skip_nan = skip_nan
         n, m = system.n, system.m
@@ -386,13 +403,20 @@ class SetFilter(nn.Module):
         eagerly)."""
         return all(isinstance(v, Tensor) for v in state.extras.values())
 
-    def forward(self, y: Tensor, u: Tensor | None = None) -> FilterResult:
-        """Filter measurements ``y [B, T, m]`` (inputs ``u [B, T, p]``) -> `FilterResult`."""
+    def forward(self, y: Tensor, u: Tensor | None = None, *, progress: Any = False
+                ) -> FilterResult:
+        """Filter measurements ``y [B, T, m]`` (inputs ``u [B, T, p]``) -> `FilterResult`.
+
+        ``progress``: ``True`` shows a progress bar over the T steps (tqdm), or pass a bar
+        factory such as ``tqdm`` itself (`diffsmf.utils.progress_bar`); off by default.
+        """
         y = runtime.measurements(y, self.system.m, self.system.x0_set.dtype, self.skip_nan)
         B, T, _ = y.shape
         if not tracing():
+            runtime.check_log(y, u)
             u = self.system.check_input(u, (B, T))
-        return self.collect(runtime.run_steps(self, self.initial_state(batch=B), y, u))
+        states = runtime.run_steps(self, self.initial_state(batch=B), y, u, progress)
+        return self.collect(states)
 
     def collect(self, states: list[FilterState]) -> FilterResult:
         """Assemble a `FilterResult` from the per-step states."""
@@ -425,18 +449,21 @@ class SetFilter(nn.Module):
         return runtime.online_step(self, state, u, y)
 
     def compile(  # type: ignore[override]
-        self, steps_per_call: int = 1, *, retain_memory: bool = False, **compile_kwargs: Any
+        self, steps_per_call: int = 1, *, retain_memory: bool = False, progress: bool = False,
+        **compile_kwargs: Any,
     ) -> SetFilter:
         """The fast path: compile one filter step with ``torch.compile(fullgraph=True)``.
 
         ``forward`` then runs the compiled step in its time loop and `step` is the online
         fast path; ``predict`` / ``update`` stay eager. Returns ``self``. The arguments
         (``steps_per_call``: steps per compiled call; ``retain_memory``: opt in to
-        `diffsmf.utils.retain_freed_memory`; ``compile_kwargs`` for `torch.compile`) are
-        documented at `diffsmf.filters.runtime.compile_filter`.
+        `diffsmf.utils.retain_freed_memory`; ``progress``: a line on stderr while a new
+        batch size compiles, and how long it took; ``compile_kwargs`` for `torch.compile`)
+        are documented at `diffsmf.filters.runtime.compile_filter`.
         """
         runtime.compile_filter(
-            self, steps_per_call, retain_memory=retain_memory, **compile_kwargs
+            self, steps_per_call, retain_memory=retain_memory, progress=progress,
+            **compile_kwargs,
         )
         return self
 

@@ -35,6 +35,7 @@ from diffsmf.filters.base import (
     SetFilter,
     bounded_result,
     state_batch,
+    warn_uncertified_fit,
 )
 from diffsmf.linearize.statistical import check_levels, statistical_linearization
 from diffsmf.sets.base import ConvexSet, stack
@@ -173,6 +174,7 @@ class CombinedFilter(SetFilter):
         learn_noise: bool = True,
     ) -> None:
         check_system("system", system)
+        warn_uncertified_fit(system, type(self).__name__)
         n, m = system.n, system.m
         D0 = (
             _cover_shape(system.process_noise, n)

@@ -20,6 +20,8 @@ import gc
 import itertools
 import logging
 import math
+import sys
+import time
 import types
 import warnings
 from collections.abc import Callable, Iterator
@@ -31,7 +33,7 @@ from torch import Tensor, nn
 from diffsmf.filters.state import FilterState, flat_args, flat_step, flat_steps
 from diffsmf.filters.streaming import CaptureError, DirectSteps, config_key, known_options
 from diffsmf.sets.base import ConvexSet
-from diffsmf.utils import retain_freed_memory, tracing
+from diffsmf.utils import progress_bar, retain_freed_memory, tracing
 
 __all__ = [
     "COMPILE_OPTIONS",
@@ -249,19 +251,50 @@ def measurements(y: Any, m: int, dtype: torch.dtype, skip_nan: bool) -> Tensor:
     """``y [B, T, m]`` of ``forward`` (a ``[T, m]`` log gets ``B = 1``), checked once for the
     whole horizon (shape; inf / NaN unless traced)."""
     y = _y_tensor(y, dtype, None) if not isinstance(y, Tensor) else y
+    given = tuple(y.shape)  # the shape the caller passed, for the message
     if y.dim() == 2:
         y = y.unsqueeze(0)
     if y.dim() != 3 or y.shape[-1] != m:
-        raise ValueError(f"y: expected shape [B, T, {m}], got {tuple(y.shape)}")
+        raise ValueError(f"y: expected shape [B, T, {m}] (or [T, {m}] for one trajectory), got "
+                         f"{given}{_y_hint(given, m)}")
     if tracing():  # value checks would sync with the host (torch.compile of forward)
         return y
     return check_finite_y(y, skip_nan)
 
 
+def _y_hint(given: tuple[int, ...], m: int) -> str:
+    """What a wrong shape of ``y`` most likely means, as a hint for its error message."""
+    if m == 1 and len(given) == 2 and given[-1] != 1:
+        return ("; with one output keep its dimension: y.unsqueeze(-1) for [B, T] "
+                "measurements")
+    if len(given) == 3 and m in given[:-1]:
+        return "; the outputs go last: [B, T, m]"
+    return ""
+
+
+def check_log(y: Tensor, u: Any) -> None:
+    """Name both ``y [B, T, m]`` and ``u [B, T, p]`` of ``forward`` when one of them has time
+    first: ``u``'s leading dims are ``y``'s swapped (which of the two is transposed cannot
+    be told from the shapes, so the message gives both).
+
+    Raises:
+        ValueError: starting with ``y:``, with both shapes as passed and the fix.
+    """
+    B, T = int(y.shape[0]), int(y.shape[1])
+    shape = getattr(u, "shape", None)
+    if B == T or shape is None or len(shape) != 3 or tuple(shape[:2]) != (T, B):
+        return
+    raise ValueError(
+        f"y: shape {tuple(y.shape)} and u: shape {tuple(shape)} disagree on which dimension is "
+        "time; both must be [B, T, ...] (trajectories first, then steps): transpose the one "
+        "given as [T, B, ...] with .transpose(0, 1)"
+    )
+
+
 # ------------------------------------------------------------------------------- compile
 def compile_filter(
     filt: nn.Module, steps_per_call: int = 1, *, retain_memory: bool = False,
-    **compile_kwargs: Any,
+    progress: bool = False, **compile_kwargs: Any,
 ) -> None:
     """Compile the step of ``filt`` with ``torch.compile(fullgraph=True)`` (`SetFilter.compile`).
 
@@ -285,6 +318,9 @@ def compile_filter(
             shorter than ``K`` runs the same graph on the last ``y`` / ``u`` repeated and
             its extra states are dropped (steps are causal: the kept states are
             unchanged). The online ``step`` always uses the one-step graph.
+        progress: print a line to stderr when a compiled function is first called on a
+            new signature (a new batch size, grad mode or set type: Dynamo compiles then,
+            for seconds to minutes), and the time it took; off by default.
         retain_memory: opt in to `diffsmf.utils.retain_freed_memory` (glibc): the
             process keeps freed memory for reuse instead of page-faulting the step's
             buffers in again on every call (HSNSMF at B = 10,000: 10.5 % of the step was
@@ -319,8 +355,10 @@ def compile_filter(
     filt.__dict__.pop("_guarded_step_failed", None)
     filt._compile_kwargs = kw
     # each its own code object (own recompile budget, see _own_code); compiled lazily
-    one = _quiet(torch.compile(_own_code(flat_step).__get__(filt), **kw))
-    multi = _quiet(torch.compile(_own_code(flat_steps).__get__(filt), **kw))
+    filt._compile_progress = progress
+    one = _quiet(torch.compile(_own_code(flat_step).__get__(filt), **kw), filt, "step")
+    multi = _quiet(torch.compile(_own_code(flat_steps).__get__(filt), **kw), filt,
+                   f"{steps_per_call} steps")
 
     def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
         if not filt._compile_ready(state):
@@ -362,19 +400,60 @@ class _NoShimNotes(logging.Filter):
 _SHIM_FILTER = _NoShimNotes()
 
 
-def _quiet(compiled: Callable[..., Any]) -> Callable[..., Any]:
+def _quiet(
+    compiled: Callable[..., Any], filt: nn.Module | None = None, what: str = "step"
+) -> Callable[..., Any]:
     """``compiled`` run with Inductor's proxy-executor notes filtered out, for the duration of
-    each call only (the logger is left as it was)."""
+    each call only (the logger is left as it was). With ``compile(progress=True)`` on
+    ``filt``, a call on a new signature (shapes, dtypes, grad mode: where Dynamo compiles
+    anew) prints a note before and the time it took after, to stderr (`compile_note`)."""
     log = logging.getLogger("torch._inductor.ir")
+    seen: set = set()
 
     def call(*args: Any, **kwargs: Any) -> Any:
+        key = None
+        if filt is not None and getattr(filt, "_compile_progress", False):
+            key = _call_signature(args)
+            key = None if key in seen else key
+        t0 = time.perf_counter()
+        if key is not None:
+            compile_note(filt, what, args)
         log.addFilter(_SHIM_FILTER)
         try:
-            return compiled(*args, **kwargs)
+            out = compiled(*args, **kwargs)
         finally:
             log.removeFilter(_SHIM_FILTER)
+        if key is not None:
+            seen.add(key)
+            print(f"diffsmf: compiled in {time.perf_counter() - t0:.1f} s", file=sys.stderr,
+                  flush=True)
+        return out
 
     return call
+
+
+def _call_signature(args: tuple) -> tuple:
+    """What makes Dynamo compile a function anew: the tensors' shapes, dtypes and grad flags,
+    the other arguments' types, and the grad mode."""
+    parts: list[Any] = [torch.is_grad_enabled()]
+    for a in args:
+        if isinstance(a, Tensor):
+            parts.append((tuple(a.shape), a.dtype, a.requires_grad))
+        elif isinstance(a, (tuple, list)):
+            parts.append(_call_signature(tuple(a)))
+        else:
+            parts.append(a if isinstance(a, type) or a is None else type(a))
+    return tuple(parts)
+
+
+def compile_note(filt: nn.Module, what: str, args: tuple) -> None:
+    """One line on stderr: what is being compiled, for which batch, and roughly how long it
+    takes."""
+    first = next((a for a in args if isinstance(a, Tensor) and a.dim() > 0), None)
+    batch = "" if first is None else f" for batch {first.shape[0]}"
+    print(f"diffsmf: compiling {type(filt).__name__}'s {what}{batch} (once per batch size and "
+          "grad mode; from about 10 s for a small model to minutes for a large one on a CPU)"
+          "...", file=sys.stderr, flush=True)
 
 
 def compiled_function(
@@ -394,7 +473,9 @@ def compiled_function(
         return None
     cache = filt.__dict__.setdefault("_compiled_functions", {})
     if name not in cache:
-        cache[name] = _quiet(torch.compile(_own_code(fn).__get__(filt), **{**kw, **overrides}))
+        cache[name] = _quiet(
+            torch.compile(_own_code(fn).__get__(filt), **{**kw, **overrides}), filt,
+            name.replace("_", " "))
     return cache[name]
 
 
@@ -415,14 +496,27 @@ def unflatten(filt: nn.Module, out: tuple) -> FilterState:
 
 # ------------------------------------------------------------------------------- time loops
 def run_steps(
-    filt: nn.Module, state: FilterState, y: Tensor, u: Tensor | None
+    filt: nn.Module, state: FilterState, y: Tensor, u: Tensor | None, progress: Any = False
 ) -> list[FilterState]:
     """The states of ``forward``'s time loop from ``state`` over ``y [B, T, m]`` (``u
-    [B, T, p]`` or None, both validated): ``[state, state_1, ..., state_T]``.
+    [B, T, p]`` or None, both validated): ``[state, state_1, ..., state_T]``, with a
+    progress bar over the steps when ``progress`` asks (`diffsmf.utils.progress_bar`).
 
     Eager without ``compile()`` (or while traced); inside `streaming` in no-grad mode the
     Dynamo-free steps; else the Dynamo-compiled step (``K`` steps per call), whose guard
     evaluation is skipped after the first `GUARDED_STEPS` compiled calls."""
+    bar = None if tracing() else progress_bar(progress, y.shape[1], type(filt).__name__, "step")
+    try:
+        return _run_steps(filt, state, y, u, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _run_steps(
+    filt: nn.Module, state: FilterState, y: Tensor, u: Tensor | None, bar: Any
+) -> list[FilterState]:
+    """`run_steps` with ``bar`` (or None) advanced by the steps done."""
     T = y.shape[1]
     states = [state]
     ys = y.unbind(1)
@@ -432,6 +526,8 @@ def run_steps(
             for k in range(T):
                 state = filt._eager_step(state, us[k], ys[k])
                 states.append(state)
+                if bar is not None:
+                    bar.update(1)
         return states
     stream = getattr(filt, "_stream", None)
     if stream is not None and stream["direct"] is not None and not torch.is_grad_enabled():
@@ -440,10 +536,14 @@ def run_steps(
                 for k in range(T):  # inside streaming(): the Dynamo-free compiled steps
                     state = _direct_call(filt, stream["direct"], state, us[k], ys[k])
                     states.append(state)
+                    if bar is not None:
+                        bar.update(1)
             return states
         except CaptureError as err:  # the whole horizon again, with Dynamo's step
             _drop_direct(stream, err)
             state, states = states[0], states[:1]
+            if bar is not None and hasattr(bar, "reset"):
+                bar.reset(total=T)
     filt._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
     K = getattr(filt, "_steps_per_call", 1)
     ys_pad = _pad_horizon(y, K)
@@ -456,12 +556,16 @@ def run_steps(
                 state = filt._compiled_step(state, us[k], ys[k])  # eager when not ready
                 states.append(state)
                 k += 1
+                if bar is not None:
+                    bar.update(1)
             else:  # K steps in one graph; a last part past T runs on repeated y / u
                 chunk = slice(k, k + K)
                 uk = None if us_pad is None else us_pad[:, chunk].contiguous()
                 new = filt._compiled_steps(state, uk, ys_pad[:, chunk].contiguous())
                 states.extend(new[: T - k])
                 state = states[-1]
+                if bar is not None:
+                    bar.update(min(K, T - k))
                 k += K
             if not skipping and filt._guarded_calls >= GUARDED_STEPS:
                 stack.enter_context(skip_guards())  # once, for the rest of the loop

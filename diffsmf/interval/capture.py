@@ -37,7 +37,7 @@ from diffsmf.interval.rules import RULES, BoolBox, Ctx, register
 from diffsmf.sets.interval import Interval
 from diffsmf.utils import tracing
 
-__all__ = ["EngineError", "Program", "capture", "inclusion"]
+__all__ = ["EngineError", "Program", "capture", "inclusion", "reachable_modules"]
 
 aten = torch.ops.aten
 
@@ -77,7 +77,12 @@ def _leaf_fake(x: Tensor, key: int) -> Tensor:  # pragma: no cover - real-mode c
 
 def _call_leaf(obj: Any, x: Tensor) -> Tensor:
     fn = getattr(obj, "_diffsmf_raw", None)
-    return fn(x) if fn is not None else obj(x)
+    if fn is not None:
+        return fn(x)
+    for cls in type(obj).__mro__:  # a class patched while capturing: its own forward
+        if cls in _CLASS_FORWARD:
+            return _CLASS_FORWARD[cls](obj, x)
+    return obj(x)
 
 
 def inclusion(rule: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor, Tensor]]) -> Callable:
@@ -130,7 +135,7 @@ def inclusion(rule: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor, Ten
 _CAPTURING = False
 
 
-def _reachable_modules(fn: Any, depth: int = 3) -> list[nn.Module]:
+def reachable_modules(fn: Any, depth: int = 3) -> list[nn.Module]:
     """nn.Modules reachable from ``fn``: itself, its submodules, closure cells and globals."""
     found: list[nn.Module] = []
     seen: set[int] = set()
@@ -169,13 +174,37 @@ def _reachable_modules(fn: Any, depth: int = 3) -> list[nn.Module]:
     return found
 
 
+#: while capturing: the original ``forward`` of every module class with ``interval_enclosure``
+_CLASS_FORWARD: dict[type, Callable[..., Tensor]] = {}
+
+
+def _leaf_classes() -> list[type]:
+    """Loaded ``nn.Module`` subclasses that define ``interval_enclosure`` and ``forward``
+    (outermost first: a subclass of such a class is covered by its parent's patch)."""
+    found: list[type] = []
+    todo = list(nn.Module.__subclasses__())
+    seen: set[type] = set()
+    while todo:
+        cls = todo.pop()
+        if cls in seen:
+            continue
+        seen.add(cls)
+        todo.extend(cls.__subclasses__())
+        if callable(getattr(cls, "interval_enclosure", None)) and "forward" in vars(cls):
+            found.append(cls)
+    return found
+
+
 @contextmanager
 def _patched_leaves(fn: Any):
-    """While capturing, modules with ``interval_enclosure`` become one opaque leaf op."""
+    """While capturing, modules with ``interval_enclosure`` become one opaque leaf op:
+    those reachable from ``fn`` (instances, also with an ``interval_enclosure`` of their
+    own), and every instance of a module class that defines one, wherever the model keeps
+    it (a dict, a list, an attribute of a plain object, a function that ``f`` calls)."""
     global _CAPTURING
     patched = []
     inner: set[int] = set()  # submodules of a leaf run inside it, unpatched
-    for m in _reachable_modules(fn):
+    for m in reachable_modules(fn):
         if hasattr(m, "interval_enclosure") and id(m) not in inner:
             inner.update(id(s) for s in m.modules())
             key = _leaf_key(m)
@@ -183,14 +212,31 @@ def _patched_leaves(fn: Any):
             m._diffsmf_raw = raw  # type: ignore[attr-defined]
             m.forward = _leaf_forward(key)  # type: ignore[method-assign]
             patched.append((m, raw))
+    classes = _leaf_classes()
+    for cls in classes:
+        _CLASS_FORWARD[cls] = vars(cls)["forward"]
+        cls.forward = _class_leaf_forward  # type: ignore[method-assign]
     _CAPTURING = True
     try:
         yield
     finally:
         _CAPTURING = False
+        for cls in classes:
+            cls.forward = _CLASS_FORWARD.pop(cls)  # type: ignore[method-assign]
         for m, _raw in patched:
             del m.forward
             del m._diffsmf_raw
+
+
+def _class_leaf_forward(self: nn.Module, x: Tensor, *rest: Any, **kwargs: Any) -> Tensor:
+    """``forward`` of a module class with ``interval_enclosure`` while capturing: one leaf op
+    for a call on the state alone; a call with other arguments (an input) is traced
+    through its own ``forward``, as outside the capture."""
+    if any(r is not None for r in (*rest, *kwargs.values())):
+        for cls in type(self).__mro__:
+            if cls in _CLASS_FORWARD:
+                return _CLASS_FORWARD[cls](self, x, *rest, **kwargs)
+    return _leaf_forward(_leaf_key(self))(x)
 
 
 def _leaf_forward(key: int) -> Callable[..., Tensor]:

@@ -171,6 +171,8 @@ class SCPLNNDynamics(nn.Module):
                              f"with {n_inputs} inputs needs R^(n+{n_inputs}) -> R^n")
         self.model = model
         self.n_inputs = n_inputs
+        #: the model's `ErrorCertificate` once `as_system` added it to the process noise
+        self.certificate: ErrorCertificate | None = None
 
     def _z(self, x: Any, u: Tensor | None) -> Any:
         if self.n_inputs == 0:
@@ -235,6 +237,7 @@ def as_system(
                          f"ErrorCertificate.given(model, bound)), got {type(certificate).__name__}")
     f = SCPLNNDynamics(model, n_inputs)
     certificate.check(model, samples)
+    f.certificate = certificate
     box = x0_set.interval_hull()
     tol = model.atol * (model.upper - model.lower)
     if bool(((box.lower < model.lower - tol) | (box.upper > model.upper + tol)).any()):

@@ -64,6 +64,10 @@ class SCPLNN(nn.Module):
         atol: relative tolerance (in barycentric coordinates) for "inside the domain".
     """
 
+    #: a model fitted to samples: a filter on it bounds the fit, not the plant, unless its
+    #: certified error is added (`diffsmf.pwl.as_system`; `diffsmf.systems.model.uncertified_fit`)
+    fitted_model = True
+
     def __init__(
         self,
         vertices: Tensor,

@@ -13,8 +13,6 @@ here from that declaration.
 
 from __future__ import annotations
 
-import os
-import sys
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar
@@ -22,7 +20,7 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor
 
-from diffsmf.utils import checking, is_int, tracing
+from diffsmf.utils import checking, is_int, tracing, user_stacklevel
 
 DEFAULT_DTYPE = torch.float64
 
@@ -106,8 +104,6 @@ def as_tensor(
 
 #: at most this many values of a lower-precision set field are compared with their decimals
 _ROUNDED_CHECK = 4096
-#: the folder of the diffsmf package (frames there are not the user's, `_user_stacklevel`)
-_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def warn_rounded(name: str, t: Tensor) -> None:
@@ -131,17 +127,8 @@ def warn_rounded(name: str, t: Tensor) -> None:
                 f"{exact!r}: the set is built on the rounded values, not on the decimals "
                 "written; create set bounds in float64 (dtype=torch.float64, or "
                 "torch.set_default_dtype(torch.float64) first)",
-                UserWarning, stacklevel=_user_stacklevel())
+                UserWarning, stacklevel=user_stacklevel())
             return
-
-
-def _user_stacklevel() -> int:
-    """The ``stacklevel`` of a warning raised here that points at the first caller outside
-    the diffsmf package (the user's line that built the set)."""
-    frame, level = sys._getframe(1), 1
-    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_ROOT):
-        frame, level = frame.f_back, level + 1
-    return level
 
 
 def as_vector(name: str, value: Any, like: Tensor, dim: int) -> Tensor:

@@ -3,8 +3,8 @@
 The filters call the dynamics as ``f(x, u, theta)`` and the measurement as ``h(x)``. A user may
 write ``f(x)``, ``f(x, u)`` or ``f(x, u, theta)``, as a function or as an ``nn.Module``
 (``forward(x)``, ...); `as_dynamics` adapts them once, when the ``System`` is built, and
-`check_captured` captures both with the guarantee engine so that what the engine cannot
-enclose is reported then, naming ``f`` or ``h``.
+`diffsmf.systems.checks` runs both through the guarantee engine so that what the engine
+cannot enclose is reported then, naming ``f`` or ``h``.
 """
 
 from __future__ import annotations
@@ -15,24 +15,39 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-__all__ = ["Dynamics", "as_dynamics", "check_dtype", "check_module_dtype", "positional_arity"]
+__all__ = [
+    "Dynamics",
+    "as_dynamics",
+    "check_dtype",
+    "check_module_dtype",
+    "positional_arity",
+]
 
 
 def positional_arity(fn: Callable[..., Tensor]) -> int | None:
     """Number of positional parameters of ``fn`` (``forward`` for a module), ``None`` for
     ``*args`` or an unreadable signature."""
+    counts = _positional_counts(fn)
+    return None if counts is None else counts[1]
+
+
+def _positional_counts(fn: Callable[..., Tensor]) -> tuple[int, int] | None:
+    """``(required, total)`` positional parameters of ``fn`` (``forward`` for a module):
+    those without a default, and all of them; ``None`` for ``*args`` or an unreadable
+    signature."""
     target = fn.forward if isinstance(fn, nn.Module) else fn
     try:
         sig = inspect.signature(target)
     except (TypeError, ValueError):
         return None
-    count = 0
+    required = total = 0
     for p in sig.parameters.values():
         if p.kind is p.VAR_POSITIONAL:
             return None
         if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD):
-            count += 1
-    return count
+            total += 1
+            required += p.default is p.empty
+    return required, total
 
 
 class Dynamics(nn.Module):
@@ -59,14 +74,21 @@ def as_dynamics(f: Callable[..., Tensor]) -> Callable[..., Tensor]:
     Raises:
         ValueError: naming ``f`` when it takes no argument or more than three.
     """
-    k = positional_arity(f)
-    if k is None or k == 3:
+    counts = _positional_counts(f)
+    if counts is None:
         return f
-    if k in (1, 2):
-        return Dynamics(f, k)
+    required, total = counts
+    if total >= 3 and required <= 3:  # f(x, u, theta, k=0.5): the extras keep their defaults
+        return f
+    if total in (1, 2):
+        return Dynamics(f, total)
+    if total == 0:
+        raise ValueError("f: must take the state, f(x), f(x, u) or f(x, u, theta); it takes "
+                         "no positional argument")
     raise ValueError(
         f"f: must take the state and optionally the input and parameter, f(x), f(x, u) or "
-        f"f(x, u, theta); it takes {k} positional arguments"
+        f"f(x, u, theta); it needs {required} positional arguments (give the ones after "
+        "theta default values, e.g. def f(x, u=None, theta=None, k=0.5))"
     )
 
 
@@ -98,3 +120,4 @@ def check_module_dtype(name: str, fn: Callable[..., Tensor]) -> None:
         if p.is_floating_point() and p.dtype != torch.float64:
             raise ValueError(f"{name}: the module holds {p.dtype} parameters; diffsmf's "
                              "guaranteed sets need float64: call .double() on the module")
+

@@ -27,6 +27,7 @@ from torch import Tensor, nn
 
 from diffsmf.linearize.jacobians import jacobian
 from diffsmf.sets.base import ConvexSet, check_nonempty
+from diffsmf.systems.checks import trial_enclosure, uncertified_fit
 from diffsmf.systems.model import Dynamics, as_dynamics, check_dtype, check_module_dtype
 from diffsmf.utils import is_int
 
@@ -149,6 +150,9 @@ class System(nn.Module):
         self.n_inputs = _infer_n_inputs(self.inputs, n_inputs)
         self._check_f()
         self._check_engine()
+        #: True when f is (or calls) a fitted model without its certified error: a filter's
+        #: sets then bound the fit, not the plant (filters warn; `diffsmf.pwl.as_system`)
+        self.uncertified_fit = uncertified_fit(self.f)
         self.theta_schedule = _as_schedule("theta_schedule", theta_schedule)
         self.process_cov = _check_cov("process_cov", process_cov, self.n)
         self.measurement_cov = _check_cov("measurement_cov", measurement_cov, self.m)
@@ -200,8 +204,7 @@ class System(nn.Module):
         """Capture ``f`` and ``h`` with the guarantee engine now, so that a model it cannot
         enclose (an op without a rule, a Python branch on the state, a cast) is reported when
         the system is built, naming the function; and require float64."""
-        from diffsmf.interval.engine import StepModel, enclose, register_row_model
-        from diffsmf.sets.interval import Interval
+        from diffsmf.interval.engine import StepModel, register_row_model
 
         x = self.x0_set.center.detach().unsqueeze(0)
         u = None if self.n_inputs == 0 else torch.zeros(1, self.n_inputs, dtype=x.dtype)
@@ -210,9 +213,10 @@ class System(nn.Module):
             check_dtype("f", self.f.fn if isinstance(self.f, Dynamics) else self.f,
                         self.f(x, u, th))
             check_dtype("h", self.h, self.h(x))
-        StepModel(self.f, u, th).program(x)
+        points = _trial_points(self.x0_set)
+        trial_enclosure("f", StepModel(self.f, u, th, "f"), points)
         register_row_model(self.h)
-        enclose(self.h, Interval(x, x), 0, "h")
+        trial_enclosure("h", self.h, points)
 
     @property
     def angle_mask(self) -> Tensor:
@@ -573,6 +577,20 @@ def _output_dim(h: Callable[[Tensor], Tensor], c: Tensor) -> int:
         )
     _check_model_call("h", h, c.detach().unsqueeze(0), y)
     return int(y.shape[-1])
+
+
+def _trial_points(x0_set: ConvexSet) -> list[Tensor]:
+    """Points ``[1, n]`` where `trial_enclosure` runs the engine: the centre of ``x0_set``
+    and an off-centre point of its hull (a numpy part of the model, recorded as the constant
+    it had at the capture's example, shows where the state is not that example)."""
+    c = x0_set.center.detach().reshape(1, -1)
+    hull = x0_set.interval_hull()
+    r = ((hull.upper - hull.lower).detach().reshape(1, -1) / 2).nan_to_num(0.0, 0.0, 0.0)
+    n = c.shape[-1]
+    pattern = torch.linspace(0.37, -0.29, n, dtype=c.dtype, device=c.device) if n > 1 else (
+        torch.full((1,), 0.37, dtype=c.dtype, device=c.device))
+    step = torch.where(r > 0, r, 1e-3 * (1.0 + c.abs())) * pattern
+    return [c, c + step]
 
 
 def _check_model_call(name: str, fn: Callable[[Tensor], Tensor], x: Tensor, out: Tensor) -> None:

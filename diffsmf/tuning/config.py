@@ -31,9 +31,22 @@ class TuneConfig:
     back-propagation (``tune(window=...)``, `diffsmf.tuning.windows`), 0 = the whole horizon;
     ``compile``: tune through the compiled step (``tune(compile=True)``: a one-off compile,
     then 5-8x faster epochs, measured).
+
+    Your own model and logs (instead of simulating ``system``): ``model`` is
+    ``FILE.py:FUNC`` (a function that returns your ``System``, whose noise sets are the
+    starting guess), ``data`` the log files (one run each, all of the same length; the
+    formats of ``diffsmf filter``), ``outputs`` / ``inputs`` their comma-separated columns,
+    ``val_runs`` how many of the last runs are held out for validation (0: none);
+    ``safety`` (>= 1) multiplies the tuned half-widths written to ``bounds.json``.
     """
 
     system: str = "spring_damper"
+    model: str | None = None
+    data: list[str] = field(default_factory=list)
+    outputs: str | None = None
+    inputs: str | None = None
+    val_runs: int = 0
+    safety: float = 1.25
     filter: str = "hsnsmf"
     filter_kwargs: dict[str, Any] = field(default_factory=dict)
     epochs: int = 200
@@ -67,6 +80,10 @@ class TuneConfig:
         return [f.name for f in fields(cls)]
 
 
+#: keys whose default is None and whose value is a string
+_OPTIONAL_STR = ("model", "outputs", "inputs")
+
+
 def load_config(path: str | Path) -> dict[str, Any]:
     """Read a TOML file of `TuneConfig` keys; unknown keys raise ``ValueError``."""
     p = Path(path)
@@ -87,7 +104,7 @@ def load_config(path: str | Path) -> dict[str, Any]:
         raise ValueError(f"config: unknown keys {unknown}; allowed: {TuneConfig.keys()}")
     defaults = TuneConfig()
     for key, value in data.items():
-        want = type(getattr(defaults, key))
+        want = str if key in _OPTIONAL_STR else type(getattr(defaults, key))
         ok = isinstance(value, want) or (want is float and isinstance(value, int))
         if not ok or (want is not bool and isinstance(value, bool)):
             kind = {int: "an integer", float: "a number", bool: "true or false", str: "a string",

@@ -63,7 +63,8 @@ class Data:
 class TuneReport:
     """What `tune` did.
 
-    history: one dict per epoch (``epoch``, ``loss``, loss terms, ``val_*`` when validated);
+    history: one dict per epoch (``epoch``, ``loss``, loss terms, ``val_*`` when validated,
+        and each tuned value after the epoch as ``name[i]``, e.g. ``process_noise[0]``);
     initial / final: hyperparameter values before and after (final = best validation epoch);
     validation_before / validation_after: `evaluate` metrics on the validation set;
     nonfinite_steps: optimiser steps skipped because a gradient was not finite.
@@ -350,7 +351,9 @@ def tune(
             (no ground truth), ``"containment"`` or ``"both"``; always plus log-volume.
         val_every, patience: validate every ``val_every`` epochs; stop after ``patience``
             validations without improvement of the validation loss; the best validated
-            parameters are restored at the end (best training loss without validation).
+            parameters are restored at the end (without validation: those of the epoch with
+            the best training loss, as they were when that loss was computed, i.e. at the
+            epoch's start).
         checkpoint_dir: write ``last.pt`` every ``checkpoint_every`` epochs and ``best.pt``.
         resume: a ``last.pt`` to continue from.
         seed: seeds the mini-batch order (deterministic; identical across DDP processes).
@@ -389,7 +392,7 @@ def tune(
         raise ValueError(f"compile: expected True or False, got {compile!r}")
     t0 = time.perf_counter()
     if compile and getattr(filt, "_compiled_step", None) is None:
-        filt.compile()
+        filt.compile(progress=bool(progress) and ddp.rank() == 0)
     weights = weights or LossWeights()
     data, val = _split(_nonempty("trajectories", as_data(trajectories)), validation, seed)
     if val is not None:
@@ -436,6 +439,9 @@ def tune(
     bad_vals = 0
     n = len(data)
     for epoch in bar:
+        # without validation an epoch is scored by its training loss, which was computed with
+        # the values at the epoch's start: those are the ones to keep if it is the best
+        start = copy.deepcopy(filt.state_dict()) if val is None else None
         g = torch.Generator().manual_seed(seed * 100_003 + epoch)
         perm = torch.randperm(n, generator=g).to(data.y.device)
         sums: dict[str, float] = {}
@@ -473,6 +479,8 @@ def tune(
             else:
                 report.nonfinite_steps += 1
         row: dict[str, float] = {"epoch": epoch + 1, **sums}
+        for name, vals in hyperparameter_values(filt, names).items():  # for the figures
+            row.update({f"{name}[{i}]": v for i, v in enumerate(vals)})
         if val is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs):
             m = evaluate(filt, val, weights, loss=loss)
             row.update({f"val_{k}": v for k, v in m.items()})
@@ -483,7 +491,8 @@ def tune(
             score = None
         if score is not None:
             if score < best[0] - 1e-12:
-                best = (score, copy.deepcopy(filt.state_dict()), epoch + 1)
+                best = (score, start if start is not None else copy.deepcopy(filt.state_dict()),
+                        epoch + 1)
                 bad_vals = 0
                 if checkpoint_dir is not None and is_main:
                     _save(Path(checkpoint_dir) / "best.pt", {"filter": best[1], "epoch": epoch + 1})

@@ -10,6 +10,9 @@ batch size or horizon:
 * `consistency_loss` -- hinge on the normalised distance of each measurement outside the
   *predicted output set* ``h(X_{k|k-1}) (+) V`` (no ground truth needed): a measurement outside
   it means the noise bounds are too small (the filter then reports ``consistent=False``).
+* `prediction_loss` -- the mean squared one-step output prediction error from the filter's
+  centres, in measurement-noise units: for learning a model (a network inside ``f``) through
+  the filter, `fit_loss`.
 
 `filter_with_predictions` runs a filter through its public online API
 (``initial_state``/``predict``/``update``/``collect``) and returns the result together with the
@@ -42,8 +45,10 @@ __all__ = [
     "consistency_loss",
     "containment_loss",
     "filter_with_predictions",
+    "fit_loss",
     "log_volume_loss",
     "normalised_outside",
+    "prediction_loss",
     "total_loss",
 ]
 
@@ -62,6 +67,8 @@ class LossWeights:
     output set is already penalised, a safety buffer because outer-bounding filters detect
     inconsistency late (their predicted sets are larger than the true feasible sets).
     ``skip`` initial steps are left out of the volume term (the initial set is not tunable).
+    ``prediction``: weight of `prediction_loss` in `fit_loss` (learning a model; the tuning
+    loop leaves it out).
     """
 
     volume: float = 1.0
@@ -69,6 +76,7 @@ class LossWeights:
     consistency: float = 1000.0
     margin: float = 0.1
     skip: int = 1
+    prediction: float = 1.0
 
     def to_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -322,3 +330,52 @@ def total_loss(
         terms["consistency"] = consistency_loss(out.excess, weights.margin)
         loss = loss + weights.consistency * terms["consistency"]
     return loss, {k: v.detach() for k, v in terms.items()}
+
+
+def prediction_loss(filt: SetFilter, result: FilterResult, y: Tensor, u: Tensor | None = None
+                    ) -> Tensor:
+    """Mean squared one-step output prediction error, in measurement-noise units: scalar.
+
+    ``mean(((y_k - h(f(c_{k-1}, u_{k-1})) - cV) / rV)^2)`` over ``[B, T, m]``, with ``c_{k-1}``
+    the centre of the filter's set after ``y_{k-1}`` (``result.center [B, T+1, n]``), the
+    nominal parameter, ``cV`` / ``rV`` the measurement-noise centre and half-widths (the
+    half-widths without gradient: the term must not widen the bounds to shrink itself), and
+    angle outputs wrapped (``System.innovation``). The prediction-error criterion of system
+    identification, through the filter's estimates; it pulls a learnable model towards the
+    data where every measurement is already consistent.
+    """
+    system = filt.system
+    x_pred = system(result.center[:, :-1], u)  # [B, T, n]
+    y_pred = system.h(x_pred) + filt.measurement_noise_center
+    e = system.innovation(y, y_pred) / filt.measurement_noise.detach().clamp_min(1e-300)
+    return (e * e).mean()
+
+
+def fit_loss(
+    filt: SetFilter,
+    y: Tensor,
+    u: Tensor | None = None,
+    x: Tensor | None = None,
+    weights: LossWeights | None = None,
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """The loss for learning a model (e.g. a network inside ``f``) and the bounds jointly
+    through a guaranteed filter, from logged measurements ``y [B, T, m]`` (inputs ``u [B,
+    T, p]``; true states ``x [B, T+1, n]`` when known): one pass of `filter_with_predictions`,
+    then ``volume * L_vol + consistency * L_cons + prediction * L_pred (+ containment *
+    L_cont with x)``. Returns ``(loss, {term: value})`` (values detached).
+
+    Tight sets (`log_volume_loss`) that no measurement refutes (`consistency_loss`), from a
+    model whose one-step predictions fit the data (`prediction_loss`). Call
+    ``loss.backward()`` and step an optimiser over the model's and the filter's parameters.
+    The sets bound the learned model: they contain the plant's states only as far as the
+    model and the bounds hold, which the data can refute but not prove (docs/training.md).
+    """
+    weights = weights or LossWeights()
+    out = filter_with_predictions(filt, y, u)
+    loss, terms = total_loss(out, x, weights, use_containment=x is not None,
+                             use_consistency=True)
+    if weights.prediction:
+        pred = prediction_loss(filt, out.result, y, u)
+        terms["prediction"] = pred.detach()
+        loss = loss + weights.prediction * pred
+    return loss, terms
