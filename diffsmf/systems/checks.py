@@ -19,8 +19,10 @@ __all__ = ["trial_enclosure", "uncertified_fit"]
 
 def trial_enclosure(name: str, model: Callable[[Tensor], Tensor], points: list[Tensor]) -> None:
     """Run the guarantee engine once on ``model`` (``x [1, n] -> [1, k]``) where the filters
-    will: its value, Jacobian and Hessian enclosures at each point ``[1, n]``, and the value
-    against the model itself there.
+    will: its value and Jacobian enclosures at the first point ``[1, n]``, its value at the
+    others, and each value against the model itself there. (Every rule refuses what it
+    cannot enclose whatever the order, so the Hessians, whose cost grows as n^3, are left to
+    the filters.)
 
     What only shows when the captured program runs (``.detach()``, a cast of the state, an
     op without a rule) and what the capture cannot see (numpy, ``math`` or a tensor rebuilt
@@ -30,9 +32,9 @@ def trial_enclosure(name: str, model: Callable[[Tensor], Tensor], points: list[T
     Raises:
         ValueError: (an `EngineError` for an unsupported operation) starting with ``name:``.
     """
-    for x in points:
+    for i, x in enumerate(points):
         try:
-            enc = enclose(model, Interval(x, x), 2, name)
+            enc = enclose(model, Interval(x, x), 1 if i == 0 else 0, name)
         except EngineError as exc:
             msg = str(exc)
             if msg.startswith(f"{name}:"):
