@@ -6,6 +6,13 @@
 >>> res = ds.filters.HSNSMF(sys)(traj.y, u=traj.u) # filters
 """
 
+import torch as _torch
+
+if not hasattr(_torch.library, "custom_op"):  # the engine's leaf operations need it
+    raise ImportError(f"diffsmf needs torch >= 2.4 (torch.library.custom_op); this is torch "
+                      f"{_torch.__version__}: pip install -U torch (CPU-only machine: its CPU "
+                      "build, see the README)")
+
 from diffsmf import filters, sets, systems
 from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Strip, Zonotope, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
