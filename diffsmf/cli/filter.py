@@ -410,7 +410,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="process-noise half-widths, one number or one per state (default: the model's W)")
     a("--measurement-noise", default=None, metavar="V",
       help="measurement-noise half-widths, one number or one per output (default: the "
-           "model's V); e.g. the tuned values of diffsmf tune")
+           "model's V)")
     a("--bounds", default=None, type=Path, metavar="FILE",
       help="noise half-widths from the bounds.json that diffsmf tune writes (--process-noise "
            "and --measurement-noise, when given, win)")
