@@ -280,3 +280,28 @@ def test_fit_loss_gradients_match_central_differences_in_a_network_weight():
             num.view(-1)[j] = (up - down) / (2 * eps)
     assert bool(grad.abs().sum() > 0)
     assert torch.allclose(grad, num, rtol=1e-5, atol=1e-8), (grad, num)
+
+
+def test_a_model_that_fails_off_centre_is_named():
+    """A module with its own inclusion rule whose forward refuses part of x0_set (a lookup
+    table that ends inside it): the off-centre trial point names f and the failure."""
+
+    class Table(torch.nn.Module):
+        def forward(self, x):
+            if bool((x[..., :1] > 0.43).any()):
+                raise RuntimeError("lookup table ends at 0.43")
+            return torch.sin(x[..., :1])
+
+        def interval_enclosure(self, lo, hi):  # on 0 <= x_0 <= pi / 2: sin up, cos down
+            zero = torch.zeros_like(lo[..., 1:])
+            jlo = torch.cat([torch.cos(hi[..., :1]), zero], -1).unsqueeze(-2)  # [..., 1, 2]
+            jhi = torch.cat([torch.cos(lo[..., :1]), zero], -1).unsqueeze(-2)
+            return torch.sin(lo[..., :1]), torch.sin(hi[..., :1]), jlo, jhi
+
+    table = Table()
+
+    def fragile(x, u=None, theta=None):
+        return torch.cat([x[..., :1] + DT * x[..., 1:], x[..., 1:] - DT * table(x)], -1)
+
+    with pytest.raises(ValueError, match=r"^f: f\(x\) at x = .*lookup table ends at 0.43"):
+        ds.System(fragile, h, X0, W, V)
