@@ -32,7 +32,7 @@ from diffsmf.sets.base import ConvexSet, as_vector
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
 from diffsmf.systems.system import check_system
 from diffsmf.tightness import TightnessReport, inner_bounds, tightness  # noqa: F401 (re-exported)
-from diffsmf.utils import HIGHS_OPTIONS, is_int
+from diffsmf.utils import HIGHS_OPTIONS, is_int, progress_bar
 
 __all__ = [
     "AuditReport", "containment", "gauge", "gaussian_note", "has_gaussian_noise", "paper_steps",
@@ -174,9 +174,10 @@ def containment(
         noise: ``"vertex"`` (worst case) or ``"uniform"``.
         seed: seed of the simulation.
         tol: relative tolerance on the gauge.
-        progress: show a progress bar over trajectories with the running counts of outside
-            pairs and inconsistent steps (the batch is then filtered in chunks of at most
-            `CHUNK` trajectories; the counts are the same).
+        progress: ``True`` (or a bar factory, `diffsmf.utils.progress_bar`): a progress bar
+            over trajectories with the running counts of outside pairs and inconsistent
+            steps (the batch is then filtered in chunks of at most `CHUNK` trajectories;
+            the counts are the same).
         first, count: audit only the trajectories ``first .. first + count - 1`` of the
             ``trials`` simulated ones (default: all), e.g. to split a long audit into runs;
             the trajectories are the same as in the whole audit.
@@ -219,11 +220,7 @@ def containment(
     traj = system.simulate(steps=steps, batch=trials, seed=seed, noise=noise)
     chunk = CHUNK if progress or on_chunk is not None else count
     viol_n, worst, vol_sum, incons, unb, seconds = 0, 0.0, 0.0, 0, 0, 0.0
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=count, desc=f"audit ({noise} noise)", unit="traj", leave=False)
+    bar = progress_bar(progress, count, f"audit ({noise} noise)", "traj")
     for i in range(first, first + count, chunk):
         j = min(i + chunk, first + count)
         x = traj.x[i:j]
@@ -252,7 +249,9 @@ def containment(
         if on_chunk is not None:
             on_chunk(part)
         if bar is not None:  # running counts: a stopped audit still tells what it checked
-            bar.set_postfix(outside=viol_n, inconsistent=incons, unbounded=unb, refresh=False)
+            if hasattr(bar, "set_postfix"):
+                bar.set_postfix(outside=viol_n, inconsistent=incons, unbounded=unb,
+                                refresh=False)
             bar.update(j - i)
     if bar is not None:
         bar.close()

@@ -305,3 +305,19 @@ def test_a_model_that_fails_off_centre_is_named():
 
     with pytest.raises(ValueError, match=r"^f: f\(x\) at x = .*lookup table ends at 0.43"):
         ds.System(fragile, h, X0, W, V)
+
+
+def test_tune_and_audit_are_quiet_by_default_and_take_a_bar_factory():
+    import inspect
+
+    sd = ds.systems.get("spring_damper")
+    tr = sd.simulate(6, batch=4, seed=0, noise="vertex")
+    filt = ds.filters.HSNSMF(sd)
+    bar = _Counter()
+    ds.tuning.tune(filt, ds.tuning.Data(tr.y), params=("process_noise",), epochs=3,
+                   batch_size=4, progress=bar)
+    assert bar.made == [{"total": 3, "desc": "tune", "unit": "epoch"}] and bar.done == 3
+    audit_bar = _Counter()
+    rep = ds.audit.containment(filt, trials=5, steps=4, progress=audit_bar)
+    assert audit_bar.done == 5 and audit_bar.closed == 1 and rep.trials == 5
+    assert inspect.signature(ds.tuning.tune).parameters["progress"].default is False

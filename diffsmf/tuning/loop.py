@@ -18,14 +18,13 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
-from tqdm.auto import tqdm
 
 from diffsmf.filters.base import SetFilter, check_filter
 from diffsmf.systems import Trajectory
 from diffsmf.tuning import ddp
 from diffsmf.tuning.losses import LossWeights, filter_with_predictions, total_loss
 from diffsmf.tuning.windows import WindowCache, windowed_loss
-from diffsmf.utils import is_int
+from diffsmf.utils import is_int, progress_bar
 
 __all__ = [
     "Data", "TuneReport", "as_data", "evaluate", "resolve_params", "simulate_finite", "tune",
@@ -332,7 +331,7 @@ def tune(
     checkpoint_every: int = 20,
     resume: str | Path | None = None,
     seed: int = 0,
-    progress: bool = True,
+    progress: Any = False,
     tie: Sequence[Sequence[str]] | str | None = None,
     window: int | None = None,
     compile: bool = False,
@@ -372,6 +371,8 @@ def tune(
             Under ``torch.distributed`` the window states are shared after every mini-batch,
             so K processes follow the single-process run. ``LossWeights.skip`` applies per
             window.
+        progress: ``True`` for a progress bar over the epochs (tqdm), or a bar factory
+            (`diffsmf.utils.progress_bar`); off by default (``diffsmf tune`` shows it).
         compile: compile the filter's step first (``filt.compile()``, in place; a filter
             compiled before the call is used as it is): every pass of the loop, training and
             validation, then runs the compiled step together with the consistency excess
@@ -433,12 +434,10 @@ def tune(
         report.validation_before = evaluate(filt, val, weights, loss=loss)
     is_main = ddp.rank() == 0
     cache = WindowCache(filt, data, window) if window is not None else None
-    bar = tqdm(
-        range(start_epoch, epochs), disable=not (progress and is_main), desc="tune", leave=False
-    )
+    bar = progress_bar(progress if is_main else False, epochs - start_epoch, "tune", "epoch")
     bad_vals = 0
     n = len(data)
-    for epoch in bar:
+    for epoch in range(start_epoch, epochs):
         # without validation an epoch is scored by its training loss, which was computed with
         # the values at the epoch's start: those are the ones to keep if it is the best
         start = copy.deepcopy(filt.state_dict()) if val is None else None
@@ -499,7 +498,10 @@ def tune(
             else:
                 bad_vals += 1
         report.history.append(row)
-        bar.set_postfix(loss=f"{sums['loss']:.4g}", best=f"{best[0]:.4g}")
+        if bar is not None:
+            if hasattr(bar, "set_postfix"):
+                bar.set_postfix(loss=f"{sums['loss']:.4g}", best=f"{best[0]:.4g}", refresh=False)
+            bar.update(1)
         if checkpoint_dir is not None and is_main and (epoch + 1) % checkpoint_every == 0:
             _save(
                 Path(checkpoint_dir) / "last.pt",
@@ -516,7 +518,8 @@ def tune(
         if val is not None and bad_vals >= patience:
             report.stopped_early = True
             break
-    bar.close()
+    if bar is not None:
+        bar.close()
     if best[2] > 0:
         filt.load_state_dict(best[1])
     report.best_epoch = best[2]
