@@ -153,3 +153,14 @@ def test_model_mode_errors_are_one_line(logs, capsys, tmp_path):
     _one_line(capsys, ["filter", "--model", model, "--data", files[0], "--outputs", "y",
                        "--inputs", "u", "--bounds", str(bad), *out],
               "--bounds", "not a diffsmf bounds file")
+
+
+def test_model_mode_tunes_the_noise_bounds_by_default(logs, capsys, tmp_path):
+    d, files, _, _ = logs
+    rc = main(["tune", "--model", f"{d}/pendulum.py:make_guess", "--data", *files[:2],
+               "--outputs", "y", "--inputs", "u", "--epochs", "2", "--out", str(tmp_path),
+               "--no-progress"])
+    capsys.readouterr()
+    assert rc == 0
+    hp = json.loads((tmp_path / "hyperparameters.json").read_text())
+    assert set(hp["tuned"]) == {"process_noise", "measurement_noise"}

@@ -77,9 +77,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--loss", default=d.loss, choices=list(LOSS_MODES))
     a(
         "--params",
-        default=",".join(d.params),
+        default=None,
         help="comma-separated hyperparameter names (process_noise, measurement_noise, "
-        "stirling_step, remainder_margin, minkowski_scale)",
+        "stirling_step, remainder_margin, minkowski_scale); default: "
+        f"{','.join(d.params)} with --system, the noise bounds (what bounds.json holds) "
+        "with --model",
     )
     a("--tie", default=d.tie, choices=["auto", "noise", "none"], help="shared noise scale")
     a("--optimizer", default=d.optimizer, choices=["adam", "adamw", "sgd"])
@@ -109,12 +111,19 @@ def _merge_config(args: argparse.Namespace) -> TuneConfig:
     """TuneConfig from parsed args, with ``--config`` values where the CLI kept its default."""
     d = TuneConfig()
     vals = {k: getattr(args, k) for k in TuneConfig.keys() if hasattr(args, k)}
-    if isinstance(vals.get("params"), str):
+    if vals.get("params") is None:
+        vals["params"] = list(d.params)
+    elif isinstance(vals["params"], str):
         vals["params"] = [p for p in vals["params"].split(",") if p]
+    given = getattr(args, "params", None) is not None
     if getattr(args, "config", None):
-        for k, v in load_config(args.config).items():
+        config = load_config(args.config)
+        given = given or "params" in config
+        for k, v in config.items():
             if k not in vals or vals[k] == getattr(d, k):
                 vals[k] = v
+    if vals.get("model") is not None and not given:  # bounds.json holds the noise bounds
+        vals["params"] = ["process_noise", "measurement_noise"]
     return TuneConfig(**vals)
 
 
