@@ -40,8 +40,8 @@ from diffsmf.utils import broadcast_shapes, tracing
 
 __all__ = [
     "CLOSED_FORM_MAX_N", "SMALL_MATMUL_ELEMS", "SMALL_MATMUL_MAX", "cholesky", "cholesky_solve",
-    "det", "eigh", "eigvalsh", "matmul", "small_dot", "small_reduce", "small_sum", "solve",
-    "solve_lower", "traced_matmul",
+    "det", "eigh", "eigvalsh", "finite_or_eye", "lapack_cholesky", "matmul", "small_dot",
+    "small_reduce", "small_sum", "solve", "solve_lower", "traced_matmul",
 ]
 
 #: Largest size with a closed form: ``det`` up to 3, the others up to 2.
@@ -164,7 +164,7 @@ def eigvalsh(S: Tensor) -> Tensor:
         return torch.stack([m - r, m + r], -1)
     if not tracing() and S.device.type == "cpu" and _all_finite(S):
         return torch.linalg.eigvalsh(S)
-    bad, safe = _finite_or_eye(S)
+    bad, safe = finite_or_eye(S)
     return torch.where(bad.unsqueeze(-1), torch.nan, torch.linalg.eigvalsh(safe))
 
 
@@ -192,7 +192,7 @@ def eigh(S: Tensor) -> tuple[Tensor, Tensor]:
         c, s = torch.cos(theta), torch.sin(theta)
         V = torch.stack([torch.stack([-s, c], -1), torch.stack([c, s], -1)], -2)
         return eigvalsh(S), V
-    bad, safe = _finite_or_eye(S)
+    bad, safe = finite_or_eye(S)
     evals, V = torch.linalg.eigh(safe)
     return (torch.where(bad.unsqueeze(-1), torch.nan, evals),
             torch.where(bad[..., None, None], torch.nan, V))
@@ -206,7 +206,7 @@ def _all_finite(S: Tensor) -> bool:
         return math.isfinite(float(S.sum()))
 
 
-def _finite_or_eye(S: Tensor) -> tuple[Tensor, Tensor]:
+def finite_or_eye(S: Tensor) -> tuple[Tensor, Tensor]:
     """``(bad [...], S')``: ``bad`` where ``S [..., n, n]`` has a NaN / inf entry, and ``S``
     with those matrices replaced by the identity, so that LAPACK (which fails on the whole
     batch for one non-finite matrix) serves the others; the callers return NaN for ``bad``
@@ -220,8 +220,10 @@ def cholesky(S: Tensor) -> Tensor:
     """Lower Cholesky factor ``L [..., n, n]`` of SPD ``S [..., n, n]`` (reads the lower
     triangle, as LAPACK does).
 
-    Closed form up to n = 2 (no LAPACK call: it fuses under ``torch.compile``; a matrix that is
-    not positive definite gives NaN entries, no exception), else ``torch.linalg.cholesky``.
+    Closed form up to n = 2 (no LAPACK call: it fuses under ``torch.compile``), else
+    ``torch.linalg.cholesky_ex``. A matrix that is not positive definite (NaN, inf, or a
+    non-positive pivot) gives NaN entries, no exception, at every n: LAPACK would fail the
+    whole batch for one such matrix; the callers flag those elements (a filter's events).
     """
     n = _check_square("S", S)
     if n == 1:
@@ -232,7 +234,14 @@ def cholesky(S: Tensor) -> Tensor:
         l22 = torch.sqrt(S[..., 1, 1] - l21 * l21)
         zero = torch.zeros_like(l11)
         return torch.stack([torch.stack([l11, zero], -1), torch.stack([l21, l22], -1)], -2)
-    return torch.linalg.cholesky(S)
+    return lapack_cholesky(S)
+
+
+def lapack_cholesky(S: Tensor) -> Tensor:
+    """``torch.linalg.cholesky`` at every n (LAPACK's rounding, also for n <= 2), with NaN
+    entries, not an exception for the batch, where ``S`` is not positive definite."""
+    L, info = torch.linalg.cholesky_ex(S)
+    return torch.where((info != 0)[..., None, None], torch.nan, L)
 
 
 def solve_lower(L: Tensor, B: Tensor) -> Tensor:

@@ -523,10 +523,12 @@ def _logdet(S: Tensor) -> Tensor:
 
 def _lambdas(S1: Tensor, S2: Tensor) -> Tensor:
     """Eigenvalues of ``S1^-1 S2`` (generalised symmetric problem via Cholesky)."""
-    L = torch.linalg.cholesky(S1)
+    L = linalg.lapack_cholesky(S1)  # NaN where S1 is not PD (no exception for the batch)
     X = torch.linalg.solve_triangular(L, S2, upper=False)
     M = torch.linalg.solve_triangular(L, X.mT, upper=False)
-    return torch.linalg.eigvalsh(_sym(M)).clamp(min=0.0)
+    bad, M = linalg.finite_or_eye(_sym(M))
+    lam = torch.linalg.eigvalsh(M).clamp(min=0.0)
+    return torch.where(bad.unsqueeze(-1), torch.nan, lam)
 
 
 def _vol_condition(p: Tensor, lam: Tensor) -> Tensor:
@@ -642,11 +644,13 @@ class _MeasFamily:
             return
         self._reduced = True
         P, G, R, e = self.P, self.G, self.R, self.e
-        with torch.no_grad():
-            L = torch.linalg.cholesky(R)
+        with torch.no_grad():  # a non-PD R (a diverged element): NaN there, flagged later
+            L = linalg.lapack_cholesky(R)
             X = torch.linalg.solve_triangular(L, G, upper=False)
             Gt = _sym(torch.linalg.solve_triangular(L, X.mT, upper=False))
+            bad, Gt = linalg.finite_or_eye(Gt)
             gam, V = torch.linalg.eigh(Gt)
+            gam = torch.where(bad.unsqueeze(-1), torch.nan, gam)
             et = V.mT @ torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False)
             U = torch.linalg.solve_triangular(L, self.PH.mT, upper=False)  # L^-1 H P
             U = V.mT @ U
