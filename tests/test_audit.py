@@ -205,14 +205,9 @@ def test_swapped_or_wrong_filter_system_and_trajectory_are_named():
 
 def _audit_script():
     """``benchmarks/filters_audit.py`` as a module (a script, not part of the package)."""
-    import importlib.util
-    from pathlib import Path
+    from conftest import load_script
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "filters_audit.py"
-    spec = importlib.util.spec_from_file_location("filters_audit", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks", "filters_audit")
 
 
 def test_audit_script_filter_kwargs(tmp_path, monkeypatch):

@@ -4,46 +4,19 @@ one-line errors of that mode."""
 
 from __future__ import annotations
 
-import csv
 import json
-import textwrap
 
 import numpy as np
 import pytest
 import torch
+from conftest import load_script
 
 import diffsmf as ds
 from diffsmf.cli import main
 from diffsmf.tuning import bound_sets, read_bounds
 
-MODEL = textwrap.dedent(
-    """
-    import torch
-    import diffsmf as ds
-
-    DT = 0.05
-    F64 = torch.float64
-
-    def f(x, u, theta=None):
-        th, om = x[..., 0], x[..., 1]
-        return torch.stack([th + DT * om,
-                            om + DT * (-9.81 * torch.sin(th) - 0.3 * om + u[..., 0])], -1)
-
-    def h(x):
-        return torch.sin(x[..., :1])
-
-    def make_system(scale=1.0):
-        X0 = ds.Interval(torch.tensor([0.3, -0.2], dtype=F64),
-                         torch.tensor([0.5, 0.2], dtype=F64))
-        w = scale * torch.tensor([1e-3, 2e-3], dtype=F64)
-        v = scale * torch.tensor([0.01], dtype=F64)
-        return ds.System(f, h, X0, ds.Interval(-w, w), ds.Interval(-v, v), n_inputs=1,
-                         name="pendulum")
-
-    def make_guess():          # the user's guess: bounds 5x too large
-        return make_system(5.0)
-    """
-)
+BENCH = load_script("benchmarks", "tune_own_model")  # its model file and log writer
+MODEL = BENCH.MODEL.replace("GUESS", "5.0")  # make_guess: the user's bounds, 5x too large
 TRUE_W = torch.tensor([1e-3, 2e-3], dtype=torch.float64)
 TRUE_V = torch.tensor([0.01], dtype=torch.float64)
 
@@ -61,16 +34,7 @@ def logs(tmp_path_factory):
     phase = torch.linspace(0, 6, runs, dtype=torch.float64).reshape(runs, 1)
     U = (0.5 * torch.sin(0.2 * torch.arange(T, dtype=torch.float64) + phase)).unsqueeze(-1)
     tr = system.simulate(steps=T, batch=runs, seed=0, noise="uniform", u=U)
-    files = []
-    for r in range(runs):
-        path = d / f"run{r}.csv"
-        with path.open("w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["time", "u", "y"])
-            for k in range(T):
-                w.writerow([f"{0.05 * (k + 1):.2f}", repr(float(tr.u[r, k, 0])),
-                            repr(float(tr.y[r, k, 0]))])
-        files.append(str(path))
+    files = BENCH._write_logs(d, tr, runs)
     return d, files, tr, system
 
 
