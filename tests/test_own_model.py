@@ -321,3 +321,30 @@ def test_tune_and_audit_are_quiet_by_default_and_take_a_bar_factory():
     rep = ds.audit.containment(filt, trials=5, steps=4, progress=audit_bar)
     assert audit_bar.done == 5 and audit_bar.closed == 1 and rep.trials == 5
     assert inspect.signature(ds.tuning.tune).parameters["progress"].default is False
+
+
+def test_a_module_subclass_with_a_rule_but_an_inherited_forward_is_one_operation():
+    """``class Saturated(nn.Hardtanh)`` adds only ``interval_enclosure``; kept in a list that
+    the engine cannot see from ``f``, it is still enclosed by its own rule (a box that is
+    deliberately wider than the exact one shows which enclosure was used)."""
+
+    class Saturated(torch.nn.Hardtanh):
+        def interval_enclosure(self, lo, hi):
+            d = lo.shape[-1]
+            eye = torch.eye(d, dtype=lo.dtype).expand(*lo.shape[:-1], d, d)
+            return lo.clamp(-1, 1) - 0.5, hi.clamp(-1, 1) + 0.5, 0 * eye, eye
+
+    parts = [Saturated()]
+
+    def f(x, u=None, theta=None):
+        return 0.9 * x + 0.1 * parts[0](x)
+
+    system = ds.System(f, h, X0, W, V)
+    from diffsmf.interval.engine import StepModel, enclose
+
+    box = ds.Interval(X0.lower.unsqueeze(0), X0.upper.unsqueeze(0))
+    enc = enclose(StepModel(system.f, None, None), box, 1)
+    exact = 0.9 * X0.upper + 0.1 * X0.upper.clamp(-1, 1)
+    assert bool((enc.val.upper[0] >= exact + 0.05 - 1e-12).all())  # the rule's +0.5, times 0.1
+    assert torch.nn.Hardtanh.forward is not None and "forward" not in vars(Saturated)
+    assert torch.equal(Saturated()(torch.tensor([2.0])), torch.tensor([1.0]))  # restored

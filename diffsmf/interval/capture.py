@@ -178,10 +178,12 @@ def reachable_modules(fn: Any, depth: int = 3) -> list[nn.Module]:
 _CLASS_FORWARD: dict[type, Callable[..., Tensor]] = {}
 
 
-def _leaf_classes() -> list[type]:
-    """Loaded ``nn.Module`` subclasses that define ``interval_enclosure`` and ``forward``
-    (outermost first: a subclass of such a class is covered by its parent's patch)."""
-    found: list[type] = []
+def _leaf_classes() -> list[tuple[type, Callable[..., Tensor], bool]]:
+    """``(class, its forward, whether the class defines it itself)`` for the loaded
+    ``nn.Module`` subclasses with ``interval_enclosure`` whose ``forward`` is their own or
+    inherited from a class without one (``class MyLinear(nn.Linear)`` with a rule); a
+    subclass that inherits both from a patched class is served by that class's patch."""
+    found = []
     todo = list(nn.Module.__subclasses__())
     seen: set[type] = set()
     while todo:
@@ -190,8 +192,11 @@ def _leaf_classes() -> list[type]:
             continue
         seen.add(cls)
         todo.extend(cls.__subclasses__())
-        if callable(getattr(cls, "interval_enclosure", None)) and "forward" in vars(cls):
-            found.append(cls)
+        if not callable(getattr(cls, "interval_enclosure", None)):
+            continue
+        owner = next(k for k in cls.__mro__ if "forward" in vars(k))
+        if owner is cls or not callable(getattr(owner, "interval_enclosure", None)):
+            found.append((cls, vars(owner)["forward"], owner is cls))
     return found
 
 
@@ -213,16 +218,20 @@ def _patched_leaves(fn: Any):
             m.forward = _leaf_forward(key)  # type: ignore[method-assign]
             patched.append((m, raw))
     classes = _leaf_classes()
-    for cls in classes:
-        _CLASS_FORWARD[cls] = vars(cls)["forward"]
+    for cls, forward, _own in classes:
+        _CLASS_FORWARD[cls] = forward
         cls.forward = _class_leaf_forward  # type: ignore[method-assign]
     _CAPTURING = True
     try:
         yield
     finally:
         _CAPTURING = False
-        for cls in classes:
-            cls.forward = _CLASS_FORWARD.pop(cls)  # type: ignore[method-assign]
+        for cls, forward, own in classes:
+            _CLASS_FORWARD.pop(cls)
+            if own:
+                cls.forward = forward  # type: ignore[method-assign]
+            else:
+                del cls.forward
         for m, _raw in patched:
             del m.forward
             del m._diffsmf_raw
