@@ -75,15 +75,13 @@ _SMALL_Y = 64
 #: Inductor options of `compile_filter`. A filter step is hundreds of operations on
 #: ``[B, n, n]`` tensors with n = 1-32: Inductor vectorises along the innermost dimension, so
 #: for small n its SIMD code is mostly tails and remainders, and g++ takes twice as long to build
-#: it. Measured on spring_damper (HSNSMF, 1 thread, cold cache, one run each): no-grad compile
-#: 46 -> 33 s at B = 1 and 59 -> 30 s at B = 10,000 (run time 2,275 -> 3,194 and 205k -> 214k
-#: trajectory-steps/s); the B = 64 gradient graphs 145 -> 78 s, run time 18k -> 33k
-#: trajectory-steps/s. The sets are the same (the same operations in scalar code).
+#: it. Scalar code compiles in about half the time on spring_damper, no-grad and gradient
+#: graphs alike, and runs no slower; the sets are the same (the same operations in scalar
+#: code).
 #: ``cpp_wrapper``: Inductor writes the code that calls the kernels (buffer allocations, size
 #: and stride checks, library calls) in C++ instead of Python; at B = 1 that code was most of
-#: a compiled step. Same sets and gradients; A/B in one process, 8 interleaved runs each
-#: (spring_damper, B = 1, 1 thread): HSNSMF 0.749 -> 0.421 ms per step, ESMF 1.707 -> 0.973,
-#: EKF 0.104 -> 0.095; cold compile times within 25 %.
+#: a compiled step, which it makes nearly twice as fast for HSNSMF and ESMF at B = 1, with
+#: the same sets and gradients and cold compiles within 25 %.
 #: ``inplace_buffers`` off: torch 2.13's Inductor, writing a kernel's output over an input it
 #: took for dead, computed CSTR's HSNSMF step (predict and update in one graph) wrong, the
 #: bounds 4e5 from the eager step's; each half alone, or the step without in-place buffers

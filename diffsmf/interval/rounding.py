@@ -227,9 +227,8 @@ def outward(both: Tensor, k: int = 1, absolute: bool = True, point: bool = False
         e = (2 * k - 1) * eps(x)
         out = torch.addcmul(x, _pair_const(x, rank, -e, e), _traced_magnitude(x))
         # in a program run, each rounded result is computed once into a buffer: Inductor would
-        # otherwise inline the chains of stacked ops into every consumer (MSZM on cstr: cold
-        # compile 133 -> 105 s; HSNSMF on spring_damper at B = 1 24-27 -> 21 s and a faster
-        # step, at B = 10,000 the same)
+        # otherwise inline the chains of stacked ops into every consumer, which lengthens
+        # the cold compiles by a fifth or more
         return materialize(out) if _in_traced_program() else out
     out = torch.nextafter(both, _target(both, rank))
     if k > 1:  # then k - 1 ulps more, relatively (see _step); the first step made inf finite

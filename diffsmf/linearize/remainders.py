@@ -583,8 +583,8 @@ def _dc_bounds_gemm(
     at most ``W mag^2``, ``2 W mag^2``, ``|g| mag``, ``W mag^2``, ``|r(p)|`` and ``|g| mag``
     in magnitude (``|x|, |p| <= mag``), so the error is within about ``(3n + 4) eps`` times
     their sum, inside `dc_remainder`'s padding of `_PAD_ULPS` eps times its scale. Also
-    while traced (an extern matrix product; a compiled six-state HSNSMF step at B = 100:
-    121 -> 88 ms, the same compile time).
+    while traced (an extern matrix product: a faster compiled step at the same compile
+    time).
     """
     P, N = gP.shape[0], dP.shape[0] - 1
     k, n = gP.shape[-2], gP.shape[-1]
