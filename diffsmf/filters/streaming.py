@@ -43,7 +43,7 @@ from diffsmf.utils import traced
 RUNTIME_ATTRS = frozenset({
     "_compiled_step", "_compiled_steps", "_direct_cache", "_guarded_calls", "_out_type",
     "_steps_per_call", "_stream", "_direct_options", "_compile_kwargs", "_compiled_functions",
-    "_guarded_step_failed",
+    "_guarded_step_failed", "_compile_progress",
 })
 
 #: Compiled structures kept per configuration (least recently used dropped first).
