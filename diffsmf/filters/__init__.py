@@ -21,11 +21,14 @@ __all__ = [
     "FilterEvent",
     "FilterResult",
     "FilterState",
+    "ALIASES",
+    "SET_FAMILIES",
     "SetFilter",
     "by_name",
     "is_guaranteed",
     "describe_events",
     "event_text",
+    "get",
     "names",
 ]
 
@@ -34,18 +37,51 @@ _NAMES: dict[str, type[SetFilter]] = {
     "combined": CombinedFilter,
 }
 
+#: Other names of the filters: CORA's observer names (Althoff's toolbox) for the ones it has,
+#: and the papers' spellings (matched without case, ``-`` or ``_``, as the names themselves)
+ALIASES: dict[str, str] = {
+    "FRad-A": "mszm",  # CORA: zonotopes, Alamo et al. 2005 F-radius strip weights
+    "CZN-A": "czsmf",  # CORA: constrained zonotopes, Scott et al. 2016
+    "HS-NSMF": "hsnsmf",
+    "CD-SMF": "cdsmf",
+    "CombinedFilter": "combined",
+}
+
+#: The set families a filter declares (``set_family``), as the nonlinear observer comparison
+#: of Holzinger and Althoff (2026) names them, plus the parallelotope
+SET_FAMILIES = ("interval", "ellipsoid", "zonotope", "parallelotope", "constrained-zonotope",
+                "zonotope-bundle")
+
+
+def _key(name: str) -> str:
+    return name.lower().replace("-", "").replace("_", "")
+
 
 def names() -> list[str]:
-    """Names accepted by `by_name`."""
+    """The filters' names, one each (`get` also takes the `ALIASES`)."""
     return list(_NAMES)
 
 
-def by_name(name: str) -> type[SetFilter]:
-    """Filter class for ``"hsnsmf" | "mszm" | "cdsmf" | "esmf" | "ekf" | "czsmf" | "combined"``."""
-    key = name.lower().replace("-", "").replace("_", "")
+def get(name: str) -> type[SetFilter]:
+    """The filter class for any of its names: ``"hsnsmf" | "mszm" | "cdsmf" | "esmf" | "ekf" |
+    "czsmf" | "combined"`` or an alias (`ALIASES`: CORA's ``"FRad-A"``, ``"CZN-A"``, the
+    papers' ``"HS-NSMF"``), without regard to case, ``-`` or ``_``.
+
+    Raises:
+        ValueError: starting with ``name:``, listing the names and aliases.
+    """
+    if not isinstance(name, str):
+        raise ValueError(f"name: expected a filter name (str), got {type(name).__name__}")
+    key = _key(name)
+    key = next((v for a, v in ALIASES.items() if _key(a) == key), key)
     if key in _NAMES:
         return _NAMES[key]
-    raise ValueError(f"name: unknown filter {name!r}; choose from {names()}")
+    raise ValueError(f"name: unknown filter {name!r}; choose from {names()} or the aliases "
+                     f"{list(ALIASES)}")
+
+
+#: `get` under its earlier name
+by_name = get
 
 
 def is_guaranteed(filt: SetFilter | type[SetFilter]) -> bool:

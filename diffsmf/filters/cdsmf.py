@@ -83,6 +83,8 @@ class CDSMF(EllipsoidalSetFilter):
 
     #: The set contains every state consistent with the model, the noise bounds and the data.
     guaranteed: bool = True
+    #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
+    set_family: str = "ellipsoid"
     stirling_step = Positive()
     remainder_margin = Positive()
     minkowski_scale = StrictlyPositive()

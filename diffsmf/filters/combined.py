@@ -153,6 +153,8 @@ class CombinedFilter(SetFilter):
     #: Not guaranteed in general: with Gaussian noise the set bounds the conditional mean, and
     #: for nonlinear maps the linearisation error is ignored (module docstring).
     guaranteed: bool = False
+    #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
+    set_family: str = "ellipsoid"
     process_std = Positive()
     measurement_std = Positive()
 

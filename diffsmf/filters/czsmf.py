@@ -110,6 +110,8 @@ class CZSMF(SetFilter):
 
     #: The set contains every state consistent with the model, the noise bounds and the data.
     guaranteed: bool = True
+    #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
+    set_family: str = "constrained-zonotope"
     stirling_step = Positive()
     remainder_margin = Positive()
     _constant_set_size = False  # the predicted set has more generators than the capped update

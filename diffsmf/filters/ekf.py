@@ -43,6 +43,8 @@ class EKF(SetFilter):
 
     #: Not a set-membership filter: its set is a 3-sigma ellipsoid, not a bound.
     guaranteed: bool = False
+    #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
+    set_family: str = "ellipsoid"
 
     def __init__(self, system: System, *, initial_set: ConvexSet | None = None, **kw) -> None:
         super().__init__(system, **kw)

@@ -106,6 +106,8 @@ class ESMF(EllipsoidalSetFilter):
 
     #: The set contains every state consistent with the model, the noise bounds and the data.
     guaranteed: bool = True
+    #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
+    set_family: str = "ellipsoid"
     remainder_margin = Positive()
     minkowski_scale = StrictlyPositive()
 

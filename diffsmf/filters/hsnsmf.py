@@ -73,6 +73,8 @@ class HSNSMF(SetFilter):
 
     #: The set contains every state consistent with the model, the noise bounds and the data.
     guaranteed: bool = True
+    #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
+    set_family: str = "parallelotope"
     stirling_step = Positive()
     remainder_margin = Positive()
 
