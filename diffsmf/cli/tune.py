@@ -259,9 +259,10 @@ def _strip_x(traj: Any) -> Data:
 def _write_outputs(
     out: Path, cfg: TuneConfig, report: TuneReport, filt: SetFilter, areas: tuple | None,
     test: int, true: dict, record: dict,
-) -> None:
+) -> dict[str, Any]:
     """``bounds.json``, ``hyperparameters.json``, ``report.json``, ``loss_curve.csv`` and
-    ``tuning.png`` (loss; tuned values over the epochs; held-out areas before/after)."""
+    ``tuning.png`` (loss; tuned values over the epochs; held-out areas before/after);
+    returns what ``bounds.json`` holds."""
     out.mkdir(parents=True, exist_ok=True)
     doc = write_bounds(out / "bounds.json", filt, cfg.safety, initial=report.initial, **record)
     hp = {
@@ -282,6 +283,7 @@ def _write_outputs(
             fh.write(",".join("" if k not in r else f"{r[k]:.10g}" for k in keys) + "\n")
     written = {k: doc[k]["half_widths"] for k in ("process_noise", "measurement_noise")}
     _tuning_figure(out / "tuning.png", cfg, report, areas, test, true, written)
+    return doc
 
 
 def _tuning_figure(
@@ -404,14 +406,15 @@ def main(args: argparse.Namespace) -> int:
                 areas = (before, filt(test.y, u=test.u).volume.mean(0))
             audit = evaluate(filt, test, LossWeights(**cfg.weights), loss="both")
     if ddp.rank() == 0:
-        _write_outputs(Path(cfg.out), cfg, report, filt, areas, cfg.test_trajectories, true,
-                       record)
-        _print_summary(cfg, report, true, areas, audit, None if test is None else len(test.y))
+        doc = _write_outputs(Path(cfg.out), cfg, report, filt, areas, cfg.test_trajectories,
+                             true, record)
+        _print_summary(cfg, report, doc, true, areas, audit,
+                       None if test is None else len(test.y))
     return 0
 
 
-def _print_summary(cfg: TuneConfig, report: TuneReport, true: dict, areas: tuple | None,
-                   audit: dict | None, tested: int | None) -> None:
+def _print_summary(cfg: TuneConfig, report: TuneReport, doc: dict, true: dict,
+                   areas: tuple | None, audit: dict | None, tested: int | None) -> None:
     what = cfg.system if cfg.model is None else f"{cfg.model} ({len(cfg.data)} logged runs)"
     print(f"{cfg.filter} on {what}: {report.best_epoch} epochs kept, {report.seconds:.1f} s")
     for k in report.final:
@@ -424,7 +427,6 @@ def _print_summary(cfg: TuneConfig, report: TuneReport, true: dict, areas: tuple
         print(f"  mean area (held out, k>=1): {float(before[1:].mean()):.4g} -> "
               f"{float(after[1:].mean()):.4g}; containment violations "
               f"{audit.get('violations')} / {tested} traj x {cfg.steps} steps")
-    doc = json.loads((Path(cfg.out) / "bounds.json").read_text())
     c = doc.get("consistency_scale")
     if c is not None and c > 1:
         print(f"  the tuned noise bounds left logged measurements inconsistent: scaled by "

@@ -25,6 +25,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from diffsmf.interval.engine import StepModel, register_row_model
 from diffsmf.linearize.jacobians import jacobian
 from diffsmf.sets.base import ConvexSet, check_nonempty
 from diffsmf.systems.checks import trial_enclosure, uncertified_fit
@@ -204,8 +205,6 @@ class System(nn.Module):
         """Capture ``f`` and ``h`` with the guarantee engine now, so that a model it cannot
         enclose (an op without a rule, a Python branch on the state, a cast) is reported when
         the system is built, naming the function; and require float64."""
-        from diffsmf.interval.engine import StepModel, register_row_model
-
         x = self.x0_set.center.detach().unsqueeze(0)
         u = None if self.n_inputs == 0 else torch.zeros(1, self.n_inputs, dtype=x.dtype)
         th = None if self.parameters is None else self.parameters.center.detach().unsqueeze(0)
