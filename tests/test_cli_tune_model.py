@@ -112,6 +112,8 @@ def test_model_mode_errors_are_one_line(logs, capsys, tmp_path):
     _one_line(capsys, ["filter", "--model", model, "--data", files[0], "--outputs", "y",
                        "--inputs", "u", "--bounds", str(tmp_path / "none.json"), *out],
               "--bounds", "no such file")
+    with pytest.raises(ValueError, match="^path: no such file"):  # from Python: the argument
+        bound_sets(tmp_path / "none.json")
     bad = tmp_path / "bad.json"
     bad.write_text('{"format": "something else"}')
     _one_line(capsys, ["filter", "--model", model, "--data", files[0], "--outputs", "y",

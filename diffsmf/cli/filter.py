@@ -445,7 +445,7 @@ def main(args: argparse.Namespace) -> int:
     wn = _floats(args.process_noise, "--process-noise", system.n)
     vn = _floats(args.measurement_noise, "--measurement-noise", system.m)
     if getattr(args, "bounds", None) is not None:  # explicit --*-noise values win
-        tuned = read_bounds(args.bounds, system.n, system.m)
+        tuned = read_bounds(args.bounds, system.n, system.m, what="--bounds")
         wn = tuned["process_noise"] if wn is None else wn
         vn = tuned["measurement_noise"] if vn is None else vn
     if wn is not None:
@@ -547,7 +547,7 @@ def main(args: argparse.Namespace) -> int:
 def _check_bounds_centres(path: Path, filt) -> None:
     """The centres of a bounds file must be those of the model's noise sets (the file was
     tuned for this model: tuning moves half-widths, never centres)."""
-    for name, S in bound_sets(path).items():
+    for name, S in bound_sets(path, what="--bounds").items():
         have = getattr(filt, f"{name}_center", None)
         if have is not None and not torch.allclose(S.center, have, rtol=1e-12, atol=1e-15):
             raise ValueError(f"--bounds: the {name} centre {S.center.tolist()} in "

@@ -4,7 +4,7 @@
 is the command line (`diffsmf.cli.tune`; ``python -m diffsmf tune`` is the same).
 """
 
-from diffsmf.tuning.bounds import bound_sets, read_bounds, write_bounds
+from diffsmf.tuning.bounds import bound_sets, consistent_scale, read_bounds, write_bounds
 from diffsmf.tuning.loop import Data, TuneReport, evaluate, simulate_finite, tune
 from diffsmf.tuning.losses import (
     LossWeights,
@@ -22,6 +22,7 @@ __all__ = [
     "LossWeights",
     "TuneReport",
     "bound_sets",
+    "consistent_scale",
     "consistency_loss",
     "containment_loss",
     "evaluate",

@@ -71,30 +71,32 @@ def write_bounds(
     return doc
 
 
-def read_bounds(path: str | Path, n: int | None = None, m: int | None = None
-                ) -> dict[str, Tensor]:
+def read_bounds(path: str | Path, n: int | None = None, m: int | None = None,
+                what: str = "path") -> dict[str, Tensor]:
     """Half-widths of a bounds file: ``{"process_noise": [n], "measurement_noise": [m]}``
     (float64), checked against the state and output dimensions when given.
 
     Raises:
-        ValueError: starting with ``--bounds:``, naming the file and what is wrong.
+        ValueError: starting with ``what`` (the argument's name; ``diffsmf filter`` passes
+            ``--bounds``), naming the file and what is wrong.
     """
-    doc = _load(path)
+    doc = _load(path, what)
     out = {}
     for name, dim in zip(NOISES, (n, m)):
         half = torch.tensor(doc[name]["half_widths"], dtype=torch.float64)
         if dim is not None and half.shape != (dim,):
-            raise ValueError(f"--bounds: {str(path)!r} has {name} of {half.numel()} value(s), "
+            raise ValueError(f"{what}: {str(path)!r} has {name} of {half.numel()} value(s), "
                              f"the model needs {dim}")
         out[name] = half
     return out
 
 
-def bound_sets(path: str | Path) -> dict[str, Interval]:
+def bound_sets(path: str | Path, what: str = "path") -> dict[str, Interval]:
     """The bounds of a file as the sets a ``System`` takes: ``{"process_noise":
     Interval [n], "measurement_noise": Interval [m]}`` (centre +- half-widths), e.g.
-    ``ds.System(f, h, X0, **bound_sets(path))``."""
-    doc = _load(path)
+    ``ds.System(f, h, X0, **bound_sets(path))``; errors start with ``what``, as in
+    `read_bounds`."""
+    doc = _load(path, what)
     sets = {}
     for name in NOISES:
         c = torch.tensor(doc[name]["center"], dtype=torch.float64)
@@ -150,16 +152,16 @@ def consistent_scale(filt: nn.Module, y: Tensor, u: Tensor | None = None, rtol: 
     return hi
 
 
-def _load(path: str | Path) -> dict[str, Any]:
+def _load(path: str | Path, what: str) -> dict[str, Any]:
     p = Path(path)
     if not p.is_file():
-        raise ValueError(f"--bounds: no such file {str(p)!r} (diffsmf tune writes bounds.json)")
+        raise ValueError(f"{what}: no such file {str(p)!r} (diffsmf tune writes bounds.json)")
     try:
         doc = json.loads(p.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"--bounds: {str(p)!r} is not a JSON file ({exc})") from None
+        raise ValueError(f"{what}: {str(p)!r} is not a JSON file ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise ValueError(f"--bounds: {str(p)!r} is not a diffsmf bounds file (format "
+        raise ValueError(f"{what}: {str(p)!r} is not a diffsmf bounds file (format "
                          f"{FORMAT!r}, written by diffsmf tune)")
     for name in NOISES:
         entry = doc.get(name)
@@ -169,7 +171,7 @@ def _load(path: str | Path) -> dict[str, Any]:
             for k in ("center", "half_widths"))
         if not ok or len(entry["center"]) != len(entry["half_widths"]) or min(
                 entry["half_widths"]) <= 0:
-            raise ValueError(f"--bounds: {str(p)!r}: {name} must hold 'center' and "
+            raise ValueError(f"{what}: {str(p)!r}: {name} must hold 'center' and "
                              "'half_widths', lists of the same length of finite numbers "
                              "(half-widths > 0)")
     return doc
