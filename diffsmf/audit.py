@@ -25,10 +25,10 @@ import torch
 from scipy.optimize import linprog
 from torch import Tensor
 
+from diffsmf.convex import ConvexSet, as_vector
 from diffsmf.filters import is_guaranteed
 from diffsmf.filters.base import check_filter
 from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
-from diffsmf.sets.base import ConvexSet, as_vector
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
 from diffsmf.systems.system import check_system
 from diffsmf.tightness import TightnessReport, inner_bounds, tightness  # noqa: F401 (re-exported)

@@ -29,8 +29,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
+    from diffsmf.convex import ConvexSet
     from diffsmf.filters.base import FilterResult
-    from diffsmf.sets.base import ConvexSet
 
 __all__ = [
     "bounds_figure",

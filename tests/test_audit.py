@@ -1,4 +1,4 @@
-"""Containment audit (diffsmf.audit) and the comparison/demo helpers (diffsmf.filters.compare)."""
+"""Containment audit (diffsmf.audit) and the comparison/demo helpers (diffsmf.compare)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import torch
 import diffsmf as ds
 from diffsmf import audit, filters, systems
 from diffsmf.cli import audit as audit_cli
-from diffsmf.filters.compare import compare, demo, format_table
+from diffsmf.compare import compare, demo, format_table
 
 
 def test_gauge_matches_the_scale_of_a_scaled_point():

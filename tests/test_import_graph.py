@@ -1,4 +1,4 @@
-"""The import graph of diffsmf has no cycles.
+"""The import graph of diffsmf has no cycles, and every import points down the floors.
 
 Every ``import`` of a diffsmf module counts, at module level or inside a function: an import
 moved into a function to dodge a cycle still ties the two modules together. Read with ``ast``
@@ -118,8 +118,61 @@ def test_the_checker_finds_a_cycle_through_a_function_level_import(tmp_path):
     assert cycles(graph) == [frozenset({"pkg.a", "pkg.b"})]
 
 
+#: The floors of diffsmf, bottom up (``docs/design.md`` draws them). A module may import
+#: modules of its own floor and of the floors below it; an import that runs up fails
+#: `test_every_import_points_down`. ``diffsmf`` is the package's facade (``import diffsmf as
+#: ds``), which only the command line sits above.
+FLOORS: list[tuple[str, ...]] = [
+    ("utils",),
+    ("linalg",),
+    ("convex",),
+    ("interval",),
+    ("sets",),
+    ("linearize",),
+    ("systems",),
+    ("filters", "pwl"),
+    ("tuning", "observers", "tightness"),
+    ("audit", "plot"),
+    ("compare",),
+    ("",),  # diffsmf/__init__.py
+    ("cli", "__main__"),
+]
+
+
+def floor_of(module: str) -> int:
+    """The floor of ``module`` (``diffsmf.sets.zonotope`` -> the floor of ``sets``)."""
+    parts = module.split(".")
+    top = parts[1] if len(parts) > 1 else ""
+    for i, names in enumerate(FLOORS):
+        if top in names:
+            return i
+    raise AssertionError(f"{module} is on no floor: add {top!r} to FLOORS")
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """Every import of ``graph`` whose target stands on a higher floor than its importer."""
+    return [f"{m} -> {t}" for m, targets in sorted(graph.items()) for t in sorted(targets)
+            if floor_of(t) > floor_of(m)]
+
+
+def test_the_checker_finds_an_import_that_runs_up(tmp_path):
+    pkg = tmp_path / "diffsmf"
+    (pkg / "sets").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sets" / "__init__.py").write_text("")
+    (pkg / "utils.py").write_text("def f():\n    from diffsmf.sets import zono\n")
+    (pkg / "sets" / "zono.py").write_text("from diffsmf import utils\n")
+    assert upward_imports(import_graph(tmp_path, "diffsmf")) == [
+        "diffsmf.utils -> diffsmf.sets.zono"]
+
+
+def test_every_import_points_down():
+    up = upward_imports(import_graph(ROOT, "diffsmf"))
+    assert up == [], f"imports that run up the floors of FLOORS: {up}"
+
+
 def test_diffsmf_has_no_import_cycles_but_the_known_ones():
     graph = import_graph(ROOT, "diffsmf")
-    assert {"diffsmf.cli", "diffsmf.tuning.losses", "diffsmf.filters.compare"} <= set(graph)
+    assert {"diffsmf.cli", "diffsmf.tuning.losses", "diffsmf.compare"} <= set(graph)
     new = [sorted(c) for c in cycles(graph) if not any(c <= known for known in KNOWN_CYCLES)]
     assert new == [], f"import cycles in diffsmf: {new}"

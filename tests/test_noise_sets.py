@@ -21,7 +21,7 @@ GW = np.array([[-0.12], [0.02]])  # one-generator zonotope noise
 SIGMA = 0.05
 
 
-def _linear_system(W: ds.sets.base.ConvexSet) -> ds.System:
+def _linear_system(W: ds.sets.ConvexSet) -> ds.System:
     At, Ct = torch.tensor(A, dtype=F64), torch.tensor(C, dtype=F64)
 
     def f(x, u=None, theta=None):
@@ -138,7 +138,7 @@ C2 = np.array([[1.0, 0.5], [0.0, 1.0]])
 SV = np.array([[0.004, 0.0018], [0.0018, 0.0012]])  # correlated ellipsoidal measurement noise
 
 
-def _two_output_system(V: ds.sets.base.ConvexSet) -> ds.System:
+def _two_output_system(V: ds.sets.ConvexSet) -> ds.System:
     At, Ct = torch.tensor(A, dtype=F64), torch.tensor(C2, dtype=F64)
     x0 = ds.Interval(torch.tensor([0.3, -0.2], dtype=F64), torch.tensor([0.7, 0.2], dtype=F64))
     W = ds.Interval(torch.full((2,), -0.01, dtype=F64), torch.full((2,), 0.01, dtype=F64))

@@ -12,8 +12,8 @@ import pytest
 import torch
 
 import diffsmf as ds
+from diffsmf.convex import where
 from diffsmf.sets import ConstrainedZonotope, Zonotope
-from diffsmf.sets.base import where
 from diffsmf.tuning import LossWeights, tune
 from diffsmf.tuning.losses import consistency_excess, filter_with_predictions, total_loss
 

@@ -22,6 +22,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from diffsmf.convex import ConvexSet, align, family, where
 from diffsmf.filters import runtime
 from diffsmf.filters.events import (
     MAX_SET_RADIUS,
@@ -43,7 +44,6 @@ from diffsmf.filters.state import (
     state_from_flat,
     with_events,
 )
-from diffsmf.sets.base import ConvexSet, align, family, where
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System, check_system
 from diffsmf.utils import (

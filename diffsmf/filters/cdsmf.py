@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
+from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import (
     FilterState,
     StrictlyPositive,
@@ -33,7 +34,6 @@ from diffsmf.filters.params import (
 from diffsmf.filters.prediction import noise_ellipsoid, prediction_remainder, step_function
 from diffsmf.filters.remainders import remainder_box, rounding_margin, spent_initial_box
 from diffsmf.filters.strips import stirling_strip_update
-from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive

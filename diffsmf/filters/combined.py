@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.convex import ConvexSet, stack
 from diffsmf.filters.base import (
     FilterResult,
     FilterState,
@@ -38,7 +39,6 @@ from diffsmf.filters.base import (
     warn_uncertified_fit,
 )
 from diffsmf.linearize.statistical import check_levels, statistical_linearization
-from diffsmf.sets.base import ConvexSet, stack
 from diffsmf.sets.ellipsoid import Ellipsoid, outer_sum_shape, unit_ball_volume
 from diffsmf.systems.system import System, check_system
 from diffsmf.utils import Positive, register_positive

@@ -38,6 +38,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffsmf.convex import ConvexSet, check_count, stack, where
 from diffsmf.filters.base import (
     MAX_SET_RADIUS,
     FilterResult,
@@ -57,7 +58,6 @@ from diffsmf.filters.prediction import noise_generators, prediction_remainder, s
 from diffsmf.filters.remainders import rounding_margin
 from diffsmf.filters.state import check_initial_set, expand_state_set
 from diffsmf.filters.strips import measurement_strips
-from diffsmf.sets.base import ConvexSet, check_count, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System

@@ -15,10 +15,10 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.filters.prediction import step_function
 from diffsmf.filters.state import check_initial_set, state_batch
-from diffsmf.sets.base import ConvexSet
 from diffsmf.systems.system import System
 from diffsmf.utils import tracing
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import torch
 
+from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.filters.remainders import X0_LOWER, X0_UPPER
 from diffsmf.filters.state import check_initial_set, expand_state_set
-from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.conversions import as_ellipsoid
 from diffsmf.systems.system import System
 

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.convex import ConvexSet, where
 from diffsmf.filters.base import (
     FilterState,
     StrictlyPositive,
@@ -45,7 +46,6 @@ from diffsmf.filters.remainders import (
     widen,
 )
 from diffsmf.filters.strips import angle_ambiguous
-from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System

@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, family
+from diffsmf.convex import ConvexSet, family
 from diffsmf.utils import numerical_events, tracing
 
 __all__ = [

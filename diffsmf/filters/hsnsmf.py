@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.filters.events import hull_radius
 from diffsmf.filters.params import (
@@ -32,7 +33,6 @@ from diffsmf.filters.state import (
     updated_state,
 )
 from diffsmf.filters.strips import stirling_strip_update
-from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.conversions import as_parallelotope
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive

@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.convex import ConvexSet, where
 from diffsmf.filters.base import FilterState, SetFilter
 from diffsmf.filters.params import (
     register_remainder,
@@ -58,7 +59,6 @@ from diffsmf.filters.state import (
     updated_state,
 )
 from diffsmf.filters.strips import stirling_strip_update
-from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.conversions import as_zonotope
 from diffsmf.systems.system import System
 from diffsmf.utils import Positive, descending_order, is_int, tracing

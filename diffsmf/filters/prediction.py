@@ -11,6 +11,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import SetFilter
 from diffsmf.filters.remainders import (
     ROUND_REL,
@@ -18,7 +19,6 @@ from diffsmf.filters.remainders import (
     checked_remainder,
     sanitize_remainder,
 )
-from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
 

@@ -8,9 +8,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import MAX_SET_RADIUS
 from diffsmf.filters.events import FilterEvent
-from diffsmf.sets.base import ConvexSet
 from diffsmf.sets.interval import Interval
 from diffsmf.utils import eager_constant
 

@@ -30,9 +30,9 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from diffsmf.convex import ConvexSet
 from diffsmf.filters.state import FilterState, flat_args, flat_step, flat_steps
 from diffsmf.filters.streaming import CaptureError, DirectSteps, config_key, known_options
-from diffsmf.sets.base import ConvexSet
 from diffsmf.utils import progress_bar, retain_freed_memory, tracing
 
 __all__ = [

@@ -14,8 +14,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.convex import ConvexSet, align, check_count, check_nonempty, stack
 from diffsmf.filters.events import LOSES_BOUND, FilterEvent, mark_unbounded
-from diffsmf.sets.base import ConvexSet, align, check_count, check_nonempty, stack
 from diffsmf.utils import tracing
 
 __all__ = [

@@ -2,12 +2,11 @@
 
 * `rounding`: outward rounding, the guarantee of every operation;
 * `arith`: interval arrays, Moore arithmetic on ``lower``/``upper`` tensors;
+* `box`: ``Interval``, the box set and the engine's value type (`diffsmf.sets` re-exports it);
 * `jet`: interval jets (value, gradient and Hessian enclosures);
 * `rules`: one inclusion rule per ATen op, in a registry;
 * `capture`: a model captured once as an ATen graph, evaluated by rules;
 * `engine`: the entry point, `enclose`.
-
-The box set, whose arithmetic delegates to `arith`, lives in `diffsmf.sets` (``Interval``).
 """
 
 from __future__ import annotations
@@ -30,7 +29,7 @@ _LAZY = {
 
 
 def __getattr__(name: str) -> Any:
-    """Lazy imports: the engine needs `diffsmf.sets`, which needs the rounding module."""
+    """Lazy imports: ``import diffsmf.interval.rounding`` does not load the engine."""
     mod = _LAZY.get(name)
     if mod is None:
         raise AttributeError(f"module 'diffsmf.interval' has no attribute {name!r}")

@@ -20,7 +20,7 @@ op. Eagerly, the products defer their check for ``0 * inf`` to one read of the h
 program run; while traced (or on an accelerator) each takes a branch-free rule instead.
 
 `TORCH_IMPL` maps torch functions to their interval extensions (the ``__torch_function__``
-hook of ``Interval``), so that ``diffsmf.sets.interval.interval_eval`` evaluates a plain torch
+hook of ``Interval``), so that ``diffsmf.interval.box.interval_eval`` evaluates a plain torch
 function on interval arrays.
 """
 
@@ -35,6 +35,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.convex import as_tensor
 from diffsmf.interval.rounding import (
     down,
     eps,
@@ -46,7 +47,6 @@ from diffsmf.interval.rounding import (
     tiny,
     up,
 )
-from diffsmf.sets.base import as_tensor
 from diffsmf.utils import checking, tracing
 
 __all__ = [

@@ -30,11 +30,11 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.interval.arith import Stacked, deferred_checks, products_ok, stacking, tensor_of
+from diffsmf.interval.box import Interval
 from diffsmf.interval.errors import EngineError
 from diffsmf.interval.jet import Jet, lead, move, point, register_seed
 from diffsmf.interval.rounding import traced_program
 from diffsmf.interval.rules import RULES, BoolBox, Ctx, register
-from diffsmf.sets.interval import Interval
 from diffsmf.utils import tracing
 
 __all__ = ["EngineError", "Program", "capture", "inclusion", "reachable_modules"]

@@ -18,9 +18,9 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.interval.arith import shape_of, tensor_of
+from diffsmf.interval.box import Interval
 from diffsmf.interval.capture import EngineError, Program, capture, seed, stacks, to_trailing
 from diffsmf.interval.jet import Jet, point
-from diffsmf.sets.interval import Interval
 from diffsmf.utils import eager_constant
 
 __all__ = ["Enclosure", "StepModel", "enclose", "enclose_dynamics", "program_for",
@@ -166,17 +166,19 @@ def fingerprint(fn: Any, depth: int = 4) -> Any:
     """A hashable key that determines what ``fn`` computes, or None when unknown.
 
     Functions: their code, defaults, closure values and the globals they name (numbers,
-    strings, small tensors by value, other functions recursively; modules by identity).
+    strings, small tensors by value, other functions recursively; modules by identity). A
+    wrapper declares ``engine_wraps = (tag, wrapped function)``: its key is the tag and the
+    wrapped function's key.
     Anything else (nn.Modules, whose parameters may change, large tensors, other objects):
     None, and ``fn``'s program is not shared.
     """
     if depth < 0:
         return None
-    from diffsmf.systems.model import Dynamics
-
-    if isinstance(fn, Dynamics):
-        inner = fingerprint(fn.fn, depth - 1)
-        return None if inner is None else ("dynamics", fn.arity, inner)
+    wraps = getattr(fn, "engine_wraps", None)  # e.g. `diffsmf.systems.model.Dynamics`
+    if wraps is not None:
+        tag, inner_fn = wraps
+        inner = fingerprint(inner_fn, depth - 1)
+        return None if inner is None else (tag, inner)
     if not isinstance(fn, types.FunctionType):
         return None
     parts: list[Any] = [fn.__code__]

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from diffsmf.interval import arith
 from diffsmf.interval.arith import Stacked
-from diffsmf.sets.interval import Interval
+from diffsmf.interval.box import Interval
 from diffsmf.utils import tracing
 
 __all__ = ["Jet", "chain", "hadd", "hull", "move", "mul", "nonsmooth", "point", "register_seed",

@@ -31,10 +31,10 @@ from torch import Tensor
 
 from diffsmf.interval import arith
 from diffsmf.interval.arith import Stacked, is_number
+from diffsmf.interval.box import Interval
 from diffsmf.interval.errors import EngineError
 from diffsmf.interval.jet import EXACT_SUMS, Jet, chain, hadd, hull, move, mul, nonsmooth, point
 from diffsmf.interval.rounding import down, up
-from diffsmf.sets.interval import Interval
 from diffsmf.utils import broadcast_shapes
 
 __all__ = ["CATEGORIES", "RULES", "BoolBox", "Ctx", "register", "supported_ops"]

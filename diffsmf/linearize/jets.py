@@ -12,9 +12,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from diffsmf.interval.box import Interval
 from diffsmf.interval.capture import EngineError
 from diffsmf.interval.engine import Enclosure, enclose
-from diffsmf.sets.interval import Interval
 
 __all__ = ["Jet", "JetError", "interval_hessian", "interval_jacobian", "jet_eval"]
 

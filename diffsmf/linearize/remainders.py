@@ -23,12 +23,12 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.convex import ConvexSet
 from diffsmf.interval.arith import Stacked
+from diffsmf.interval.box import Interval
 from diffsmf.interval.engine import enclose_dynamics
 from diffsmf.linearize.jacobians import jacobian, value_and_jacobian
 from diffsmf.linearize.jets import Jet, JetError, jet_eval
-from diffsmf.sets.base import ConvexSet
-from diffsmf.sets.interval import Interval
 from diffsmf.utils import broadcast_shapes, eager_constant, materialize, tracing
 
 __all__ = [

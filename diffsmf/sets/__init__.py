@@ -1,8 +1,8 @@
 """Batched, differentiable convex sets: Interval (box), Zonotope, Parallelotope, Ellipsoid,
 Strip."""
 
+from diffsmf.convex import ConvexSet, align, cat, stack, where
 from diffsmf.sets import conversions  # noqa: F401  (registers the conversions between families)
-from diffsmf.sets.base import ConvexSet, align, cat, stack, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval, interval_eval

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, check_count, check_finite
+from diffsmf.convex import ConvexSet, as_offset, as_tensor, check_count, check_finite
 from diffsmf.sets.czono_lp import LP_ITERS, LP_TOL, box_lp, support_value
 from diffsmf.sets.strip import strip_fields
 from diffsmf.utils import HIGHS_OPTIONS, descending_order, is_int

@@ -1,16 +1,16 @@
 """Conversions between the set families, registered in this one module.
 
-Every pair ``(From, To)`` is registered with `diffsmf.sets.base.register_conversion`, as
+Every pair ``(From, To)`` is registered with `diffsmf.convex.register_conversion`, as
 ``torch.distributions`` registers its KL pairs: the modules of the families do not import
 each other (the import order is base, strip, interval, ellipsoid, zonotope, parallelotope);
-a family lower in that order reaches a higher one through `diffsmf.sets.base.convert` and
-`diffsmf.sets.base.family`. The outer bounds `as_parallelotope`, `as_zonotope` and
+a family lower in that order reaches a higher one through `diffsmf.convex.convert` and
+`diffsmf.convex.family`. The outer bounds `as_parallelotope`, `as_zonotope` and
 `as_ellipsoid` return the set itself when it is of that family.
 """
 
 from __future__ import annotations
 
-from diffsmf.sets.base import ConvexSet, register_conversion
+from diffsmf.convex import ConvexSet, register_conversion
 from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval
 from diffsmf.sets.parallelotope import Parallelotope

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.sets.base import ConvexSet, as_tensor, as_vector, check_count, check_finite, where
+from diffsmf.convex import ConvexSet, as_tensor, as_vector, check_count, check_finite, where
 from diffsmf.utils import checking, tracing
 
 if TYPE_CHECKING:  # pragma: no cover

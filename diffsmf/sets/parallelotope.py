@@ -14,8 +14,8 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
+from diffsmf.convex import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.linalg import small_sum
-from diffsmf.sets.base import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
 from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.utils import broadcast_shapes, checking
 

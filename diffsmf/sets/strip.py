@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.sets.base import ConvexSet, as_tensor, as_vector
+from diffsmf.convex import ConvexSet, as_tensor, as_vector
 from diffsmf.utils import broadcast_shapes, checking
 
 __all__ = ["Strip", "strip_batch", "strip_fields"]

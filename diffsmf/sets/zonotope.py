@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.sets.base import (
+from diffsmf.convex import (
     ConvexSet,
     as_offset,
     as_tensor,

@@ -67,6 +67,12 @@ class Dynamics(nn.Module):
     def forward(self, x: Tensor, u: Tensor | None = None, theta: Tensor | None = None) -> Tensor:
         return self.fn(x) if self.arity == 1 else self.fn(x, u)
 
+    @property
+    def engine_wraps(self) -> tuple[tuple[str, int], Callable[..., Tensor]]:
+        """What the engine's program cache keys this wrapper by (`diffsmf.interval.engine.
+        fingerprint`): its arity and the user's function."""
+        return ("dynamics", self.arity), self.fn
+
 
 def as_dynamics(f: Callable[..., Tensor]) -> Callable[..., Tensor]:
     """``f`` as ``f(x, u, theta)``.

@@ -25,9 +25,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from diffsmf.convex import ConvexSet, check_nonempty
 from diffsmf.interval.engine import StepModel, register_row_model
 from diffsmf.linearize.jacobians import jacobian
-from diffsmf.sets.base import ConvexSet, check_nonempty
 from diffsmf.systems.checks import trial_enclosure, uncertified_fit
 from diffsmf.systems.model import Dynamics, as_dynamics, check_dtype, check_module_dtype
 from diffsmf.utils import is_int

@@ -30,11 +30,11 @@ import torch
 from torch import Tensor
 from torch._dynamo.exc import TorchDynamoException
 
+from diffsmf.convex import ConvexSet, where
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.filters.runtime import compiled_loop
 from diffsmf.filters.state import flat_state, state_from_flat
 from diffsmf.linearize import jacobian
-from diffsmf.sets.base import ConvexSet, where
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.utils import tracing
 

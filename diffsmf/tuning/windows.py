@@ -28,8 +28,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from diffsmf.convex import ConvexSet, align, cat
 from diffsmf.filters.base import FilterState, SetFilter
-from diffsmf.sets.base import ConvexSet, align, cat
 from diffsmf.tuning import ddp
 from diffsmf.tuning.losses import LossWeights, filter_with_predictions, total_loss
 

@@ -1,4 +1,6 @@
-"""Common base of every set in `diffsmf.sets`.
+"""`ConvexSet`, the base of every set family: the interval engine's box
+(`diffsmf.interval.box.Interval`) and the families of `diffsmf.sets`. It lies below the
+engine, so that the engine owns its value type and never imports `diffsmf.sets`.
 
 A set is a small immutable object holding a few tensors whose leading dimensions are batch
 dimensions (``batch_shape``) and whose trailing dimensions are fixed by the set type
