@@ -130,7 +130,7 @@ def test_sanitize_remainder_flags_huge_boxes():
     """A remainder box beyond MAX_SET_RADIUS (finite, but its square overflows) is not ok;
     the other elements keep their bounds bit for bit."""
     from diffsmf.filters.base import MAX_SET_RADIUS
-    from diffsmf.filters.remainders import sanitize_remainder
+    from diffsmf.filters.remainder_boxes import sanitize_remainder
     from diffsmf.sets import Interval
 
     lo = torch.tensor([[-1.0, -2.0], [-3.0 * MAX_SET_RADIUS, 0.0], [float("nan"), 0.0]])

@@ -280,7 +280,7 @@ def test_dc_on_many_generator_zonotopes_planar_and_3d():
 
 
 def test_dc_without_vertex_tangents_and_in_chunks_encloses_sampled_errors(monkeypatch):
-    import diffsmf.linearize.remainders as rem
+    import diffsmf.linearize.dc as rem
 
     def f7(x):  # n = 7: 128 box corners, more than the vertex tangents are used for
         return torch.stack([torch.sin(x[..., 0] * x[..., 1]) + x[..., 6] ** 2,
@@ -330,7 +330,7 @@ def test_dc_matrix_product_table_encloses_and_matches_the_broadcast_table(case, 
     """From 32 x 33 (tangent, vertex) pairs the eager table is a matrix product of the
     vertices' features and each tangent plane's coefficients; it encloses sampled and
     vertex errors, and it gives the broadcast table's bounds to rounding (both are padded)."""
-    import diffsmf.linearize.remainders as rem
+    import diffsmf.linearize.dc as rem
 
     S = _vertex_tangent_cases()[case]
     c = S.center
@@ -361,7 +361,7 @@ def test_dc_matrix_product_table_encloses_and_matches_the_broadcast_table(case, 
 def test_dc_matrix_product_table_while_traced_matches_eager(monkeypatch):
     """A compiled step takes the matrix-product table too (Dynamo with the eager backend):
     the same bounds as the eager call to rounding."""
-    import diffsmf.linearize.remainders as rem
+    import diffsmf.linearize.dc as rem
 
     S = _vertex_tangent_cases()[0]
     J = stirling_jacobian(_f5, S.center, 0.05)

@@ -24,7 +24,7 @@ from diffsmf import filters, systems
 from diffsmf.audit import containment
 from diffsmf.filters import esmf, prediction
 from diffsmf.filters.prediction import prediction_remainder, step_function
-from diffsmf.filters.remainders import add_remainder_margin
+from diffsmf.filters.remainder_boxes import add_remainder_margin
 from diffsmf.tuning import simulate_finite
 
 NAMES = ["hsnsmf", "mszm", "cdsmf", "esmf"]

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import (
     FilterState,
     StrictlyPositive,
@@ -25,18 +24,12 @@ from diffsmf.filters.base import (
     scaled_minkowski_sum,
 )
 from diffsmf.filters.ellipsoidal import EllipsoidalSetFilter
-from diffsmf.filters.params import (
-    register_remainder,
-    register_remainder_margin,
-    register_stirling_step,
-    stirling_steps,
-)
+from diffsmf.filters.params import stirling_steps
 from diffsmf.filters.prediction import noise_ellipsoid, prediction_remainder, step_function
-from diffsmf.filters.remainders import remainder_box, rounding_margin, spent_initial_box
+from diffsmf.filters.remainder_boxes import remainder_box, rounding_margin, spent_initial_box
 from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive
 
 __all__ = ["CDSMF"]
 
@@ -48,25 +41,13 @@ class CDSMF(EllipsoidalSetFilter):
 
     Args:
         system: the system to filter.
-        stirling_step: Stirling step h (learnable): ``None`` (default) for the step relative
-            to the set, ``0.5`` times its hull half-widths (scale-invariant), or an absolute
-            step in state units (scalar or ``[n]``); see
-            `stirling_steps`.
         sum_method: ``Ellipsoid.minkowski_sum`` method: ``"scaled-trace"`` (default: the
             trace rule in coordinates normalised by the operands' widths, independent of the
             units of the states), ``"trace"`` (the rule in state units, the earlier default)
             or ``"volume"``.
+        stirling_step, remainder_margin, remainder: the linearisation (`LinearisingFilter`);
+            the remainder is bounded over the ellipsoid's interval hull.
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
-        remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
-            prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
-            (default) is the filter without it (see
-            `register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"``
-            (Wang et al. 2022, eqs. 14-18, 2^n vertices), ``"lagrange"`` (interval Hessian,
-            vertex-free), ``"mean-value"``
-            (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
-            n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
-            `resolve_remainder`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of the prediction's
             Minkowski sum (Song et al. 2017, eq. 14-17; Jiang et al. 2016, eq. 34-36): ``p = s *
             p_rule`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_rule`` the ``sum_method`` rule of
@@ -81,30 +62,17 @@ class CDSMF(EllipsoidalSetFilter):
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
 
-    #: The set contains every state consistent with the model, the noise bounds and the data.
-    guaranteed: bool = True
-    #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
-    set_family: str = "ellipsoid"
-    stirling_step = Positive()
-    remainder_margin = Positive()
     minkowski_scale = StrictlyPositive()
 
     def __init__(
         self,
         system: System,
         *,
-        stirling_step: float | Tensor | None = None,
-        remainder_margin: float | Tensor = 0.0,
-        remainder: str = "auto",
         minkowski_scale: float | Tensor = 1.0,
         sum_method: str = "scaled-trace",
-        initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
-        super().__init__(system, initial_set=initial_set, **kw)
-        register_stirling_step(self, stirling_step, system.n)
-        register_remainder_margin(self, remainder_margin, system.n)
-        register_remainder(self, remainder, system.n)
+        super().__init__(system, **kw)
         register_minkowski_scale(self, minkowski_scale)
         self.sum_method = sum_method
 

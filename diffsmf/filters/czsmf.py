@@ -43,30 +43,25 @@ from diffsmf.filters.base import (
     MAX_SET_RADIUS,
     FilterResult,
     FilterState,
-    SetFilter,
     bounded_result,
     carry,
 )
 from diffsmf.filters.events import LOSES_BOUND, FilterEvent
-from diffsmf.filters.params import (
-    register_remainder,
-    register_remainder_margin,
-    register_stirling_step,
-    stirling_steps,
-)
+from diffsmf.filters.linearising import LinearisingFilter
+from diffsmf.filters.params import stirling_steps
 from diffsmf.filters.prediction import noise_generators, prediction_remainder, step_function
-from diffsmf.filters.remainders import rounding_margin
-from diffsmf.filters.state import check_initial_set, expand_state_set
+from diffsmf.filters.remainder_boxes import rounding_margin
+from diffsmf.filters.state import expand_state_set
 from diffsmf.filters.strips import measurement_strips
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope
 from diffsmf.sets.interval import Interval
-from diffsmf.systems.system import System
-from diffsmf.utils import Positive, is_int, tracing
+from diffsmf.systems.system import System, check_system
+from diffsmf.utils import is_int, tracing
 
 __all__ = ["CZSMF"]
 
 
-class CZSMF(SetFilter):
+class CZSMF(LinearisingFilter):
     """Constrained-zonotope filter (Scott 2016 set family, Wang et al. 2022 linearisation),
     guaranteed.
 
@@ -84,16 +79,9 @@ class CZSMF(SetFilter):
             with LP ranges) or
             ``"propagation"`` (Appendix A as published, interval propagation; cheapest).
         reduce_method: lifted generator reduction, ``"girard"`` | ``"combastel"``.
-        remainder: guaranteed remainder bound by name, over the interval hull of the set
-            (`resolve_remainder`): ``"dc-vertices"`` (alias ``"dc"``,
-            Wang et al. 2022, eq. 14-18 at the hull corners), ``"lagrange"`` (Song et al. 2017, eq.
-            26-28), ``"mean-value"``, or ``"auto"`` (default, as the other filters).
-        stirling_step: Stirling step h (learnable): ``None`` (default) for the step relative
-            to the set, ``0.5`` times its hull half-widths (scale-invariant), or an absolute
-            step in state units (scalar or ``[n]``); see
-            `stirling_steps`.
-        remainder_margin: learnable inflation ``m >= 0`` of the prediction remainder box
-            (`register_remainder_margin`).
+        stirling_step, remainder_margin, remainder: the linearisation (`LinearisingFilter`);
+            the remainder is bounded over the set's certified interval hull (``"dc"``: the
+            alias of ``"dc-vertices"``, the bound at the hull's corners).
         rescale: apply the exact propagation rescaling (Scott 2016 Appendix A) before each
             reduction.
         lp_iters: interior-point iterations of the hull LPs (every bound is certified
@@ -108,12 +96,8 @@ class CZSMF(SetFilter):
     ``["upper"]`` hold its certified interval hull ``[B, n]`` (computed once per set).
     """
 
-    #: The set contains every state consistent with the model, the noise bounds and the data.
-    guaranteed: bool = True
     #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
     set_family: str = "constrained-zonotope"
-    stirling_step = Positive()
-    remainder_margin = Positive()
     _constant_set_size = False  # the predicted set has more generators than the capped update
 
     def __init__(
@@ -123,18 +107,13 @@ class CZSMF(SetFilter):
         max_generators: int | str | None = "auto",
         max_constraints: int | str | None = "auto",
         reduce_method: str = "girard",
-        remainder: str = "auto",
-        stirling_step: float | Tensor | None = None,
-        remainder_margin: float | Tensor = 0.0,
         rescale: bool = True,
         lp_iters: int = 15,
         elimination: str = "hull",
-        initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
-        super().__init__(system, **kw)
+        check_system("system", system)
         n, m = system.n, system.m
-        check_initial_set("initial_set", initial_set, n)
         if isinstance(max_constraints, str) and max_constraints == "auto":
             max_constraints = 4 + 6 * m
         if max_constraints is not None and (
@@ -158,24 +137,21 @@ class CZSMF(SetFilter):
         if reduce_method not in ("girard", "combastel"):
             raise ValueError(f"reduce_method: unknown {reduce_method!r} (girard | combastel)")
         check_count("lp_iters", lp_iters)
-        register_stirling_step(self, stirling_step, n)
-        register_remainder_margin(self, remainder_margin, n)
+        if elimination not in ("hull", "lp", "propagation"):
+            raise ValueError(f"elimination: unknown {elimination!r} (hull | lp | propagation)")
+        super().__init__(system, **kw)
         self.max_generators = None if max_generators is None else int(max_generators)
         self.max_constraints = None if max_constraints is None else int(max_constraints)
         self.reduce_method = reduce_method
-        register_remainder(self, "dc-vertices" if remainder == "dc" else remainder, n)
         self.rescale = rescale
         self.lp_iters = lp_iters
-        if elimination not in ("hull", "lp", "propagation"):
-            raise ValueError(f"elimination: unknown {elimination!r} (hull | lp | propagation)")
         self.elimination = elimination
-        self._x0 = ConstrainedZonotope.from_set(
-            initial_set if initial_set is not None else system.x0_set
-        )
+
+    def _convert_initial(self, S: ConvexSet) -> ConvexSet:
+        """Exact for boxes and zonotopes, outer for ellipsoids (`ConstrainedZonotope.from_set`)."""
+        return ConstrainedZonotope.from_set(S)
 
     # ------------------------------------------------------------------ helpers
-    def _remainder_fn(self):
-        return self.remainder_fn
 
     def _noise(self) -> tuple[Tensor, Tensor, ConstrainedZonotope | None]:
         """The process noise W as given -> ``(center [n], box half-widths
@@ -261,7 +237,7 @@ class CZSMF(SetFilter):
         fn = step_function(self.system, u)
         F = stirling_jacobian(fn, p, stirling_steps(self, p, hull.radius))  # eq. 12
         E, ev = prediction_remainder(  # not finite: flagged unbounded (placeholder set)
-            self.system, self._remainder_fn(), fn, hull, p, F, u, self.remainder_margin,
+            self.system, self.remainder_fn, fn, hull, p, F, u, self.remainder_margin,
             events=True,
         )  # remainder over the interval hull of Z (+ margin)
         wc, wr, Wz = self._noise()
@@ -295,7 +271,7 @@ class CZSMF(SetFilter):
         p = 0.5 * (lo + hi)
         H = stirling_jacobian(self.system.h, p, stirling_steps(self, p, hull.radius))  # eq. 13
         a, d, w, ev = measurement_strips(
-            self.system.h, self._remainder_fn(), hull, p, H, y, self.measurement_noise_box(),
+            self.system.h, self.remainder_fn, hull, p, H, y, self.measurement_noise_box(),
             self.system, events=True,
         )  # eq. 23-29: |a_i x - d_i| <= w_i, [B, m, n], [B, m], [B, m]
         # (a degenerate row, a zero or non-finite normal or a non-finite offset, is all of R^n

@@ -23,11 +23,13 @@ nonlinear ``h`` is folded into ``Rhat``.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.convex import ConvexSet, where
+from diffsmf.convex import where
 from diffsmf.filters.base import (
     FilterState,
     StrictlyPositive,
@@ -35,9 +37,8 @@ from diffsmf.filters.base import (
     scaled_minkowski_sum,
 )
 from diffsmf.filters.ellipsoidal import EllipsoidalSetFilter
-from diffsmf.filters.params import register_remainder, register_remainder_margin
 from diffsmf.filters.prediction import noise_ellipsoid, step_function
-from diffsmf.filters.remainders import (
+from diffsmf.filters.remainder_boxes import (
     add_remainder_margin,
     checked_remainder,
     remainder_box,
@@ -49,7 +50,6 @@ from diffsmf.filters.strips import angle_ambiguous
 from diffsmf.sets.ellipsoid import Ellipsoid
 from diffsmf.sets.interval import Interval
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive
 
 __all__ = ["ESMF"]
 
@@ -80,10 +80,7 @@ class ESMF(EllipsoidalSetFilter):
             of the fermenter's mu, eq. 13 on spring_damper (m < n: rho -> 1 inflates the
             unobserved direction by 1 / (1 - rho)).
         initial_set: override of ``system.x0_set`` (converted to a covering ellipsoid).
-        remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
-            prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
-            (default) is the filter without it (see
-            `register_remainder_margin`).
+        remainder_margin: the remainder box's margin (`LinearisingFilter`).
         minkowski_scale: learnable factor ``s > 0`` (scalar) on the weight of every Minkowski
             sum of the prediction (eq. 14-17 used in eq. 29-31, eq. 32 and eq. 34-35):
             ``p = s * p_trace`` in ``S(p) = (1 + 1/p) S1 + (1 + p) S2``, ``p_trace`` the
@@ -97,18 +94,15 @@ class ESMF(EllipsoidalSetFilter):
             dominates the prior is the last one (eq. 34-35, prior ``A P A'`` + virtual
             noise). Softplus-scaled (``scale * softplus(raw)``). Raises ``ValueError`` for 0,
             negative, NaN or infinite values.
-        remainder: guaranteed remainder bound by name (default ``"lagrange"``, Song et al. 2017, eq.
-            26-28; also ``"dc-vertices"``, ``"mean-value"``, ``"auto"``; see
-            `resolve_remainder`).
+        remainder: guaranteed remainder bound (`LinearisingFilter`; default ``"lagrange"``,
+            Song et al. 2017, eq. 26-28). ESMF linearises with the autograd Jacobian (eq. 24)
+            and has no Stirling step.
 
     State set: ``Ellipsoid`` with batch shape ``[B]``.
     """
 
-    #: The set contains every state consistent with the model, the noise bounds and the data.
-    guaranteed: bool = True
-    #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
-    set_family: str = "ellipsoid"
-    remainder_margin = Positive()
+    stirling: ClassVar[bool] = False  # eq. 24: the autograd Jacobian
+    default_remainder: ClassVar[str] = "lagrange"  # eq. 26-28
     minkowski_scale = StrictlyPositive()
 
     def __init__(
@@ -116,18 +110,13 @@ class ESMF(EllipsoidalSetFilter):
         system: System,
         *,
         rho_rule: str = "volume",
-        remainder_margin: float | Tensor = 0.0,
         minkowski_scale: float | Tensor = 1.0,
-        remainder: str = "lagrange",
-        initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
-        super().__init__(system, initial_set=initial_set, **kw)
-        register_remainder_margin(self, remainder_margin, system.n)
-        register_remainder(self, remainder, system.n)
-        register_minkowski_scale(self, minkowski_scale)
         if rho_rule not in ("eq40", "eq13", "volume"):
             raise ValueError(f"rho_rule: expected 'eq13', 'eq40' or 'volume', got {rho_rule!r}")
+        super().__init__(system, **kw)
+        register_minkowski_scale(self, minkowski_scale)
         self.rho_rule = rho_rule
 
     def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:

@@ -44,29 +44,20 @@ from torch import Tensor
 
 from diffsmf import linalg
 from diffsmf.convex import ConvexSet, where
-from diffsmf.filters.base import FilterState, SetFilter
-from diffsmf.filters.params import (
-    register_remainder,
-    register_remainder_margin,
-    register_stirling_step,
-    stirling_steps,
-)
+from diffsmf.filters.base import FilterState
+from diffsmf.filters.linearising import LinearisingFilter
+from diffsmf.filters.params import stirling_steps
 from diffsmf.filters.prediction import prediction_remainder, step_function, zonotope_prediction
-from diffsmf.filters.state import (
-    check_initial_set,
-    expand_state_set,
-    predicted_state,
-    updated_state,
-)
+from diffsmf.filters.state import predicted_state, updated_state
 from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.sets.conversions import as_zonotope
 from diffsmf.systems.system import System
-from diffsmf.utils import Positive, descending_order, is_int, tracing
+from diffsmf.utils import descending_order, is_int, tracing
 
 __all__ = ["MSZM"]
 
 
-class MSZM(SetFilter):
+class MSZM(LinearisingFilter):
     """Zonotope filter (Alamo et al. 2005), guaranteed.
 
     Args:
@@ -75,31 +66,17 @@ class MSZM(SetFilter):
             default 12 (measured table in the module docstring).
         reduce_method: ``Zonotope.reduce`` method (``"girard"``, ``"combastel"``, ...).
         strip_method: ``Zonotope.intersect_strip`` method (``"fradius"`` | ``"volume"``).
-        stirling_step: Stirling step h (learnable): ``None`` (default) for the step relative
-            to the set, ``0.5`` times its hull half-widths (scale-invariant), or an absolute
-            step in state units (scalar or ``[n]``); see
-            `stirling_steps`.
+        stirling_step, remainder_margin, remainder: the linearisation (`LinearisingFilter`);
+            the remainder is bounded over the zonotope's interval hull.
         initial_set: override of ``system.x0_set`` (converted to a zonotope).
-        remainder_margin: learnable inflation ``m >= 0`` (scalar or ``[n]``) of the guaranteed
-            prediction remainder box, ``[lo - m, hi + m]``; it only ever enlarges the box, 0
-            (default) is the filter without it (see
-            `register_remainder_margin`).
-        remainder: guaranteed remainder bound by name: ``"dc-vertices"``
-            (Wang et al. 2022, eqs. 14-18, 2^n vertices), ``"lagrange"`` (interval Hessian,
-            vertex-free), ``"mean-value"``
-            (interval Jacobian, cheapest) or ``"auto"`` (default: ``"dc-vertices"`` up to
-            n = 8, ``"lagrange"`` up to 16, ``"mean-value"`` above;
-            `resolve_remainder`).
+        **kw: ``process_noise``, ``measurement_noise``, ``skip_nan``, ``learn_noise``
+            (see `SetFilter`).
 
     State set: ``Zonotope`` with batch shape ``[B]`` and ``order * n`` generators.
     """
 
-    #: The set contains every state consistent with the model, the noise bounds and the data.
-    guaranteed: bool = True
     #: the family of its sets (`diffsmf.filters.SET_FAMILIES`)
     set_family: str = "zonotope"
-    stirling_step = Positive()
-    remainder_margin = Positive()
 
     def __init__(
         self,
@@ -108,23 +85,17 @@ class MSZM(SetFilter):
         order: int = 12,
         reduce_method: str = "girard",
         strip_method: str = "fradius",
-        stirling_step: float | Tensor | None = None,
-        remainder_margin: float | Tensor = 0.0,
-        remainder: str = "auto",
-        initial_set: ConvexSet | None = None,
         **kw,
     ) -> None:
-        super().__init__(system, **kw)
-        check_initial_set("initial_set", initial_set, system.n)
         if not is_int(order) or order < 1:
             raise ValueError(f"order: must be an integer >= 1, got {order!r}")
-        register_stirling_step(self, stirling_step, system.n)
-        register_remainder_margin(self, remainder_margin, system.n)
-        register_remainder(self, remainder, system.n)
+        super().__init__(system, **kw)
         self.order = int(order)
         self.reduce_method = reduce_method
         self.strip_method = strip_method
-        self._x0 = as_zonotope(initial_set if initial_set is not None else system.x0_set)
+
+    def _convert_initial(self, S: ConvexSet) -> ConvexSet:
+        return as_zonotope(S)
 
     @property
     def n_generators(self) -> int:
@@ -166,8 +137,8 @@ class MSZM(SetFilter):
         return where(over, red.pad_generators(q), small)
 
     def _initial_state(self, batch: int | None = None) -> FilterState:
-        S = self._fit(expand_state_set(self._x0, batch))
-        return FilterState(set=S, consistent=torch.ones(S.batch_shape, dtype=torch.bool))
+        state = super()._initial_state(batch)
+        return state.replace(set=self._fit(state.set))
 
     def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (Z - c) (+) E (+) W`` then reduction (Alamo 2005 sec. 4)."""

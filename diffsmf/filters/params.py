@@ -96,9 +96,10 @@ def stirling_steps(filt: torch.nn.Module, c: Tensor, radius: Tensor) -> Tensor:
     return filt.stirling_step * r
 
 
-def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
-    """Validate ``remainder`` (a name of `diffsmf.linearize.REMAINDERS` or ``"auto"``)
-    and set ``module.remainder`` (the resolved name) and ``module.remainder_fn``.
+def register_remainder(module: torch.nn.Module, spec: Any, n: int) -> None:
+    """Validate ``remainder`` (a `diffsmf.linearize.RemainderBound` or its name, see
+    `diffsmf.linearize.resolve_remainder`) and set ``module.remainder`` (the resolved name)
+    and ``module.remainder_fn`` (the bound the steps call).
 
     ``"auto"``: the Wang et al. 2022 vertex method (``"dc-vertices"``) up to
     `AUTO_VERTEX_MAX_N` states, then the vertex-free bounds
@@ -107,9 +108,7 @@ def register_remainder(module: torch.nn.Module, name: str, n: int) -> None:
     """
     from diffsmf.linearize import resolve_remainder
 
-    if not isinstance(name, str):
-        raise ValueError(f"remainder: expected a method name, got {name!r}")
-    module.remainder, module.remainder_fn = resolve_remainder(name, n)
+    module.remainder, module.remainder_fn = resolve_remainder(spec, n)
 
 
 def register_remainder_margin(module: torch.nn.Module, value: float | Tensor, n: int) -> None:

@@ -13,7 +13,7 @@ from torch import Tensor
 
 from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import SetFilter
-from diffsmf.filters.remainders import (
+from diffsmf.filters.remainder_boxes import (
     ROUND_REL,
     add_remainder_margin,
     checked_remainder,

@@ -15,7 +15,7 @@ from diffsmf.convex import ConvexSet, align, where
 from diffsmf.filters.base import SetFilter
 from diffsmf.filters.events import FilterEvent
 from diffsmf.filters.params import stirling_steps
-from diffsmf.filters.remainders import ROUND_REL, checked_remainder, rounding_margin
+from diffsmf.filters.remainder_boxes import ROUND_REL, checked_remainder, rounding_margin
 from diffsmf.linearize.remainders import float_padding, is_affine
 from diffsmf.sets.interval import Interval
 from diffsmf.sets.parallelotope import Parallelotope

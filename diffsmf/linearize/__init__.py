@@ -5,6 +5,11 @@ from diffsmf.linearize.jets import Jet, JetError, interval_hessian, interval_jac
 from diffsmf.linearize.remainders import (
     AUTO_VERTEX_MAX_N,
     REMAINDERS,
+    Auto,
+    DCVertices,
+    Lagrange,
+    MeanValue,
+    RemainderBound,
     dc_remainder,
     diagonal_shift,
     hessian_eig_lower_bound,
@@ -18,6 +23,11 @@ from diffsmf.linearize.statistical import axis_points, statistical_linearization
 __all__ = [
     "AUTO_VERTEX_MAX_N",
     "REMAINDERS",
+    "Auto",
+    "DCVertices",
+    "Lagrange",
+    "MeanValue",
+    "RemainderBound",
     "Jet",
     "JetError",
     "dc_remainder",

@@ -10,32 +10,53 @@ any slope matrix ``J [..., k, n]`` (autograd or Stirling), every function here r
 points is padded by a small multiple of the rounding unit). All are batched over the set's
 batch dims and differentiable w.r.t. the set's fields, ``c``, ``J`` and parameters closed over
 by ``fn``. ``fn`` must be batch-elementwise (see `diffsmf.linearize.jacobians`).
+
+The bounds are named types that carry their settings, as the filters take them
+(``remainder=DCVertices(max_vertices=64)``); a name is shorthand for the type with its defaults
+(``remainder="dc-vertices"``). `resolve_remainder` turns either into the bound a filter calls.
+
+* `DCVertices`: the difference-of-convex bound at the set's vertices (`diffsmf.linearize.dc`);
+* `Lagrange`: the interval-Hessian quadratic form (`diffsmf.linearize.lagrange`);
+* `MeanValue`: the interval-Jacobian bound, first order, cheapest;
+* `Auto`: one of the three by the state dimension.
 """
+
 
 from __future__ import annotations
 
-import itertools
-import math
-import weakref
-from collections.abc import Callable
+from dataclasses import dataclass
+from typing import ClassVar
 
-import torch
 from torch import Tensor
 
-from diffsmf import linalg
 from diffsmf.convex import ConvexSet
-from diffsmf.interval.arith import Stacked
 from diffsmf.interval.box import Interval
-from diffsmf.interval.engine import enclose_dynamics
-from diffsmf.linearize.jacobians import jacobian, value_and_jacobian
-from diffsmf.linearize.jets import Jet, JetError, jet_eval
-from diffsmf.utils import broadcast_shapes, eager_constant, materialize, tracing
+from diffsmf.linearize.bound_parts import Fn, float_padding, is_affine
+from diffsmf.linearize.dc import (
+    MAX_TANGENTS,
+    MAX_VERTICES,
+    dc_remainder,
+    diagonal_shift,
+    hessian_eig_lower_bound,
+)
+from diffsmf.linearize.lagrange import (
+    lagrange_remainder,
+    mean_value_remainder,
+    parameter_deviation,
+)
+from diffsmf.utils import is_int
 
 __all__ = [
     "AUTO_LAGRANGE_MAX_N",
     "AUTO_VERTEX_MAX_N",
+    "Auto",
+    "DCVertices",
+    "Lagrange",
+    "MAX_TANGENTS",
     "MAX_VERTICES",
+    "MeanValue",
     "REMAINDERS",
+    "RemainderBound",
     "dc_remainder",
     "diagonal_shift",
     "float_padding",
@@ -47,797 +68,129 @@ __all__ = [
     "resolve_remainder",
 ]
 
-Fn = Callable[[Tensor], Tensor]
-
-#: Above this many sign combinations, `dc_remainder` uses the corners of the interval hull.
-MAX_VERTICES = 256
-#: Tangent planes at every vertex (not only at ``c``) while the vertex count is at most this.
-_MAX_TANGENTS = 64
-#: Elements per chunk of the tangent-plane evaluation.
-_TANGENT_ELEMS = 4_000_000
-#: `_dc_bounds` evaluates its table as matrix products (`_dc_bounds_gemm`) from this many
-#: (tangent point, vertex) pairs on: eagerly 1.0-4.2x faster from 32 x 33 pairs on (n = 2-6,
-#: batch 1-1,000, one thread), slower for fewer pairs or a single tangent point.
-_GEMM_MIN_PAIRS = 1 << 10
-#: Table entries per chunk of `_dc_bounds_gemm` (8 MB in float64: 1.7-2x faster than 4M at
-#: n = 5-6, batch 100-1,000).
-_GEMM_CHUNK_ELEMS = 1 << 20
-#: Padding of float evaluations, in units of eps times the magnitudes involved.
-_PAD_ULPS = 64.0
-
-
-#: Functions whose interval jet had a structurally zero Hessian (True: affine on all of R^n,
-#: the jets build a Hessian for every non-affine operation) or not (False), so later calls
-#: skip the jets.
-_AFFINE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _known_affine(fn: Fn) -> bool:
-    if tracing():  # the cache is host state; the traced graph takes the general path
-        return False
-    try:
-        return bool(_AFFINE.get(fn, False))
-    except TypeError:  # unhashable callable
-        return False
-
-
-def is_affine(fn: Fn, S: ConvexSet) -> bool:
-    """Whether ``fn`` is affine on all of R^n: its interval jet over the interval hull of the
-    set ``S`` has a structurally zero Hessian (a property of the function, not of the set;
-    the hull is only computed for the probe). Probed once per
-    function and remembered (weakly, by identity) with what the remainder bounds learn, so
-    that the first call and every later one agree; False for an unhashable callable and for a
-    function the engine cannot enclose. While traced the probe runs every time and nothing is
-    remembered (no host state); the flag is structural, and the probe's tensors are dead code
-    that the compiler drops."""
-    if tracing():
-        try:
-            return jet_eval(fn, S.interval_hull(), order=2).hess_is_zero
-        except JetError:
-            return False
-    try:
-        known = _AFFINE.get(fn)
-    except TypeError:  # unhashable callable
-        return False
-    if known is None:
-        try:
-            known = jet_eval(fn, S.interval_hull(), order=2).hess_is_zero
-        except JetError:
-            known = False
-        _AFFINE[fn] = known
-    return known
-
-
-def _remember(fn: Fn, jet: Jet) -> bool:
-    """Record ``fn`` as affine when ``jet``'s Hessian is structurally zero -> that flag."""
-    if jet.hess_is_zero and not tracing():
-        try:
-            _AFFINE[fn] = True
-        except TypeError:
-            pass
-    return jet.hess_is_zero
-
-
-def _affine_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None) -> Interval:
-    """Remainder of an affine ``fn``: exactly ``(J_exact - J)(x - c)`` over ``S`` (support
-    function), padded by the float error of evaluating ``fn`` and ``J (x - c)`` on the hull."""
-    fc, Jx = value_and_jacobian(fn, c)  # [..., k (, n)], Jx constant for affine fn
-    box = _hull_with(S, c)
-    mag = box.lower.abs().maximum(box.upper.abs())
-    scale = fc.abs() + ((Jx.abs() + (0.0 if J is None else J.abs())) * mag.unsqueeze(-2)).sum(-1)
-    if J is None:
-        z = torch.zeros_like(scale)
-        return _padded(z, z, scale)
-    R = _linear_range(S, Jx - J, c)
-    return _padded(R.lower, R.upper, scale)
-
-
-def _eps(t: Tensor) -> float:
-    return torch.finfo(t.dtype).eps
-
-
-def _check(S: ConvexSet, c: Tensor, J: Tensor | None) -> tuple[Tensor, Tensor | None]:
-    if not isinstance(S, ConvexSet):
-        raise ValueError("S: expected a diffsmf set")
-    c = torch.as_tensor(c, dtype=S.dtype, device=S.device)
-    if c.shape[-1:] != (S.dim,):
-        raise ValueError(f"c: expected shape [..., {S.dim}], got {tuple(c.shape)}")
-    if J is not None:
-        J = torch.as_tensor(J, dtype=S.dtype, device=S.device)
-        if J.dim() < 2 or J.shape[-1] != S.dim:
-            raise ValueError(f"J: expected shape [..., k, {S.dim}], got {tuple(J.shape)}")
-    return c, J
-
-
-def float_padding(scale: Tensor) -> Tensor:
-    """``_PAD_ULPS * eps * scale + tiny`` (``scale`` detached): the outward padding of a
-    bound for the float error of terms of magnitude at most ``scale`` (also the strips'
-    padding of an affine measurement function, `diffsmf.filters.strips`)."""
-    fi = torch.finfo(scale.dtype)
-    return (_PAD_ULPS * fi.eps) * _nograd(scale) + fi.tiny
-
-
-def _padded(lo: Tensor, hi: Tensor, scale: Tensor) -> Interval:
-    """``[lo - tol, hi + tol]`` with ``tol = float_padding(scale)``."""
-    tol = float_padding(scale)
-    # internal bounds (lo <= hi by construction): no validation, and no host sync, per call;
-    # a NaN propagates to the filters' guard (sanitize_remainder), which flags the element
-    return Interval._make(lo - tol, hi + tol)
-
-
-def _nograd(t: Tensor) -> Tensor:
-    """``t`` detached (no op when it carries no gradient)."""
-    return t.detach() if t.requires_grad else t
-
-
-def _hull_with(S: ConvexSet, c: Tensor) -> Interval:
-    """Interval hull of ``S`` and ``c`` (so the segments [c, x] lie inside), padded outward."""
-    box = S.interval_hull()
-    lo = torch.minimum(box.lower, c)
-    hi = torch.maximum(box.upper, c)
-    scale = lo.abs() + hi.abs()
-    return _padded(lo, hi, scale)
-
-
-def _linear_range(S: ConvexSet, D: Tensor, c: Tensor) -> Interval:
-    """Exact range of ``D (x - c)`` over ``S`` via the support function -> ``[..., k]``."""
-    Dk = D.movedim(-2, 0)  # [k, ..., n] so the batch dims align with S's
-    Dc = (D * c.unsqueeze(-2)).sum(-1)  # [..., k]
-    up = S.support(Dk).movedim(0, -1) - Dc
-    lo = -S.support(-Dk).movedim(0, -1) - Dc
-    box = S.interval_hull()
-    mag = box.lower.abs() + box.upper.abs() + c.abs()
-    scale = (D.abs() * mag.unsqueeze(-2)).sum(-1)
-    return _padded(lo, up, scale)
-
-
-def _quad_form(H: Interval, d: Interval) -> Interval:
-    """Enclosure of ``d' H d`` for ``H [..., k, n, n]``, ``d [..., n]`` -> ``[..., k]``.
-
-    Diagonal terms use the exact square ``d_j^2``; symmetric off-diagonal pairs are kept as
-    they are (both copies hold the same interval).
-    """
-    n = d.shape[-1]
-    dd = d.unsqueeze(-1) * d.unsqueeze(-2)  # [..., n, n]
-    sq = d.square()
-    eye = torch.eye(n, dtype=torch.bool, device=d.lower.device)
-    dd = Interval._make(  # exact squares on the diagonal (field-wise: no Interval dispatch)
-        torch.where(eye, torch.diag_embed(sq.lower), dd.lower),
-        torch.where(eye, torch.diag_embed(sq.upper), dd.upper),
-    )
-    return (H * dd.unsqueeze(-3)).sum((-2, -1))
-
-
-def lagrange_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None) -> Interval:
-    """Lagrange remainder bound with the interval Hessian -> Interval ``[..., k]``.
-
-    Song et al. 2017, eq. 26-28: ``r(x) = 1/2 (x-c)' H(xi) (x-c)`` with ``H`` enclosed by the
-    interval Hessian over the interval hull of ``S`` and ``c``; the quadratic form is bounded in
-    interval arithmetic over ``x - c`` in the hull. If ``J`` differs from the exact Jacobian
-    at ``c`` (e.g. Stirling slopes), the exact range of ``(J_exact(c) - J)(x - c)`` over ``S``
-    (support function) is added. ``J=None`` means the exact Jacobian.
-    """
-    c, J = _check(S, c, J)
-    if _known_affine(fn):
-        return _affine_remainder(fn, S, c, J)
-    box = _hull_with(S, c)
-    jet = jet_eval(fn, box, order=2)  # value and Hessian enclosures over the hull
-    if _remember(fn, jet):
-        return _affine_remainder(fn, S, c, J)
-    D = None if J is None else jacobian(fn, c) - J
-    return _lower_order(fn, jet, box, S, c, J, _lagrange(jet, box, S, c, J, D))
-
-
-def _lagrange(
-    jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, D: Tensor | None
-) -> Interval:
-    """Song et al. 2017, eq. 26-28 from the jet over ``box``; ``D = J_exact(c) - J`` or None."""
-    d = box.__sub__(c)  # [..., n] (outward rounded; the method call traces under Dynamo)
-    R = _quad_form(jet.hess, d) * 0.5
-    if D is not None and (tracing() or not bool((D.detach() == 0).all())):
-        R = R + _linear_range(S, D, c)
-    # float evaluation of fn(x) - fn(c) - J (x - c) is padded by its rounding scale
-    Jm = 0.0 if J is None else (J.abs() * d.upper.abs().maximum(d.lower.abs()).unsqueeze(-2))
-    scale = _abs_max(jet.val) + (Jm if J is None else Jm.sum(-1))
-    return _padded(R.lower, R.upper, scale)
-
-
-def _lower_order(
-    fn: Fn, jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, R: Interval,
-    jv: Tensor | None = None, d: tuple[Tensor, Tensor, Tensor] | None = None,
-) -> Interval:
-    """``R`` intersected with the bounds of lower order, per output.
-
-    First order (mean value with the interval Jacobian, which encloses the Clarke generalised
-    Jacobian of a non-smooth model, Lebourg's theorem): ``r in ([J_fn] - J)(box - c)``, with
-    ``[J_fn]`` for ``J`` when ``J`` is None (the exact Jacobian at ``c`` lies in it). It bounds
-    the outputs whose Hessian enclosure is infinite (a kink of relu, abs, clamp, max or a PWL
-    model inside the set). Where the Jacobian enclosure itself is infinite (a branch on the
-    state that may jump), zeroth order: ``r in [f](box) - f(c) - J (S - c)``. ``jv`` is
-    ``_abs_max(jet.val)`` and ``d`` the triple ``(box.lower - c, box.upper - c, max |box - c|)``
-    when the caller has them.
-
-    The interval product is evaluated in plain float: ``box`` contains ``c``, so
-    ``d = box - c`` has ``d_lo <= 0 <= d_hi`` and ``[a, b] [d_lo, d_hi]`` is
-    ``[min(a d_hi, b d_lo), max(a d_lo, b d_hi)]``; its rounding (the subtractions, the
-    products and the sum, at most ``(n + 2) eps sum_j (|a_j| + |b_j|) |d_j|``) is covered by
-    the padding, whose scale includes ``2 (hi - lo) >= sum_j (|a_j| + |b_j|) max|d_j|`` (each
-    term's lower bound is <= 0 <= its upper bound, and ``|a_j| max|d_j|`` is at most the
-    largest of its four products).
-    """
-    dl, du, mag = (box.lower - c, box.upper - c, None) if d is None else d
-    dl = dl.unsqueeze(-2)  # [..., 1, n], <= 0
-    du = du.unsqueeze(-2)  # >= 0
-    gl, gu = jet.grad.lower, jet.grad.upper
-    # infinite Jacobian bounds are masked out of the products and put back in the result, so
-    # that no 0 * inf reaches the gradients of the other batch elements
-    finite = (gu - gl) < torch.inf  # False for an infinite bound (and NaN): gu - gl >= 0
-    # eagerly, one host read: all finite (the usual case) needs no masks
-    all_finite = not tracing() and bool(finite.all())
-    Jl, Ju = (gu, gl) if J is None else (J, J)  # J = None: [J_fn] - [J_fn]
-    a, b = gl - Jl, gu - Ju  # [..., k, n]: [a, b] = [J_fn] - J
-    if not all_finite:
-        inf_g = ~finite
-        a, b = a.masked_fill(inf_g, 0.0), b.masked_fill(inf_g, 0.0)
-    lo = linalg.small_reduce(torch.minimum(a * du, b * dl), "sum")  # [..., k]
-    hi = linalg.small_reduce(torch.maximum(a * dl, b * du), "sum")
-    jv = _abs_max(jet.val) if jv is None else jv  # the caller's, when it has it
-    scale = jv + _nograd(hi - lo) * 2.0
-    if J is not None:  # the float evaluation of J (x - c)
-        mag = torch.maximum(-dl, du) if mag is None else mag.unsqueeze(-2)
-        scale = scale + _nograd(linalg.small_dot(J.abs(), mag))
-    R1 = _padded(lo, hi, scale)
-    if all_finite:
-        return R.intersect(R1)
-    rows = finite.all(-1)
-    R = Interval._make(torch.where(rows, torch.maximum(R.lower, R1.lower), R.lower),
-                       torch.where(rows, torch.minimum(R.upper, R1.upper), R.upper))
-    Jc = jacobian(fn, c) if J is None else J
-    fc = fn(c)
-    L = _linear_range(S, Jc, c)
-    R0 = jet.val.__sub__(fc).__sub__(L)
-    scale0 = jv + fc.abs().detach() + _abs_max(L)
-    both = R.intersect(_padded(R0.lower, R0.upper, scale0))
-    # only the outputs without a finite first-order bound (the same result eager and traced)
-    use = ~rows
-    return Interval._make(torch.where(use, both.lower, R.lower),
-                          torch.where(use, both.upper, R.upper))
-
-
-def _abs_sum(I: Interval) -> float:
-    """The sum of ``|bound|`` over ``I`` (one host read; NaN where a bound is NaN)."""
-    if isinstance(I, Stacked):
-        return float(_nograd(I.both).abs().sum())
-    return float(_nograd(I.lower).abs().sum() + _nograd(I.upper).abs().sum())
-
-
-def _abs_max(I: Interval) -> Tensor:
-    """``max |x|`` over an interval array (inf-safe, detached)."""
-    if isinstance(I, Stacked):  # bounds stacked [2, ...]: no views of each
-        m = _nograd(I.both).abs().amax(0)
-    else:
-        m = _nograd(torch.maximum(I.lower.abs(), I.upper.abs()))
-    return torch.nan_to_num(m, nan=0.0, posinf=0.0)
-
-
-def hessian_eig_lower_bound(H: Interval) -> Tensor:
-    """Lower bound of lambda_min over every symmetric matrix in ``H [..., n, n]`` -> ``[...]``.
-
-    Max of two valid bounds: Gershgorin on the interval matrix (``min_j lower(H_jj) -
-    sum_{l != j} max|H_jl|``) and the midpoint-radius bound ``lambda_min(H_c) - rho(H_r)``
-    (Weyl; ``rho`` of the non-negative symmetric radius matrix is its largest eigenvalue).
-    Padded by the float error of the eigenvalue solver.
-    """
-    lo, hi = H.lower, H.upper
-    finite = torch.isfinite(lo) & torch.isfinite(hi)
-    ok = finite.all(-1).all(-1)
-    lam = _curvature(torch.where(finite, lo, 0.0), torch.where(finite, hi, 0.0))[0][0]
-    return torch.where(ok, lam, -torch.inf)
-
-
-def _curvature(lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
-    """`hessian_eig_lower_bound` and `diagonal_shift` of the interval matrices ``[lo, hi]``
-    and ``[-hi, -lo]`` (``[..., n, n]``) at once -> ``(lam [2, ...], w [2, ..., n])``.
-
-    The two share their off-diagonal magnitudes, radius matrix and norm; the midpoint of the
-    second is minus the first's, so its ``lambda_min`` is minus the first's ``lambda_max``
-    (one eigenvalue call for the midpoint and the radius matrix together; for n <= 2 the
-    closed form gives exactly ``-lambda_max``, above that any difference is within the
-    solver's error that the ``(8 n + 16) eps`` padding covers). Non-finite entries give a
-    non-finite ``lam`` / ``w``.
-    """
-    n = lo.shape[-1]
-    mag = torch.maximum(lo.abs(), hi.abs()).masked_fill(_eye(n, lo.device), 0.0)
-    off = linalg.small_reduce(mag, "sum")  # [..., n]
-    diag = torch.stack([torch.diagonal(lo, dim1=-2, dim2=-1),
-                        -torch.diagonal(hi, dim1=-2, dim2=-1)])  # [2, ..., n]
-    gersh = linalg.small_reduce(diag - off, "amin")  # [2, ...]
-    Hcr = torch.stack([lo + hi, hi - lo]) * 0.5  # [2, ..., n, n]: midpoint, radius
-    if n == 2:
-        weyl, norm = _weyl2(Hcr)
-    else:
-        Hcr = 0.5 * (Hcr + Hcr.mT)
-        ev = linalg.eigvalsh(Hcr)  # [2, ..., n]
-        weyl = torch.stack([ev[0, ..., 0], -ev[0, ..., -1]]) - ev[1, ..., -1]
-        A = Hcr.abs()
-        norm = _nograd((A[0] + A[1]).sum((-2, -1)))
-    tol = (8 * n + 16) * _eps(lo)
-    lam = torch.maximum(gersh, weyl) - tol * norm
-    w = (off - diag + tol * _nograd(diag.abs() + off)).clamp(min=0) * 0.5
-    return lam, w
-
-
-def _weyl2(Hcr: Tensor) -> tuple[Tensor, Tensor]:
-    """The Weyl bounds ``[lambda_min(H_c) - rho(H_r), -lambda_max(H_c) - rho(H_r)]``
-    ``[2, ...]`` and a norm (the sum of ``|entries|`` of both) of 2 x 2 ``Hcr [2, ..., 2, 2]``
-    (midpoint, radius), with `linalg.eigvalsh`'s closed form on the symmetric parts
-    (``(a + d) / 2 -+ sqrt(((a - d) / 2)^2 + b^2)``, the same floats)."""
-    a, b01, b10, d = Hcr.flatten(-2).unbind(-1)  # [2, ...] each
-    b = 0.5 * (b01 + b10)
-    m, h = 0.5 * (a + d), 0.5 * (a - d)
-    r = torch.sqrt(h * h + b * b + torch.finfo(a.dtype).tiny)  # [2, ...]
-    # [m - r, -m - r] (exactly -(m + r)) of the midpoint, minus rho(H_r) = m + r of the radius
-    (m0, m1), (r0, r1) = m.unbind(0), r.unbind(0)
-    weyl = torch.addcmul(-r0, m0, _pm1(m)) - (m1 + r1)
-    return weyl, _nograd(Hcr.abs().sum((0, -2, -1)))
-
-
-def _pm1(like: Tensor) -> Tensor:
-    """``[1, -1]`` shaped ``[2, 1, .., 1]`` against ``[2, *like.shape[1:]]`` (cached like
-    `_form_signs`)."""
-    return eager_constant(
-        _SIGNS, ("pm1", like.dtype, like.device, like.dim()),
-        lambda: torch.tensor([1.0, -1.0], dtype=like.dtype, device=like.device).reshape(
-            2, *([1] * (like.dim() - 1))))
-
-
-_EYES: dict = {}
-
-
-def _one(like: Tensor) -> Tensor:
-    """A 0-dim 1 like ``like`` (cached in eager mode: a constant, not an op per call)."""
-    return eager_constant(_SIGNS, ("one", like.dtype, like.device),
-                          lambda: torch.ones((), dtype=like.dtype, device=like.device))
-
-
-def _eye(n: int, device: torch.device) -> Tensor:
-    """Boolean identity ``[n, n]`` (cached in eager mode: a constant, not an op per call)."""
-    return eager_constant(_EYES, (n, device),
-                          lambda: torch.eye(n, dtype=torch.bool, device=device))
-
-
-def _extreme_points(S: ConvexSet, max_vertices: int) -> tuple[Tensor, bool]:
-    """Points whose convex hull contains ``S`` -> (``[..., N, n]``, exact).
-
-    ``exact`` is True when the hull of the points is ``S`` itself (box corners, parallelotope
-    vertices, 2-D zonotope vertices, or ``c + G s`` over all sign vectors s); otherwise the
-    corners of the interval hull of ``S`` (a containing box) are returned: max/min of the
-    convex / concave parts over that box still bound those over ``S``.
-    """
-    n = S.dim
-    G = getattr(S, "generators", None)  # Parallelotope (T) and Zonotope
-    if isinstance(S, Interval):
-        if 2**n <= max_vertices:
-            return S.vertices(), True
-    elif G is not None:
-        m = G.shape[-1]
-        if n == 2 and hasattr(S, "vertices_2d"):
-            return S.vertices_2d(), True  # 2m vertices of a planar zonotope
-        if 2**m <= max_vertices:
-            s = _sign_vectors(m, G)  # [2^m, m]
-            return S.center.unsqueeze(-2) + linalg.traced_matmul(s, G.mT), True
-    if 2**n > max_vertices:
-        raise ValueError(f"max_vertices: {max_vertices} < 2^{n} box corners")
-    return S.interval_hull().vertices(), False
-
-
-def _sign_vectors(m: int, like: Tensor) -> Tensor:
-    """Every sign vector of length ``m`` ``[2^m, m]`` (-1 first) in ``like``'s dtype and
-    device (cached in eager mode: a constant, not a tensor built from Python per call)."""
-    return eager_constant(
-        _SIGNS, ("signs", m, like.dtype, like.device),
-        lambda: torch.tensor(list(itertools.product((-1.0, 1.0), repeat=m)), dtype=like.dtype,
-                             device=like.device))
-
-
-def _front(V: Tensor) -> Tensor:
-    """``[..., N, n] -> [N, ..., n]`` (the point index leads, so closures broadcast)."""
-    return V.movedim(-2, 0)
-
-
-def diagonal_shift(H: Interval) -> Tensor:
-    """Weights ``w [..., n] >= 0`` with ``M + 2 diag(w)`` PSD for every symmetric M in ``H``.
-
-    Row-wise Gershgorin: ``2 w_j >= -(lower(H_jj) - sum_{l != j} max|H_jl|)`` makes every
-    member diagonally dominant with a non-negative diagonal. Padded for rounding; inf where
-    ``H`` is unbounded.
-    """
-    w = _curvature(H.lower, H.upper)[1][0]
-    return torch.where(torch.isnan(w), torch.inf, w)
-
-
-#: Half-widths below this are not used to normalise the DC split (a flat direction of the box,
-#: where every vertex has ``x_j = c_j`` and the weight of that coordinate does not matter).
-_MIN_SCALE = 1e-150
-
-
-def _convexifying_weights(
-    H: Interval, box: Interval, finite: bool = False
-) -> tuple[Tensor, Tensor]:
-    """Weights ``W [4, ..., k, n]`` of the four quadratics ``q = sum_j W_j (x_j - c_j)^2`` of
-    the DC split: ball and diagonal shift for ``r`` and for ``-r`` (``H [..., k, n, n]`` is
-    the interval Hessian of ``r``; that of ``-r`` is ``-H``), and ``bad [4, ..., k]``: True
-    where a form does not exist (an unbounded Hessian; there ``W`` is 0, not to be used).
-
-    Scale-covariant: both forms are computed for the Hessian in the coordinates normalised by
-    the box's half-widths ``s`` (``x~ = x / s``, Hessian ``diag(s) M diag(s)``) and mapped
-    back, ``W_j = w~_j / s_j^2``. The ball is then ``alpha~ |diag(s)^-1 (x - c)|^2``, the
-    ellipsoid of the box's proportions, rather than Wang et al. 2022's Euclidean
-    ``alpha |x - c|^2``, whose single curvature couples states of different units (a state
-    in kelvin inflated the remainder of one in mol/L); for a cube the two are the same. A
-    change of units ``x' = D x`` (D diagonal) gives the same quadratics, so the same bounds.
-    Validity: ``M~ + 2 diag(w~) >= 0`` implies ``M + 2 diag(w~ / s^2) >= 0`` (congruence).
-    ``finite=True`` declares every bound of ``H`` finite (the caller checked): no masks.
-    """
-    s = box.radius
-    # a flat or non-finite width (a diverged element) normalises by 1: no inf reaches the
-    # weights or, through them, the gradients of the other elements
-    s = torch.where((s > _MIN_SCALE) & (s < torch.inf), s, _one(s))  # [..., n]
-    n = s.shape[-1]
-    lead = s.shape[:-1]
-    ss = s.reshape(*lead, 1, n, 1) * s.reshape(*lead, 1, 1, n)  # [..., 1, n, n]
-    unbounded = None
-    if finite:
-        lo, hi = H.lower * ss, H.upper * ss
-    else:
-        hinf = ~((H.upper - H.lower) < torch.inf)  # an infinite bound (or NaN): hi - lo >= 0
-        unbounded = hinf.flatten(-2).any(-1)  # [..., k]: no convexification
-        lo = H.lower.masked_fill(hinf, 0.0) * ss
-        hi = H.upper.masked_fill(hinf, 0.0) * ss
-    lam, diag = _curvature(lo, hi)  # [2, ..., k] (r and -r), [2, ..., k, n]
-    ball = (lam.clamp(max=0) * -0.5).unsqueeze(-1).expand_as(diag)  # alpha~, beta~
-    W = torch.stack([ball, diag], 1).flatten(0, 1)  # [4, ..., k, n], scaled
-    # a non-finite weight (an unbounded or overflowing Hessian) marks the form bad; only
-    # finite weights are mapped back, so no inf * 0 reaches the gradients
-    drop = ~(W < torch.inf)  # W >= 0 or NaN
-    if unbounded is not None:
-        drop = drop | unbounded.unsqueeze(-1)
-    Wf = W.masked_fill(drop, 0.0) * (1.0 / (s * s)).unsqueeze(-2)
-    return Wf, linalg.small_reduce(drop, "any")
-
-
-def _dc_bounds(
-    rP: Tensor, gP: Tensor, dP: Tensor, W: Tensor, bad: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Wang et al. 2022, eq. 15-16 for the four forms (ball and diagonal for ``r``, then for
-    ``-r``), the tightest of those that exist -> ``(lower, upper)`` ``[..., k]``.
-
-    ``rP [1 + N, ..., k]``: ``r`` at ``c`` (0) and the vertices; ``gP [P, ..., k, n]``: the
-    gradient of ``r`` at the tangent points (``c``, then the vertices when ``P > 1``);
-    ``dP [1 + N, ..., n]``: ``x - c`` at ``c`` (0) and the vertices; ``W [4, ..., k, n]``;
-    ``bad [4, ..., k]``: the forms that do not exist.
-
-    * eq. 15 (``r + q`` convex, its tangent at ``c`` is 0): ``r <= max_v (r(v) + q(v))``;
-    * eq. 16: ``r + q`` lies above its tangent plane at ``p`` and ``q`` is quadratic, so
-      ``r(x) >= r(p) + grad r(p).(x - p) - sum_j W_j (x_j - p_j)^2`` (the tangent plane
-      minus ``q``, rewritten: no ``p x v x n`` tensor), a concave function of ``x`` whose
-      minimum over the polytope is at a vertex. The best tangent point is kept.
-
-    The forms of ``-r`` give the upper bound ``min_p max_v (L + Q)`` and the lower bound
-    ``min_v (r(v) - q(v))`` the same way. Rounding: the terms are at most ``|r(p)|``,
-    ``2 |grad r(p)| |x - c|`` and ``4 W |x - c|^2`` in magnitude, which the caller's padding
-    covers. The tangent points go in chunks (memory ``chunk x N x 4 x batch x k``). From
-    `_GEMM_MIN_PAIRS` (tangent point, vertex) pairs, the table is `_dc_bounds_gemm`'s matrix
-    products instead.
-    """
-    P = gP.shape[0]
-    dv = dP[1:]  # [N, ..., n]
-    rv = rP[1:]
-    if P * dv.shape[0] >= _GEMM_MIN_PAIRS:
-        return _dc_bounds_gemm(rP, gP, dP, W, bad)
-    neg = _form_signs(rv)  # -1 for the forms of r, +1 for those of -r: [4, 1.., 1]
-    step = max(1, _TANGENT_ELEMS // max(1, 4 * dv.shape[0] * rv[0].numel()))
-    M = V4 = None
-    for p0 in range(0, P, step):
-        sl = slice(p0, min(p0 + step, P))  # the tangent points only (dP has all 1 + N)
-        dPs, gPs, rPs = (dP, gP, rP) if P == 1 + dv.shape[0] and step >= P else (
-            dP[sl], gP[sl], rP[sl])  # (no slicing ops when one chunk holds every point)
-        diff = materialize(dv.unsqueeze(0) - dPs.unsqueeze(1))  # [p, N, ..., n]: x_v - p
-        # the tangent plane of r at p, at the vertices: [p, N, ..., k]
-        L = materialize(
-            linalg.small_dot(gPs.unsqueeze(1), diff.unsqueeze(-2)) + rPs.unsqueeze(1)
-        )
-        # Q = sum_j W_j (x_vj - p_j)^2 for the four forms: [p, N, 4, ..., k]
-        Q = linalg.small_dot(W, materialize(diff * diff).unsqueeze(-2).unsqueeze(2))
-        if V4 is None:  # eq. 15 with q at the vertices (p = c): max_v (q(v) +- r(v))
-            V4 = torch.addcmul(Q[0], rv.unsqueeze(1), neg, value=-1.0).amax(0)  # [4, ..., k]
-        # Q - L (forms of r) and Q + L (forms of -r), in place: -max_v is the tangent
-        # bound's min_v for r, max_v the upper bound for -r
-        m = Q.addcmul_(L.unsqueeze(2), neg).amax(1).amin(0)  # [4, ..., k]
-        M = m if M is None else torch.minimum(M, m)
-    return _tightest_forms(V4, M, bad)
-
-
-def _tightest_forms(V4: Tensor, M: Tensor, bad: Tensor) -> tuple[Tensor, Tensor]:
-    """The bounds of `_dc_bounds` from ``V4`` (eq. 15) and ``M`` (eq. 16), ``[4, ..., k]``
-    each, the forms that do not exist (``bad``) dropped -> ``(lower, upper)`` ``[..., k]``."""
-    # forms of r: upper V4 (eq. 15), lower -M (eq. 16); forms of -r: upper M, lower -V4
-    pos = _form_signs(V4, positive=True)  # neg < 0
-    upper = torch.where(pos, V4, M).masked_fill(bad, torch.inf).amin(0)
-    lower = torch.where(pos, M, V4).masked_fill(bad, torch.inf).amin(0).neg()
-    return lower, upper
-
-
-def _dc_bounds_gemm(
-    rP: Tensor, gP: Tensor, dP: Tensor, W: Tensor, bad: Tensor
-) -> tuple[Tensor, Tensor]:
-    """`_dc_bounds` (same arguments, same bounds up to rounding) with the table of every
-    tangent point p, vertex v and form as one matrix product per batch element.
-
-    Expanded about ``c`` (``x`` = ``x_v - c``, ``p`` = ``p - c``), the quantity maximised
-    over the vertices, ``q(v) + sgn (r(p) + g.(x - p))`` with ``q = sum_j W_j (x_j - p_j)^2``
-    and ``sgn = -1`` for the forms of r, +1 for those of -r (`_dc_bounds`' ``Q -+ L``), is
-    ``[x^2, x, 1] . [W, -2 W p + sgn g, sum_j W_j p_j^2 + sgn (r(p) - g.p)]``: the vertices'
-    features ``[N, 2n + 1]`` times the coefficients of each (tangent point, form, output)
-    ``[2n + 1, P 4 k]``. Rounding: the ``2n + 1`` terms and the coefficients' own sums are
-    at most ``W mag^2``, ``2 W mag^2``, ``|g| mag``, ``W mag^2``, ``|r(p)|`` and ``|g| mag``
-    in magnitude (``|x|, |p| <= mag``), so the error is within about ``(3n + 4) eps`` times
-    their sum, inside `dc_remainder`'s padding of `_PAD_ULPS` eps times its scale. Also
-    while traced (an extern matrix product: a faster compiled step at the same compile
-    time).
-    """
-    P, N = gP.shape[0], dP.shape[0] - 1
-    k, n = gP.shape[-2], gP.shape[-1]
-    batch = broadcast_shapes(dP.shape[1:-1], gP.shape[1:-2], W.shape[1:-2])
-    b = math.prod(batch)
-
-    def front(t: Tensor, lead: int, inner: tuple[int, ...]) -> Tensor:  # [b, lead, *inner]
-        if len(batch) != 1 or t.shape[1:-len(inner)] != batch:
-            t = t.expand(lead, *batch, *inner).reshape(lead, b, *inner)
-        return t.transpose(0, 1)
-
-    d, g = front(dP, 1 + N, (n,)), front(gP, P, (k, n))  # [b, 1 + N, n], [b, P, k, n]
-    r, w = front(rP, 1 + N, (k,)), front(W, 4, (k, n))  # [b, 1 + N, k], [b, 4, k, n]
-    rows = max(1, _GEMM_CHUNK_ELEMS // (N * P * 4 * k))  # batch elements per chunk of the table
-    if tracing():  # the chunks are unrolled in the graph: at most P of them, as `_dc_bounds`
-        rows = max(rows, -(-b // P))
-    if b <= rows:
-        V4, M = _gemm_chunk(d, g, r, w)
-    else:
-        parts = [_gemm_chunk(d[s : s + rows], g[s : s + rows], r[s : s + rows],
-                             w[s : s + rows]) for s in range(0, b, rows)]
-        V4, M = (torch.cat(t) for t in zip(*parts))
-    V4, M = (t.transpose(0, 1) for t in (V4, M))  # [4, b, k]
-    if len(batch) != 1:
-        V4, M = (t.reshape(4, *batch, k) for t in (V4, M))
-    return _tightest_forms(V4, M, bad)
-
-
-def _gemm_chunk(d: Tensor, g: Tensor, r: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
-    """`_dc_bounds_gemm` on ``b`` batch elements: ``d [b, 1 + N, n]`` (``x - c`` at ``c`` and
-    the vertices), ``g [b, P, k, n]``, ``r [b, 1 + N, k]``, ``w [b, 4, k, n]`` -> ``(V4, M)``
-    ``[b, 4, k]`` each (eq. 15 and eq. 16's ``min_p max_v``)."""
-    b, P, k, n = g.shape
-    N = d.shape[1] - 1
-    sgn = _form_signs(w, rank=2)  # [4, 1]: against [b, P, 4, k]
-    x, p = d[:, 1:], d[:, :P].unsqueeze(-2)  # [b, N, n], [b, P, 1, n]
-    wp = w.unsqueeze(1) * p.unsqueeze(-2)  # [b, P, 4, k, n]
-    lin = torch.addcmul(wp * -2.0, sgn.unsqueeze(-1), g.unsqueeze(2))
-    rc = (r[:, :P] - (g * p).sum(-1)).unsqueeze(2)  # [b, P, 1, k]: r(p) - g.p
-    const = torch.addcmul((wp * p.unsqueeze(-2)).sum(-1), sgn, rc)  # [b, P, 4, k]
-    coef = torch.cat([w.unsqueeze(1).expand(b, P, 4, k, n), lin, const.unsqueeze(-1)], -1)
-    x2 = x * x
-    feats = torch.cat([x2, x, torch.ones_like(x[..., :1])], -1)  # [b, N, 2n + 1]
-    table = torch.bmm(feats, coef.reshape(b, P * 4 * k, 2 * n + 1).mT)  # [b, N, P 4 k]
-    M = table.amax(1).reshape(b, P, 4, k).amin(1)  # [b, 4, k]
-    # eq. 15 (p = c): max_v (q(v) - sgn r(v)), q(v) = sum_j W_j x_vj^2
-    q = torch.bmm(x2, w.reshape(b, 4 * k, n).mT).reshape(b, N, 4, k)
-    V4 = torch.addcmul(q, r[:, 1:].unsqueeze(2), sgn, value=-1.0).amax(1)  # [b, 4, k]
-    return V4, M
-
-
-_SIGNS: dict = {}
-
-
-def _form_signs(like: Tensor, positive: bool = False, rank: int | None = None) -> Tensor:
-    """``[-1, -1, 1, 1]`` shaped ``[4, 1, .., 1]`` against ``[4, *like.shape[1:]]`` (``rank``
-    dims, ``like``'s rank by default; cached per dtype, device and rank in eager mode: a
-    constant, not an op per call); ``positive``: the boolean ``[True, True, False, False]``
-    (the signs < 0) instead."""
-    rank = like.dim() if rank is None else rank
-
-    def make() -> Tensor:
-        t = torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=like.dtype, device=like.device)
-        t = t.reshape(4, *([1] * (rank - 1)))
-        return t < 0 if positive else t
-
-    return eager_constant(_SIGNS, (like.dtype, like.device, rank, positive), make)
-
-
-def dc_remainder(
-    fn: Fn,
-    S: ConvexSet,
-    c: Tensor,
-    J: Tensor | None = None,
-    *,
-    max_vertices: int = MAX_VERTICES,
-    with_lagrange: bool = False,
-) -> Interval:
-    """Difference-of-convex remainder bound at the set's vertices -> Interval ``[..., k]``.
-
-    Wang et al. 2022, eq. 14-18 with the erratum (docs/errata.md): per output i, ``r_i = g1 - g2``
-    with ``g1 = r_i + q`` convex and ``g2 = q`` a convex quadratic centred at ``c``. The
-    paper's ``q = alpha_i |x - c|^2`` uses ``alpha_i = max(0, -lambda_min / 2)`` from a
-    guaranteed lower bound of the smallest eigenvalue of the interval Hessian of ``fn_i`` over
-    the hull of ``S`` and ``c`` (`hessian_eig_lower_bound`); a second, diagonal
-    ``q = sum_j w_ij (x_j - c_j)^2`` (`diagonal_shift`, tighter when the curvature lies
-    along few axes) is also used and the tighter bound kept. Deviation (scale invariance):
-    both are computed in the coordinates normalised by the hull's half-widths, so the ball is
-    ``alpha_i |diag(s)^-1 (x - c)|^2`` (`_convexifying_weights`; the paper's ball for a
-    cube) and the bound does not depend on the units of the states. Then
-
-    * upper (eq. 15, tangent of g2 at c is 0): ``r <= g1 <= max_v g1(v)`` over the vertices;
-    * lower (eq. 16): for a tangent point p (``c`` and, for few vertices, every vertex)
-      ``r >= g1(p) + grad g1(p).(x - p) - q(x)``, a concave function whose minimum over the
-      polytope is attained at a vertex. Gradients are exact (autograd), never Stirling slopes.
-
-    The same construction applied to ``-r`` (convexifying ``-H``) gives a second lower and upper
-    bound; the intersection is returned. Vertices: box corners, parallelotope vertices, the 2m
-    vertices of a planar zonotope, or ``c + G s`` over all sign vectors (at most
-    ``max_vertices``). For an Ellipsoid or a zonotope with more sign vectors, the corners of
-    the interval hull (a containing box) are used instead, and the result is always intersected
-    with the Lagrange bound (documented deviation: the paper only treats parallelotopes).
-    ``with_lagrange=True`` also intersects with the Lagrange bound (same interval Hessian).
-    """
-    c, J = _check(S, c, J)
-    if _known_affine(fn):
-        return _affine_remainder(fn, S, c, J)
-    V, exact = _extreme_points(S, max_vertices)
-    with_lagrange = with_lagrange or not exact
-    box = _hull_with(S, c)
-    jet = jet_eval(fn, box, order=2)
-    if _remember(fn, jet):  # same result as every later call (which skips the jets)
-        return _affine_remainder(fn, S, c, J)
-    H = jet.hess  # [..., k, n, n]
-    # eagerly, one host read: the sum of |bounds| is 0 for a zero Hessian, finite for a
-    # finite one (an overflowing sum only takes the general, masked path)
-    mass = None if tracing() else _abs_sum(H)
-    if mass == 0.0:
-        # fn is affine on the hull: r(x) = (J_exact - J)(x - c) exactly, no vertices needed
-        R = _lagrange(jet, box, S, c, J, None if J is None else jacobian(fn, c) - J)
-        return _lower_order(fn, jet, box, S, c, J, R)
-    # the four convexifications at once (leading dim 4): r + q convex with q the ball
-    # (alpha |x - c|^2) or the diagonal shift, and -r + q convex with the same two forms
-    W, bad = _convexifying_weights(  # [4, ..., k, n], [4, ..., k]
-        H, box, mass is not None and mass < math.inf)
-    W = materialize(W)
-    Vf = _front(V)  # [N, ..., n]
-    tangents = V.shape[-2] <= _MAX_TANGENTS  # tangent planes at the vertices too
-    c0 = c if c.shape == Vf.shape[1:] else torch.broadcast_to(c, Vf.shape[1:])
-    pts = torch.cat([c0.unsqueeze(0), Vf])  # [1 + N, ..., n]
-    if tangents:  # one batched autograd call: values and gradients at c and the vertices
-        fall, Jall = value_and_jacobian(fn, pts, points=True)  # [1 + N, ..., k (, n)]
-    else:
-        fall, Jall = fn(pts), jacobian(fn, c).unsqueeze(0)
-    Jc = Jall[0]  # [..., k, n]
-    J = materialize(Jc if J is None else J)
-    dP = materialize(pts - c)  # [1 + N, ..., n]: exactly 0 at c
-    # r at c (exactly 0) and the vertices
-    rP = fall - fall[0] - linalg.small_dot(J, dP.unsqueeze(-2))
-    gP = materialize(Jall - J)  # [P, ..., k, n]: gradients of r at the tangent points
-    lower, upper = _dc_bounds(rP, gP, dP, W, bad)  # [..., k]
-    # rounding scale: magnitudes of every term summed above (|r| at the points, the tangent
-    # planes' slopes and the quadratics over the hull, c included: box - c covers x - c).
-    # The tangent bound is evaluated as r(p) + g.(x_v - p) - sum_j W_j (x_vj - p_j)^2, not as
-    # the paper's tangent of r + q minus q: the same number in exact arithmetic, other last
-    # bits in floats. Each term is at most 2 |g| mag or 4 W mag^2 (|x_v - p| <= 2 mag), the
-    # error of the evaluation at most (n + 3) eps times their sum ((3n + 4) eps for the
-    # expanded form of `_dc_bounds_gemm`, whose terms are bounded by the same magnitudes),
-    # well inside the padding of _PAD_ULPS eps times this scale (4 |g| mag + 4 W mag^2 +
-    # 2 max|f| + ...).
-    jv = _abs_max(jet.val)  # rounding of fn at interior points
-    dl, du = box.lower - c, box.upper - c
-    mag = torch.maximum(du, dl.neg())  # [..., n] >= |x - c| on the hull
-    mag2 = mag.unsqueeze(-2)
-    G = gP.abs().amax(0) + J.abs() + W.amax(0) * mag2  # [..., k, n]
-    scale = fall.abs().amax(0) * 2.0 + jv + linalg.small_dot(G, mag2) * 4.0
-    out = _padded(lower, upper, scale)
-    if with_lagrange:
-        out = out.intersect(_lagrange(jet, box, S, c, J, Jc - J))
-    return _lower_order(fn, jet, box, S, c, J, out, jv, (dl, du, mag))
-
-def parameter_deviation(
-    f: Callable[..., Tensor],
-    S: ConvexSet,
-    params: Interval,
-    theta_nom: Tensor | None = None,
-    u: Tensor | None = None,
-) -> Interval:
-    """Enclosure of ``f(x, u, theta) - f(x, u, theta_nom)`` for x in S, theta in params.
-
-    Song et al. 2017, eq. 18-21 (there evaluated at the estimate only, which is not guaranteed for
-    the other x in S). Here two guaranteed enclosures over the box hull of S are intersected:
-    the simple interval extension ``F(X, u, Theta) - F(X, u, theta_nom)`` (eq. 20) and the
-    mean-value form ``sum_j [df/dtheta_j](X, Theta) (Theta_j - theta_nom_j)`` with the
-    interval Jacobian w.r.t. theta (exact range when f is affine in theta). -> ``[..., n]``.
-    """
-    if not isinstance(params, Interval):
-        raise ValueError("params: expected an Interval of parameters [q]")
-    box = S.interval_hull()
-    box = _padded(box.lower, box.upper, box.lower.abs() + box.upper.abs())
-    q = params.shape[-1]
-    th_nom = params.center if theta_nom is None else torch.as_tensor(theta_nom, dtype=S.dtype)
-    theta_box = params.hull(Interval(th_nom, th_nom))  # theta_nom may lie outside params
-    n = S.dim
-    batch = torch.broadcast_shapes(box.shape[:-1], theta_box.shape[:-1])
-    theta_box = Interval._make(theta_box.lower.expand(*batch, q), theta_box.upper.expand(*batch, q))
-    box = Interval._make(box.lower.expand(*batch, n), box.upper.expand(*batch, n))
-    both = enclose_dynamics(f, box, theta_box, u, order=1)  # over X and the theta hull
-    th_pt = torch.as_tensor(th_nom, dtype=S.dtype).expand(*batch, q)
-    nominal = enclose_dynamics(f, box, Interval._make(th_pt, th_pt), u, order=0)
-    nat = both.val - nominal.val  # eq. 20 (over the hull of params and theta_nom)
-    Jth = both.grad[..., n:]  # [..., n, q]
-    mv = (Jth * params.__sub__(th_nom).unsqueeze(-2)).sum(-1)
-    return nat.intersect(mv)
-
-
-def mean_value_remainder(fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None) -> Interval:
-    """Vertex-free mean-value remainder bound with the interval Jacobian -> Interval ``[..., k]``.
-
-    ``r(x) = fn(x) - fn(c) - J (x - c) = (J_fn(xi) - J)(x - c)`` for some ``xi`` on the
-    segment ``[c, x]`` (mean-value theorem, row by row), so with ``[J_fn]`` the interval
-    Jacobian over the hull of ``S`` and ``c`` (first-order interval jets, Song et al. 2017, sec.
-    3.2):
-
-        r(x) in ([J_fn] - J) (box - c)
-
-    evaluated in outward-rounded interval arithmetic. Cost and memory are ``O(k n)`` per jet
-    operation (no Hessians, no vertices), so it scales to n = 32 and beyond; the bound is of
-    second order in the set's width when ``J`` is close to the Jacobian at ``c`` (Stirling or
-    autograd slopes), about twice `lagrange_remainder`'s in the quadratic regime.
-    ``J=None`` means the autograd Jacobian at ``c``.
-    """
-    c, J = _check(S, c, J)
-    box = _hull_with(S, c)
-    jet = jet_eval(fn, box, order=1)
-    if J is None:
-        J = jacobian(fn, c)
-    inf = torch.full_like(jet.val.lower, torch.inf)
-    return _lower_order(fn, jet, box, S, c, J, Interval._make(-inf, inf))  # the first-order bound
-
-
-#: Remainder bounds selectable by name in the filters (``remainder=...``).
-REMAINDERS: dict[str, Callable[..., Interval]] = {
-    "dc-vertices": dc_remainder,
-    "lagrange": lagrange_remainder,
-    "mean-value": mean_value_remainder,
-}
-
-#: ``remainder="auto"`` uses the Wang et al. 2022 vertex method up to this state dimension (2^8 =
-# 256
-#: box corners, `MAX_VERTICES`), the vertex-free Lagrange bound up to
-#: `AUTO_LAGRANGE_MAX_N` and the mean-value bound above (its cost is O(k n) per jet
-#: operation instead of the Lagrange bound's O(k n^2)).
+#: ``Auto`` uses the Wang et al. 2022 vertex method up to this state dimension (2^8 = 256 box
+#: corners, `MAX_VERTICES`), the vertex-free Lagrange bound up to `AUTO_LAGRANGE_MAX_N` and the
+#: mean-value bound above (its cost is O(k n) per jet operation instead of the Lagrange
+#: bound's O(k n^2)).
 AUTO_VERTEX_MAX_N = 8
 AUTO_LAGRANGE_MAX_N = 16
 
 
-def resolve_remainder(name: str, n: int) -> tuple[str, Callable[..., Interval]]:
-    """``(name, function)`` of a remainder bound chosen by name for state dimension ``n``.
+class RemainderBound:
+    """A guaranteed remainder bound: ``bound(fn, S, c, J) -> Interval [..., k]`` containing
+    ``fn(x) - fn(c) - J (x - c)`` for every ``x`` in ``S`` (``J [..., k, n]`` any slope
+    matrix; ``None``: the autograd Jacobian at ``c``)."""
 
-    ``"auto"`` is ``"dc-vertices"`` (Wang et al. 2022, eq. 14-18) for ``n <= AUTO_VERTEX_MAX_N``
-    (8), ``"lagrange"`` (interval-Hessian quadratic form, vertex-free, Song et al. 2017, eq. 26-28)
-    for ``n <= AUTO_LAGRANGE_MAX_N`` (16) and ``"mean-value"`` (interval Jacobian, first order,
-    cheapest) above.
-    Raises ``ValueError`` naming ``remainder`` for an unknown name.
+    #: the name a filter's ``remainder=`` takes for this bound with its default settings
+    name: ClassVar[str] = ""
+
+    def __call__(self, fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None) -> Interval:
+        raise NotImplementedError
+
+    def for_dimension(self, n: int) -> RemainderBound:
+        """The bound used for ``n`` states (itself; `Auto` picks one)."""
+        return self
+
+
+@dataclass(frozen=True)
+class DCVertices(RemainderBound):
+    """Wang et al. 2022, eq. 14-18 (with the erratum): the difference-of-convex bound at the
+    set's vertices (`dc_remainder`).
+
+    Args:
+        max_vertices: above this many sign combinations of the set, the corners of its
+            interval hull are used (and the Lagrange bound intersected).
+        max_tangents: tangent planes at every vertex, not only at the centre, while the
+            vertex count is at most this (tighter lower bounds, one batched autograd call).
     """
-    if name == "auto":
-        if n <= AUTO_VERTEX_MAX_N:
-            name = "dc-vertices"
+
+    max_vertices: int = MAX_VERTICES
+    max_tangents: int = MAX_TANGENTS
+    name: ClassVar[str] = "dc-vertices"
+
+    def __post_init__(self) -> None:
+        for field in ("max_vertices", "max_tangents"):
+            v = getattr(self, field)
+            if not is_int(v) or v < 1:
+                raise ValueError(f"{field}: must be an integer >= 1, got {v!r}")
+
+    def __call__(self, fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None) -> Interval:
+        return dc_remainder(fn, S, c, J, max_vertices=self.max_vertices,
+                            max_tangents=self.max_tangents)
+
+
+@dataclass(frozen=True)
+class Lagrange(RemainderBound):
+    """Song et al. 2017, eq. 26-28: the Lagrange form with the interval Hessian over the hull of
+    the set, vertex-free (`lagrange_remainder`)."""
+
+    name: ClassVar[str] = "lagrange"
+
+    def __call__(self, fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None) -> Interval:
+        return lagrange_remainder(fn, S, c, J)
+
+
+@dataclass(frozen=True)
+class MeanValue(RemainderBound):
+    """The mean-value bound with the interval Jacobian over the hull of the set: first order,
+    the cheapest (`mean_value_remainder`)."""
+
+    name: ClassVar[str] = "mean-value"
+
+    def __call__(self, fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None) -> Interval:
+        return mean_value_remainder(fn, S, c, J)
+
+
+@dataclass(frozen=True)
+class Auto(RemainderBound):
+    """`DCVertices` up to ``vertex_max_n`` states (2^n vertices are out of reach at n = 16),
+    `Lagrange` up to ``lagrange_max_n``, `MeanValue` above. Every choice is guaranteed."""
+
+    vertex_max_n: int = AUTO_VERTEX_MAX_N
+    lagrange_max_n: int = AUTO_LAGRANGE_MAX_N
+    name: ClassVar[str] = "auto"
+
+    def for_dimension(self, n: int) -> RemainderBound:
+        if n <= self.vertex_max_n:
+            return DCVertices()
+        return Lagrange() if n <= self.lagrange_max_n else MeanValue()
+
+    def __call__(self, fn: Fn, S: ConvexSet, c: Tensor, J: Tensor | None = None) -> Interval:
+        return self.for_dimension(c.shape[-1])(fn, S, c, J)
+
+
+#: The remainder bounds by name, with their default settings (``remainder="..."``).
+REMAINDERS: dict[str, RemainderBound] = {
+    "dc-vertices": DCVertices(),
+    "lagrange": Lagrange(),
+    "mean-value": MeanValue(),
+}
+#: Other spellings of the names (the papers': Wang et al. 2022's "DC" bound).
+_ALIASES = {"dc": "dc-vertices", "mean_value": "mean-value", "dc_vertices": "dc-vertices"}
+
+
+def resolve_remainder(
+    spec: str | RemainderBound, n: int
+) -> tuple[str, RemainderBound]:
+    """``(name, bound)`` of the remainder bound ``spec`` for state dimension ``n``.
+
+    ``spec`` is a `RemainderBound` (``DCVertices(max_vertices=64)``) or its name (the type with
+    its defaults): ``"dc-vertices"`` (alias ``"dc"``), ``"lagrange"``, ``"mean-value"`` or
+    ``"auto"`` (`Auto`: ``"dc-vertices"`` for ``n <= AUTO_VERTEX_MAX_N`` (8), ``"lagrange"``
+    for ``n <= AUTO_LAGRANGE_MAX_N`` (16), ``"mean-value"`` above). Raises ``ValueError``
+    naming ``remainder`` for an unknown name or another type.
+    """
+    if isinstance(spec, str):
+        key = _ALIASES.get(spec, spec)
+        if key == "auto":
+            spec = Auto()
+        elif key in REMAINDERS:
+            spec = REMAINDERS[key]
         else:
-            name = "lagrange" if n <= AUTO_LAGRANGE_MAX_N else "mean-value"
-    if name not in REMAINDERS:
-        raise ValueError(
-            f"remainder: unknown method {name!r}; expected 'auto' or one of {sorted(REMAINDERS)}"
-        )
-    return name, REMAINDERS[name]
+            raise ValueError(f"remainder: unknown method {spec!r}; expected 'auto', one of "
+                             f"{sorted(REMAINDERS)} or a RemainderBound (DCVertices(...), ...)")
+    if not isinstance(spec, RemainderBound):
+        raise ValueError(f"remainder: expected a method name or a RemainderBound "
+                         f"(DCVertices(...), Lagrange(), MeanValue(), Auto(...)), got {spec!r}")
+    bound = spec.for_dimension(n)
+    return bound.name, bound
