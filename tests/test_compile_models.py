@@ -185,7 +185,8 @@ def test_traced_planar_volume_matches_eager(m):
     """``Zonotope.volume`` in 2-D while traced (the pair table up to ``PAIR_TABLE_MAX_M``
     generators, the sorted sum above) against the eager sorted sum, with zero, parallel and
     opposite generators, and its gradient where the volume is smooth."""
-    from diffsmf.sets.zonotope import PAIR_TABLE_MAX_M, Zonotope
+    from diffsmf.sets.combinatorics import PAIR_TABLE_MAX_M
+    from diffsmf.sets.zonotope import Zonotope
 
     assert 24 <= PAIR_TABLE_MAX_M < 70
     g = torch.Generator().manual_seed(m)

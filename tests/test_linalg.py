@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from diffsmf import linalg
-from diffsmf.sets.zonotope import _best_basis
+from diffsmf.sets.outer_parallelotope import _best_basis
 from diffsmf.utils import traced
 
 
@@ -311,7 +311,8 @@ def test_cramer_volumes_sparse_sum_matches_the_gathered_table(n: int, m: int, mo
     """The eager CPU search sums each basis' exchanged determinants by a sparse 0/1 matrix
     product; the volumes equal the gathered table's to rounding, in one chunk and in chunks
     of one batch column, and the numpy brute force's (`_least_basis_volume`)."""
-    from diffsmf.sets import zonotope as zono
+    from diffsmf.sets import combinatorics
+    from diffsmf.sets import outer_parallelotope as zono
 
     g = torch.Generator().manual_seed(n + 3 * m)
     G = torch.randn(5, n, m, generator=g, dtype=torch.float64)
@@ -320,7 +321,7 @@ def test_cramer_volumes_sparse_sum_matches_the_gathered_table(n: int, m: int, mo
     ref = zono._cramer_volumes(flat, m, n)
     got = zono._cramer_volumes_sparse(flat, m, n)
     torch.testing.assert_close(got, ref, rtol=1e-13, atol=0)
-    monkeypatch.setattr(zono, "_CHUNK_ELEMS", 1)
+    monkeypatch.setattr(combinatorics, "_CHUNK_ELEMS", 1)
     assert torch.equal(zono._cramer_volumes_sparse(flat, m, n), got)
     _, vols = _least_basis_volume(G[0].numpy())
     np.testing.assert_allclose(got[:, 0].numpy(), [vols[tuple(S)] for S in idx.tolist()],
@@ -333,7 +334,8 @@ def test_all_minors_match_determinants_and_the_lu_search(n: int, m: int, monkeyp
     `_combinations`, against numpy's determinants, with a repeated column (zero minors) and
     columns of 1e-12, also in chunks of the batch; the basis search chooses the same bases
     with it as with one LU per basis (`_lu_abs_dets`)."""
-    from diffsmf.sets import zonotope as zono
+    from diffsmf.sets import combinatorics
+    from diffsmf.sets import outer_parallelotope as zono
 
     g = torch.Generator().manual_seed(7 * n + m)
     G = torch.randn(4, n, m, generator=g, dtype=torch.float64)

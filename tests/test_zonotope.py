@@ -107,7 +107,7 @@ def test_contains_matches_lp_oracle(n, m):
 def test_lp_membership_fallback_is_exact_to_atol():
     """The LP fallback of ``contains`` (rank-deficient zonotopes in 3-D) verifies HiGHS's
     point: with HiGHS's default tolerance a point 5e-8 outside was accepted at atol 1e-9."""
-    from diffsmf.sets.zonotope import _lp_contains
+    from diffsmf.sets.zonotope_contains import _lp_contains
 
     G = torch.tensor([[1.0, 0.5, 0.2], [0.0, 1.0, 0.3], [1.0, 1.5, 0.5]])  # rank 2
     vertex = G @ torch.ones(3)
@@ -123,7 +123,7 @@ def test_lp_membership_batched_in_torch_matches_highs():
     """n = 6 with 40 generators has C(40, 5) = 658,008 facet candidates: the LP path. Its
     batched torch certificate (then HiGHS for what torch leaves) against HiGHS's distance at
     feasibility 1e-10: inside (distance <= 1e-12) is accepted, 1e-6 outside is refused."""
-    from diffsmf.sets import zonotope as zmod
+    from diffsmf.sets import zonotope_contains as zmod
 
     Z = rand_zono(6, 40, seed=31)
     g = torch.Generator().manual_seed(2)
@@ -536,7 +536,7 @@ def test_align_and_cat_pad_generators_and_keep_the_sets():
 def test_planar_area_sorted_matches_pair_table_and_gradcheck():
     """The angle-sorted prefix-sum area equals the pair table (every |det|) on random,
     nearly parallel, repeated, opposite and zero generators; its gradient passes gradcheck."""
-    from diffsmf.sets.zonotope import _planar_area, _planar_pair_area
+    from diffsmf.sets.combinatorics import _planar_area, _planar_pair_area
 
     g = torch.Generator().manual_seed(8)
     G = torch.randn(6, 2, 24, generator=g, dtype=torch.float64)
@@ -559,7 +559,7 @@ def test_planar_volume_is_exact_for_many_generators():
     than MAX_VOLUME_SUBSETS, the area of the convex hull of the vertices (scipy)."""
     from scipy.spatial import ConvexHull
 
-    from diffsmf.sets.zonotope import MAX_VOLUME_SUBSETS, _combinations, _sum_abs_det
+    from diffsmf.sets.combinatorics import MAX_VOLUME_SUBSETS, _combinations, _sum_abs_det
 
     g = torch.Generator().manual_seed(5)
     G = torch.randn(3, 2, 7, generator=g, dtype=torch.float64)
@@ -581,7 +581,7 @@ def test_outer_parallelogram_pair_table_matches_the_basis_search(monkeypatch):
     general search over C(m, 2) solves and its T within 1e-12 (relative), contains the
     zonotope, is the least over bases (numpy brute force), does not depend on the batch
     (chunked or not), and gives elements without a regular pair the fallback only."""
-    from diffsmf.sets import zonotope as zmod
+    from diffsmf.sets import outer_parallelotope as zmod
 
     g = torch.Generator().manual_seed(5)
     G = torch.randn(40, 2, 7, generator=g, dtype=torch.float64)
