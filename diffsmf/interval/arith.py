@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from diffsmf.convex import as_tensor
+from diffsmf.interval.finite_grad import mm, times
 from diffsmf.interval.rounding import (
     down,
     eps,
@@ -50,10 +51,9 @@ from diffsmf.interval.rounding import (
 from diffsmf.utils import checking, tracing
 
 __all__ = [
-    "TORCH_IMPL", "IntervalArray", "absolute", "add", "as_interval", "clamp", "div",
-    "is_number", "is_point", "matmul", "mm", "monotone", "mul", "power", "quotient_nonneg",
-    "reciprocal", "relu",
-    "rpow", "scale", "shift", "square", "sub", "times", "total", "trig", "wrap_out",
+    "IntervalArray", "absolute", "add", "as_interval", "clamp", "div", "is_number", "is_point",
+    "matmul", "mm", "monotone", "mul", "power", "quotient_nonneg", "reciprocal", "relu", "rpow",
+    "scale", "shift", "square", "sub", "times", "total", "trig",
 ]
 
 _TWO_PI = 2.0 * math.pi
@@ -121,104 +121,6 @@ class Stacked:
 Iv = IntervalArray
 
 
-def _finite_part(t: Tensor) -> Tensor:
-    """``t`` with its infinite and NaN entries 0 (the operand of a product's gradient)."""
-    return torch.nan_to_num(t, nan=0.0, posinf=0.0, neginf=0.0)
-
-
-class _SavesInputs(torch.autograd.Function):
-    """An autograd Function whose backward reads its inputs (``ctx.saved_tensors``)."""
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:  # noqa: D102
-        ctx.save_for_backward(*inputs)
-
-
-class _FiniteGradMul(_SavesInputs):
-    """``x * y`` whose gradients are those of the finite parts: ``g * y`` with the infinite
-    and NaN entries of ``y`` taken as 0 (and the same for ``x``). An unbounded enclosure (the
-    Hessian of a ReLU network at a kink, a set that diverged) is never used with a gradient
-    by the remainders, which mask it; its gradient is 0, and the plain product's backward
-    would turn that 0 into ``0 * inf = NaN`` in the gradients of the model's parameters.
-    The values are the plain product's, bit for bit."""
-
-    @staticmethod
-    def forward(x: Tensor, y: Tensor) -> Tensor:  # noqa: D102
-        return x * y
-
-    @staticmethod
-    def backward(ctx: Any, g: Tensor) -> tuple[Tensor | None, Tensor | None]:  # noqa: D102
-        x, y = ctx.saved_tensors
-        gx = _reduce_to(g * _finite_part(y), x) if ctx.needs_input_grad[0] else None
-        gy = _reduce_to(g * _finite_part(x), y) if ctx.needs_input_grad[1] else None
-        return gx, gy
-
-
-class _FiniteGradSquare(_SavesInputs):
-    """``x * x`` with the gradient ``2 g x`` of the finite part of ``x`` (`_FiniteGradMul`;
-    a Function of one input: Dynamo does not trace one applied to the same tensor twice)."""
-
-    @staticmethod
-    def forward(x: Tensor) -> Tensor:  # noqa: D102
-        return x * x
-
-    @staticmethod
-    def backward(ctx: Any, g: Tensor) -> Tensor:  # noqa: D102
-        (x,) = ctx.saved_tensors
-        return 2.0 * g * _finite_part(x)
-
-
-class _FiniteGradMatmul(_SavesInputs):
-    """``x @ y`` (``torch.matmul``) with the gradients of `_FiniteGradMul` (the operands'
-    finite parts)."""
-
-    @staticmethod
-    def forward(x: Tensor, y: Tensor) -> Tensor:  # noqa: D102
-        return x @ y
-
-    @staticmethod
-    def backward(ctx: Any, g: Tensor) -> tuple[Tensor | None, Tensor | None]:  # noqa: D102
-        x, y = ctx.saved_tensors
-        xs, ys = x, y
-        if x.dim() == 1:  # a vector on the left is a row, on the right a column
-            xs, g = x.unsqueeze(0), g.unsqueeze(-2)
-        if y.dim() == 1:
-            ys, g = y.unsqueeze(-1), g.unsqueeze(-1)
-        gx = gy = None
-        if ctx.needs_input_grad[0]:
-            gx = _reduce_to(g @ _finite_part(ys).mT, xs).reshape(x.shape)
-        if ctx.needs_input_grad[1]:
-            gy = _reduce_to(_finite_part(xs).mT @ g, ys).reshape(y.shape)
-        return gx, gy
-
-
-def _reduce_to(g: Tensor, like: Tensor) -> Tensor:
-    """The gradient ``g`` of a broadcast product summed to ``like``'s shape."""
-    if g.shape == like.shape:
-        return g
-    lead = g.dim() - like.dim()
-    dims = [i for i in range(g.dim()) if i < lead or like.shape[i - lead] == 1 != g.shape[i]]
-    return g.sum(dims, keepdim=True).reshape(like.shape) if dims else g.reshape(like.shape)
-
-
-def _needs_safe_grad(x: Tensor, y: Tensor) -> bool:
-    return torch.is_grad_enabled() and (x.requires_grad or y.requires_grad)
-
-
-def times(x: Tensor, y: Tensor) -> Tensor:
-    """``x * y`` of bound tensors: the plain product, with `_FiniteGradMul`'s gradients when
-    one records a gradient (the same values either way)."""
-    if not _needs_safe_grad(x, y):
-        return x * y
-    return _FiniteGradSquare.apply(x) if x is y else _FiniteGradMul.apply(x, y)
-
-
-def mm(x: Tensor, y: Tensor) -> Tensor:
-    """``x @ y`` of bound tensors, with `_FiniteGradMatmul`'s gradients when one records a
-    gradient (the same values either way)."""
-    return _FiniteGradMatmul.apply(x, y) if _needs_safe_grad(x, y) else x @ y
-
-
 def _st(a: Any) -> Tensor | None:
     """The stacked bounds ``[2, ...]`` of ``a``, or None."""
     return a.both if isinstance(a, Stacked) else None
@@ -253,8 +155,6 @@ def stacking(on: bool) -> bool:
     prev = _M.stack
     _M.stack = on
     return prev
-
-
 
 
 @contextmanager
@@ -855,168 +755,3 @@ def _matmul_ii(a: Iv, b: Iv) -> Any:
     if sq_b:
         lo, hi = lo.squeeze(-1), hi.squeeze(-1)
     return a._make(lo, hi)
-
-
-# ---------------------------------------------------------------------------- torch hooks
-def _is_iv(x: Any) -> bool:
-    return isinstance(x, IntervalArray)
-
-
-def _binop(op: Callable[[Iv, Iv], Any], swap: bool = False) -> Callable:
-    def f(x: Any, y: Any, *args: Any, **kwargs: Any) -> Any:
-        if swap:
-            x, y = y, x
-        like = x if _is_iv(x) else y
-        return op(as_interval(x, like), as_interval(y, like))
-
-    return f
-
-
-def _unary(name: str) -> Callable:
-    def f(x: Any, *args: Any, **kwargs: Any) -> Any:
-        return getattr(as_interval(x), name)(*args, **kwargs)
-
-    return f
-
-
-def _stack(tensors: Sequence[Any], dim: int = 0, *, out: Any = None) -> Any:
-    like = next(t for t in tensors if _is_iv(t))
-    ivs = [as_interval(t, like) for t in tensors]
-    return like._make(
-        torch.stack([i.lower for i in ivs], dim), torch.stack([i.upper for i in ivs], dim)
-    )
-
-
-def _cat(tensors: Sequence[Any], dim: int = 0, *, out: Any = None) -> Any:
-    like = next(t for t in tensors if _is_iv(t))
-    ivs = [as_interval(t, like) for t in tensors]
-    return like._make(
-        torch.cat([i.lower for i in ivs], dim), torch.cat([i.upper for i in ivs], dim)
-    )
-
-
-def _where(cond: Tensor, x: Any, y: Any) -> Any:
-    like = x if _is_iv(x) else y
-    a, b = as_interval(x, like), as_interval(y, like)
-    return like._make(torch.where(cond, a.lower, b.lower), torch.where(cond, a.upper, b.upper))
-
-
-def _maximum(x: Any, y: Any) -> Any:
-    like = x if _is_iv(x) else y
-    a, b = as_interval(x, like), as_interval(y, like)
-    return like._make(torch.maximum(a.lower, b.lower), torch.maximum(a.upper, b.upper))
-
-
-def _minimum(x: Any, y: Any) -> Any:
-    like = x if _is_iv(x) else y
-    a, b = as_interval(x, like), as_interval(y, like)
-    return like._make(torch.minimum(a.lower, b.lower), torch.minimum(a.upper, b.upper))
-
-
-def _like(fn: Callable) -> Callable:
-    def f(x: Iv, *args: Any, **kwargs: Any) -> Tensor:
-        return fn(x.lower, *args, **kwargs)
-
-    return f
-
-
-def _pow_fn(x: Any, p: Any) -> Any:
-    if _is_iv(x):
-        return power(x, p)
-    return rpow(x, p)
-
-
-def _softplus(x: Any, beta: float = 1.0) -> Any:
-    iv = as_interval(x)
-    if beta == 1.0:
-        return iv.softplus()
-    return (iv * beta).softplus() / beta
-
-
-def _sum_fn(x: Iv, dim: Any = None, keepdim: bool = False, **kwargs: Any) -> Any:
-    return total(x, dim, keepdim)
-
-
-def _build_table() -> dict[Any, Callable]:
-    T = torch.Tensor
-    F = torch.nn.functional
-    table: dict[Any, Callable] = {}
-    for fns, impl in [
-        ((torch.add, T.add, T.__add__, T.__radd__), _binop(add)),
-        ((torch.sub, torch.subtract, T.sub, T.__sub__), _binop(sub)),
-        ((T.__rsub__, torch.rsub), _binop(sub, swap=True)),
-        ((torch.mul, torch.multiply, T.mul, T.__mul__, T.__rmul__), _binop(mul)),
-        ((torch.div, torch.divide, torch.true_divide, T.div, T.__truediv__), _binop(div)),
-        ((T.__rtruediv__,), _binop(div, swap=True)),
-        ((torch.matmul, torch.mm, torch.mv, T.matmul, T.__matmul__), matmul),
-        ((T.__rmatmul__,), lambda a, b: matmul(b, a)),
-        ((torch.pow, T.pow, T.__pow__), _pow_fn),
-        ((T.__rpow__,), lambda a, b: _pow_fn(b, a)),
-        ((torch.stack,), _stack),
-        ((torch.cat, torch.concat), _cat),
-        ((torch.where,), _where),
-        ((torch.maximum,), _maximum),
-        ((torch.minimum,), _minimum),
-        ((torch.sum, T.sum), _sum_fn),
-        ((torch.zeros_like,), _like(torch.zeros_like)),
-        ((torch.ones_like,), _like(torch.ones_like)),
-        ((torch.full_like,), _like(torch.full_like)),
-        ((torch.neg, torch.negative, T.neg, T.__neg__), lambda x: neg(as_interval(x))),
-        ((F.relu,), lambda x, inplace=False: relu(as_interval(x))),
-        ((F.softplus,), lambda x, beta=1.0, threshold=20.0: _softplus(x, beta)),
-    ]:
-        for fn in fns:
-            table[fn] = impl
-    for name in [
-        "sin",
-        "cos",
-        "exp",
-        "log",
-        "sqrt",
-        "tanh",
-        "abs",
-        "square",
-        "sigmoid",
-        "atan",
-        "relu",
-        "clamp",
-        "reciprocal",
-        "mean",
-        "log1p",
-        "expm1",
-        "sinh",
-        "cosh",
-        "erf",
-        "reshape",
-        "unsqueeze",
-        "squeeze",
-        "transpose",
-        "permute",
-        "movedim",
-        "flatten",
-        "clone",
-    ]:
-        if hasattr(torch, name):
-            table[getattr(torch, name)] = _unary(name)
-        if hasattr(T, name):
-            table[getattr(T, name)] = _unary(name)
-    table[torch.arctan] = _unary("atan")
-    table[torch.clip] = _unary("clamp")
-    table[torch.absolute] = _unary("abs")
-    return table
-
-
-#: torch function -> its interval extension (the ``__torch_function__`` hook of ``Interval``).
-TORCH_IMPL = _build_table()
-
-
-def wrap_out(out: Any, cls: type) -> Any:
-    """A function's result as interval arrays of class ``cls``: tensors (parts independent of
-    the interval arguments) become point intervals; tuples and lists are mapped."""
-    if isinstance(out, IntervalArray):
-        return out
-    if isinstance(out, Tensor):
-        return cls._make(out, out)
-    if isinstance(out, (tuple, list)):
-        return type(out)(wrap_out(o, cls) for o in out)
-    return out

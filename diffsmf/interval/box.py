@@ -22,8 +22,9 @@ from torch import Tensor
 
 from diffsmf.convex import ConvexSet, as_tensor, as_vector, check_count, family
 from diffsmf.interval import arith
-from diffsmf.interval.arith import IntervalArray, Stacked, as_interval, is_number, wrap_out
+from diffsmf.interval.arith import IntervalArray, Stacked, as_interval, is_number
 from diffsmf.interval.rounding import down, eps, up
+from diffsmf.interval.torch_hooks import TORCH_IMPL, wrap_out
 from diffsmf.utils import checking
 
 __all__ = ["Interval", "interval_eval"]
@@ -435,9 +436,9 @@ class Interval(ConvexSet, IntervalArray):
     ) -> Any:
         kwargs = kwargs or {}
         if getattr(func, "__name__", None) == "__rmatmul__":  # by name: see fix_dynamo_matmul
-            impl = arith.TORCH_IMPL[torch.Tensor.__rmatmul__]
+            impl = TORCH_IMPL[torch.Tensor.__rmatmul__]
         else:
-            impl = arith.TORCH_IMPL.get(func)
+            impl = TORCH_IMPL.get(func)
         if impl is None:
             return NotImplemented
         return impl(*args, **kwargs)

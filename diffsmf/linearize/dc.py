@@ -33,7 +33,13 @@ from diffsmf.linearize.jacobians import jacobian, value_and_jacobian
 from diffsmf.linearize.jets import jet_eval
 from diffsmf.utils import broadcast_shapes, eager_constant, materialize, tracing
 
-__all__ = ["MAX_TANGENTS", "MAX_VERTICES", "dc_remainder", "diagonal_shift", "hessian_eig_lower_bound"]
+__all__ = [
+    "MAX_TANGENTS",
+    "MAX_VERTICES",
+    "dc_remainder",
+    "diagonal_shift",
+    "hessian_eig_lower_bound",
+]
 
 #: Above this many sign combinations, `dc_remainder` uses the corners of the interval hull.
 MAX_VERTICES = 256
