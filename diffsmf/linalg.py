@@ -39,6 +39,7 @@ from torch import Tensor
 from diffsmf.utils import broadcast_shapes, tracing
 
 __all__ = [
+    "sym",
     "CLOSED_FORM_MAX_N", "SMALL_MATMUL_ELEMS", "SMALL_MATMUL_MAX", "cholesky", "cholesky_solve",
     "det", "eigh", "eigvalsh", "finite_or_eye", "lapack_cholesky", "matmul", "small_dot",
     "small_reduce", "small_sum", "solve", "solve_lower", "traced_matmul",
@@ -109,6 +110,12 @@ def _check_rhs(name: str, n: int, B: Tensor) -> None:
         raise ValueError(
             f"B: expected [..., {n}, k] for {name} [..., {n}, {n}], got {tuple(B.shape)}"
         )
+
+
+def sym(M: Tensor) -> Tensor:
+    """The symmetric part ``(M + M') / 2`` of ``M [..., n, n]`` (rounding drift of a symmetric
+    product removed)."""
+    return 0.5 * (M + M.mT)
 
 
 def det(M: Tensor) -> Tensor:

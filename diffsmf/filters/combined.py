@@ -54,9 +54,6 @@ LIN_P_WEIGHT = 1e-6
 _GAINS = ("auto", "kalman", "set")
 
 
-def _sym(M: Tensor) -> Tensor:
-    return 0.5 * (M + M.mT)
-
 
 def _scaled(M0: Tensor, v: Tensor, v0: Tensor) -> Tensor:
     """``diag(v / v0) M0 diag(v / v0)`` (components with ``v0 = 0`` have zero rows in M0)."""
@@ -76,9 +73,9 @@ def _psd(name: str, M: Tensor | None, dim: int) -> Tensor:
     scale = M.abs().max().clamp_min(1e-300)
     if (M - M.mT).abs().max() > 1e-10 * scale:
         raise ValueError(f"{name}: must be symmetric")
-    if torch.linalg.eigvalsh(_sym(M)).min() < -1e-10 * scale:
+    if torch.linalg.eigvalsh(linalg.sym(M)).min() < -1e-10 * scale:
         raise ValueError(f"{name}: must be positive semidefinite")
-    return _sym(M)
+    return linalg.sym(M)
 
 
 def _cover_shape(s: ConvexSet | None, dim: int) -> Tensor:
@@ -285,9 +282,9 @@ class CombinedFilter(SetFilter):
         A = self._linearize(fn, a, S, P)  # eq. 54
         a_new = fn(a) + self.process_noise_center  # eq. 56 (= eq. 40 for linear f)
         mm = linalg.matmul  # multiply-and-sum for small matrices (fused when compiled)
-        S_lin = _sym(mm(mm(A, S), A.mT))
+        S_lin = linalg.sym(mm(mm(A, S), A.mT))
         S_new = outer_sum_shape(S_lin, self.process_bound(), self.weight)  # eq. 41
-        P_new = _sym(mm(mm(A, P), A.mT) + self.process_covariance())  # eq. 42
+        P_new = linalg.sym(mm(mm(A, P), A.mT) + self.process_covariance())  # eq. 42
         return FilterState(
             set=Ellipsoid._make(a_new, S_new),
             consistent=state.consistent,
@@ -305,14 +302,14 @@ class CombinedFilter(SetFilter):
         W = R if self.gain == "kalman" else E
         mm = linalg.matmul
         HG = mm(H, G)
-        Sy = _ridged(_sym(mm(HG, H.mT) + W), 1e-12, torch.finfo(a.dtype).tiny ** 0.25)
+        Sy = _ridged(linalg.sym(mm(HG, H.mT) + W), 1e-12, torch.finfo(a.dtype).tiny ** 0.25)
         K = linalg.solve(Sy, HG).mT  # eq. 44: G H' (H G H' + W)^-1
         a_new = a + mm(K, nu.unsqueeze(-1)).squeeze(-1)  # eq. 57 (= eq. 45 for linear h)
         I_KH = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device) - mm(K, H)
         S_new = outer_sum_shape(
-            _sym(mm(mm(I_KH, S), I_KH.mT)), _sym(mm(mm(K, E), K.mT)), self.weight
+            linalg.sym(mm(mm(I_KH, S), I_KH.mT)), linalg.sym(mm(mm(K, E), K.mT)), self.weight
         )  # eq. 46
-        P_new = _sym(mm(mm(I_KH, P), I_KH.mT) + mm(mm(K, R), K.mT))  # eq. 47 in Joseph form
+        P_new = linalg.sym(mm(mm(I_KH, P), I_KH.mT) + mm(mm(K, R), K.mT))  # eq. 47 in Joseph form
         return FilterState(
             set=Ellipsoid._make(a_new, S_new),
             consistent=self._consistent(nu, H, S, E, y),
@@ -331,7 +328,7 @@ class CombinedFilter(SetFilter):
         if self._gaussian_meas:
             return torch.ones(nu.shape[:-1], dtype=torch.bool, device=nu.device)
         mm = linalg.matmul
-        Sy = outer_sum_shape(_sym(mm(mm(H, S), H.mT)), E, "trace")
+        Sy = outer_sum_shape(linalg.sym(mm(mm(H, S), H.mT)), E, "trace")
         slack = (1e-9 * (1.0 + y.detach().abs().amax(-1))) ** 2
         Sy = _ridged(Sy, 1e-9, slack)
         d2 = mm(nu.unsqueeze(-2), linalg.solve(Sy, nu.unsqueeze(-1))).squeeze(-1).squeeze(-1)

@@ -27,9 +27,6 @@ __all__ = ["EKF"]
 SIGMA_LEVEL = 3.0  # the set reported in FilterResult is the SIGMA_LEVEL-sigma ellipsoid
 
 
-def _sym(P: Tensor) -> Tensor:
-    return 0.5 * (P + P.mT)
-
 
 class EKF(SetFilter):
     """Extended Kalman filter with covariances derived from the noise bounds.
@@ -55,7 +52,7 @@ class EKF(SetFilter):
     def _state(self, x: Tensor, P: Tensor, consistent: Tensor) -> FilterState:
         from diffsmf.sets.ellipsoid import Ellipsoid
 
-        P = _sym(P)
+        P = linalg.sym(P)
         return FilterState(
             set=Ellipsoid(x, SIGMA_LEVEL**2 * P), consistent=consistent, extras={"covariance": P}
         )
@@ -99,7 +96,7 @@ class EKF(SetFilter):
         nu = self.system.innovation(y, h(x)) - self.measurement_noise_center  # angles wrapped
         mm = linalg.matmul  # multiply-and-sum for small matrices (fused when compiled)
         HP = mm(H, P)
-        S = _sym(mm(HP, H.mT) + R)
+        S = linalg.sym(mm(HP, H.mT) + R)
         if not tracing() and bool((torch.linalg.cholesky_ex(S.detach())[1] != 0).any()):
             raise ValueError(
                 "measurement_noise: the innovation covariance H P H' + R is not positive "

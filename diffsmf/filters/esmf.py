@@ -56,13 +56,10 @@ __all__ = ["ESMF"]
 SHAPE_MARGIN = 1e-10  # relative outward margin on shape matrices (float64 rounding)
 
 
-def _sym(P: Tensor) -> Tensor:
-    return 0.5 * (P + P.mT)
-
 
 def _max_sv(M: Tensor) -> Tensor:
     """Largest singular value of symmetric PSD ``M [..., k, k]`` -> ``[...]``."""
-    return linalg.eigvalsh(_sym(M))[..., -1].clamp_min(0.0)
+    return linalg.eigvalsh(linalg.sym(M))[..., -1].clamp_min(0.0)
 
 
 class ESMF(EllipsoidalSetFilter):
@@ -146,7 +143,7 @@ class ESMF(EllipsoidalSetFilter):
             Qhat = scaled_minkowski_sum(Qhat, D.to_ellipsoid(), "scaled-trace", s)
         lin = E.linear_map(A, fc - (A @ c.unsqueeze(-1)).squeeze(-1))  # eq. 33
         new = scaled_minkowski_sum(lin, Qhat, "scaled-trace", s)  # eq. 34-35
-        new = Ellipsoid(new.center, _sym(new.shape) * (1 + SHAPE_MARGIN))
+        new = Ellipsoid(new.center, linalg.sym(new.shape) * (1 + SHAPE_MARGIN))
         return state.replace(set=new, extras=spent_initial_box(state.extras)).flag(ev)
 
     def _observation_noise(self, y: Tensor, hc: Tensor, Rh: Interval) -> Ellipsoid:
@@ -187,14 +184,14 @@ class ESMF(EllipsoidalSetFilter):
         noise = self._observation_noise(y, hc, Rh)
         Rhat = noise.shape
         nu = self.system.innovation(y, hc) - noise.center  # innovation (angles wrapped)
-        HPH = _sym(H @ P @ H.mT)
+        HPH = linalg.sym(H @ P @ H.mT)
         ylin = nu + (H @ c.unsqueeze(-1)).squeeze(-1)  # y' = H x + v', v' in E(0, Rhat)
         if self.rho_rule == "volume":
             # xi(rho) = 1 - rho (1 - rho) nu' D(rho)^-1 nu; the intersection is empty iff
             # xi < 0 for some rho (checked on a grid; eq. 36)
             grid = torch.linspace(0.02, 0.98, 49, dtype=c.dtype)
             r = grid.reshape(-1, *([1] * (nu.dim() - 1)))  # [G, 1..]
-            D = _sym(r[..., None, None] * HPH + (1 - r)[..., None, None] * Rhat)
+            D = linalg.sym(r[..., None, None] * HPH + (1 - r)[..., None, None] * Rhat)
             Dnu = linalg.solve(D, nu.expand(grid.shape[0], *nu.shape).unsqueeze(-1))
             xi = (1 - r * (1 - r) * (nu * Dnu.squeeze(-1)).sum(-1)).amin(0)
             ok = (xi > 0) | ~ok_h
@@ -206,7 +203,7 @@ class ESMF(EllipsoidalSetFilter):
         if self.rho_rule == "eq13":
             d1, d2 = d2, d1
         rho = (d1.sqrt() / (d1.sqrt() + d2.sqrt())).clamp(1e-12, 1 - 1e-12)  # eq. 40
-        D = _sym(rho[..., None, None] * HPH + (1 - rho)[..., None, None] * Rhat)
+        D = linalg.sym(rho[..., None, None] * HPH + (1 - rho)[..., None, None] * Rhat)
         Dnu = linalg.solve(D, nu.unsqueeze(-1)).squeeze(-1)
         xi = 1 - rho * (1 - rho) * (nu * Dnu).sum(-1)  # eq. 36 (times rho (1 - rho))
         ok = (xi > 0) | ~ok_h  # Song et al. 2017: xi <= 0 means the bounds are violated (a fault)
