@@ -2,6 +2,7 @@
 et al. 2016)."""
 
 from diffsmf.observers.differentiable import DifferentiableObserverDesign
+from diffsmf.observers.envelope import error_envelope, simulate_error_check
 from diffsmf.observers.ilc import (
     ILCDesign,
     ILCFaultEstimator,
@@ -13,9 +14,7 @@ from diffsmf.observers.lmi import (
     ObserverDesign,
     analyze_observer_gain,
     design_lipschitz_observer,
-    error_envelope,
     lmi_matrix,
-    simulate_error_check,
 )
 from diffsmf.observers.observer import PWLObserver, rk4_step
 from diffsmf.observers.pipeline import (

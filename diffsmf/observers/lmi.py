@@ -1,4 +1,4 @@
-r"""LMI design of robust observers for Lipschitz systems with a bounded model error (Wang et al.
+"""LMI design of robust observers for Lipschitz systems with a bounded model error (Wang et al.
 2009).
 
 System (Wang et al. 2009, eq. 1) and observer (eq. 3, our sign convention)::
@@ -68,8 +68,8 @@ is the special case eps = 0.
 returned P and L (not from the solver's Y), with mu the smallest value for which this (P, L,
 lambda, alpha) satisfies it (a Schur complement, times 1 + 1e-6), and its eigenvalues must be
 below -k * machine eps * |M|; the eigenvalues of P and of A - L C are checked too;
-`simulate_error_check` checks the envelope above on simulated error trajectories. A design
-that fails the check is reported as "unverified" with an infinite bound.
+`diffsmf.observers.envelope.simulate_error_check` checks the envelope above on simulated error
+trajectories. A design that fails the check is reported as "unverified" with an infinite bound.
 """
 
 from __future__ import annotations
@@ -87,14 +87,18 @@ __all__ = [
     "ObserverDesign",
     "analyze_observer_gain",
     "design_lipschitz_observer",
-    "error_envelope",
     "lmi_matrix",
-    "simulate_error_check",
 ]
 
 _STATUS_OK = ("optimal", "optimal_inaccurate")
+
+
 _STATUS_INFEASIBLE = ("infeasible", "infeasible_inaccurate")
+
+
 _GTOL = 0.01  # stop the alpha search at |d log J / d log alpha| <= _GTOL
+
+
 _MU_SLACK = 1e-6  # verified mu = (smallest mu certified by P, L, lambda, alpha) * (1 + slack)
 
 
@@ -737,65 +741,3 @@ def _verify(A, C, L, P, lam, mu_solver, alpha, gamma, eps, structure, base,
         H=structure[1], decay=alpha, lam=lam, mu=mu, margins=margins,
         solver_status=solver_status, **base,
     )
-
-
-def error_envelope(design: ObserverDesign, e0, t) -> np.ndarray:
-    """Guaranteed |e(t)| bound from e(0) (module docstring): sqrt(V(t) / lambda_min(P)).
-
-    e0 [..., n], t [T] (times, continuous; step indices, discrete) -> [..., T].
-    """
-    P, a = design.P, design.decay
-    e0 = np.asarray(e0, float)
-    V0 = np.einsum("...i,ij,...j->...", e0, P, e0)[..., None]
-    t = np.asarray(t, float)
-    decay = np.exp(-a * t) if design.time == "continuous" else (1 - a) ** t
-    Vinf = design.mu * design.approx_error**2 / a
-    V = decay * V0 + (1 - decay) * Vinf
-    return np.sqrt(V / design.margins["P_min_eig"])
-
-
-def simulate_error_check(
-    design: ObserverDesign, steps: int = 2000, dt: float = 1e-3, batch: int = 64, seed: int = 0
-) -> dict:
-    """Simulate the error system with adversarial-ish admissible dphi and d; compare to envelope.
-
-    dphi = gamma |H e| s(t) (unit s, random switching signs), d = eps on a random unit direction
-    switched piecewise-constantly. Continuous time uses RK4 with the disturbances held per step.
-    Returns {"max_ratio": max_t |e(t)| / envelope(t), "ok": max_ratio <= 1 + 1e-6}.
-    """
-    rng = np.random.default_rng(seed)
-    if not design.feasible:
-        raise ValueError("design must be feasible (status 'verified') to simulate")
-    n = design.P.shape[0]
-    A_L = design.closed_loop
-    Bf, H = design.B_f, design.H
-    nf = Bf.shape[1]
-    e = rng.standard_normal((batch, n))
-    e0 = e.copy()
-    g, eps = design.lipschitz, design.approx_error
-    ratio = 0.0
-    hold = max(1, steps // 20)
-    for k in range(steps):
-        if k % hold == 0:
-            s = rng.standard_normal((batch, nf))
-            s /= np.linalg.norm(s, axis=-1, keepdims=True)
-            dd = rng.standard_normal((batch, nf))
-            dd *= eps / np.linalg.norm(dd, axis=-1, keepdims=True)
-
-        def rhs(x, s=s, dd=dd):
-            dphi = g * np.linalg.norm(x @ H.T, axis=-1, keepdims=True) * s
-            return x @ A_L.T + (dphi + dd) @ Bf.T
-
-        if design.time == "continuous":
-            k1 = rhs(e)
-            k2 = rhs(e + 0.5 * dt * k1)
-            k3 = rhs(e + 0.5 * dt * k2)
-            k4 = rhs(e + dt * k3)
-            e = e + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            t = (k + 1) * dt
-        else:
-            e = rhs(e)
-            t = k + 1
-        env = error_envelope(design, e0, np.array([t]))[..., 0]
-        ratio = max(ratio, float((np.linalg.norm(e, axis=-1) / env).max()))
-    return {"max_ratio": ratio, "ok": ratio <= 1 + 1e-6}

@@ -26,7 +26,8 @@ import torch
 from torch import Tensor
 
 from diffsmf.linearize.jets import interval_hessian
-from diffsmf.observers.lmi import ObserverDesign, design_lipschitz_observer, error_envelope
+from diffsmf.observers.envelope import error_envelope
+from diffsmf.observers.lmi import ObserverDesign, design_lipschitz_observer
 from diffsmf.observers.observer import PWLObserver, rk4_step
 from diffsmf.pwl import SCPLNN, fit_scplnn
 from diffsmf.pwl.partition import grid_partition
