@@ -401,8 +401,7 @@ def tune(
     cont, cons = _loss_flags(loss, data.x is not None)
     chosen, skipped = resolve_params(filt, params)
     groups = _tie_groups(tie, chosen)
-    names = list(chosen)
-    tuned = list(chosen.values())
+    names, tuned = list(chosen), list(chosen.values())
     frozen = [p for p in filt.parameters() if all(p is not q for q in tuned)]
     saved_flags = [p.requires_grad for p in frozen]
     for p in frozen:
@@ -410,73 +409,33 @@ def tune(
     for p in tuned:
         p.requires_grad_(True)
     ddp.broadcast_parameters(filt)
-    opt = _make_optimizer(optimizer, tuned, lr)
+    run = _Run(filt, data, weights, cont, cons, tuned, groups,
+               _make_optimizer(optimizer, tuned, lr), batch_size, seed,
+               WindowCache(filt, data, window) if window is not None else None)
     report = TuneReport(
-        params=names,
-        skipped_params=skipped,
-        initial=hyperparameter_values(filt, names),
-        final={},
-        loss_mode=loss,
-        weights=weights.to_dict(),
-        world_size=ddp.world_size(),
-        tied=[list(g) for g in groups],
-        window=window,
+        params=names, skipped_params=skipped, initial=hyperparameter_values(filt, names),
+        final={}, loss_mode=loss, weights=weights.to_dict(), world_size=ddp.world_size(),
+        tied=[list(g) for g in groups], window=window,
     )
     start_epoch = 0
     best = (math.inf, copy.deepcopy(filt.state_dict()), 0)
     if resume is not None:
         ck = torch.load(resume, weights_only=False)
         filt.load_state_dict(ck["filter"])
-        opt.load_state_dict(ck["optimizer"])
+        run.opt.load_state_dict(ck["optimizer"])
         start_epoch, report.history = ck["epoch"], ck["history"]
         best = (ck["best_loss"], ck["best_state"], ck["best_epoch"])
     if val is not None:
         report.validation_before = evaluate(filt, val, weights, loss=loss)
     is_main = ddp.rank() == 0
-    cache = WindowCache(filt, data, window) if window is not None else None
     bar = progress_bar(progress if is_main else False, epochs - start_epoch, "tune", "epoch")
     bad_vals = 0
-    n = len(data)
     for epoch in range(start_epoch, epochs):
         # without validation an epoch is scored by its training loss, which was computed with
         # the values at the epoch's start: those are the ones to keep if it is the best
         start = copy.deepcopy(filt.state_dict()) if val is None else None
-        g = torch.Generator().manual_seed(seed * 100_003 + epoch)
-        perm = torch.randperm(n, generator=g).to(data.y.device)
-        sums: dict[str, float] = {}
-        keys = ["loss", "log_volume"] + ["containment"] * cont + ["consistency"] * cons
-        for s in range(0, n, batch_size):
-            glob = perm[s : s + batch_size]
-            local = ddp.shard(glob)
-            opt.zero_grad(set_to_none=True)
-            stats = torch.zeros(len(keys), dtype=torch.float64)
-            if len(local):
-                frac = len(local) / len(glob)  # local mean -> share of the global mean
-                part = data.take(local)
-                if cache is not None:
-                    lval, terms = windowed_loss(
-                        filt, part, local, cache, weights, use_containment=cont,
-                        use_consistency=cons,
-                    )
-                else:
-                    out = filter_with_predictions(filt, part.y, part.u)
-                    lval, terms = total_loss(
-                        out, part.x, weights, use_containment=cont, use_consistency=cons
-                    )
-                (lval * frac).backward()
-                stats = torch.stack([lval.detach()] + [terms[k] for k in keys[1:]]).cpu() * frac
-            ddp.all_reduce_grads(tuned)
-            if cache is not None:
-                cache.sync(glob)  # every process keeps every trajectory's window states
-            _tie_grads(groups)
-            stats = ddp.all_reduce_sum(stats)
-            w = len(glob) / n
-            for k, v in zip(keys, stats.tolist()):
-                sums[k] = sums.get(k, 0.0) + v * w
-            if all(torch.isfinite(p.grad).all() for p in tuned if p.grad is not None):
-                opt.step()
-            else:
-                report.nonfinite_steps += 1
+        sums, nonfinite = run.epoch(epoch)
+        report.nonfinite_steps += nonfinite
         row: dict[str, float] = {"epoch": epoch + 1, **sums}
         for name, vals in hyperparameter_values(filt, names).items():  # for the figures
             row.update({f"{name}[{i}]": v for i, v in enumerate(vals)})
@@ -484,10 +443,8 @@ def tune(
             m = evaluate(filt, val, weights, loss=loss)
             row.update({f"val_{k}": v for k, v in m.items()})
             score = m["loss"]
-        elif val is None:
-            score = sums["loss"]
         else:
-            score = None
+            score = sums["loss"] if val is None else None
         if score is not None:
             if score < best[0] - 1e-12:
                 best = (score, start if start is not None else copy.deepcopy(filt.state_dict()),
@@ -498,23 +455,9 @@ def tune(
             else:
                 bad_vals += 1
         report.history.append(row)
-        if bar is not None:
-            if hasattr(bar, "set_postfix"):
-                bar.set_postfix(loss=f"{sums['loss']:.4g}", best=f"{best[0]:.4g}", refresh=False)
-            bar.update(1)
+        _advance(bar, sums["loss"], best[0])
         if checkpoint_dir is not None and is_main and (epoch + 1) % checkpoint_every == 0:
-            _save(
-                Path(checkpoint_dir) / "last.pt",
-                {
-                    "filter": filt.state_dict(),
-                    "optimizer": opt.state_dict(),
-                    "epoch": epoch + 1,
-                    "history": report.history,
-                    "best_loss": best[0],
-                    "best_state": best[1],
-                    "best_epoch": best[2],
-                },
-            )
+            run.save_last(Path(checkpoint_dir) / "last.pt", epoch + 1, report.history, best)
         if val is not None and bad_vals >= patience:
             report.stopped_early = True
             break
@@ -530,6 +473,94 @@ def tune(
         report.validation_after = evaluate(filt, val, weights, loss=loss)
     report.seconds = time.perf_counter() - t0
     return report, filt
+
+
+def _advance(bar: Any, loss: float, best: float) -> None:
+    """One epoch on the progress bar (if any), with the epoch's loss and the best so far."""
+    if bar is None:
+        return
+    if hasattr(bar, "set_postfix"):
+        bar.set_postfix(loss=f"{loss:.4g}", best=f"{best:.4g}", refresh=False)
+    bar.update(1)
+
+
+@dataclass
+class _Run:
+    """What one `tune` run trains with: the filter, the data, the loss, the tuned parameters and
+    their tie groups, the optimiser and the window cache (``None``: whole horizons)."""
+
+    filt: SetFilter
+    data: Any
+    weights: LossWeights
+    cont: bool
+    cons: bool
+    tuned: list[Tensor]
+    groups: list[Any]
+    opt: torch.optim.Optimizer
+    batch_size: int
+    seed: int
+    cache: WindowCache | None
+
+    @property
+    def keys(self) -> list[str]:
+        return ["loss", "log_volume"] + ["containment"] * self.cont + ["consistency"] * self.cons
+
+    def epoch(self, epoch: int) -> tuple[dict[str, float], int]:
+        """One pass over the data in seeded mini-batches -> (the epoch's mean loss terms, the
+        number of optimiser steps skipped for a non-finite gradient)."""
+        n = len(self.data)
+        g = torch.Generator().manual_seed(self.seed * 100_003 + epoch)
+        perm = torch.randperm(n, generator=g).to(self.data.y.device)
+        sums: dict[str, float] = {}
+        skipped = 0
+        for s in range(0, n, self.batch_size):
+            glob = perm[s : s + self.batch_size]
+            stats = self._batch(glob)
+            w = len(glob) / n
+            for k, v in zip(self.keys, stats.tolist()):
+                sums[k] = sums.get(k, 0.0) + v * w
+            if all(torch.isfinite(p.grad).all() for p in self.tuned if p.grad is not None):
+                self.opt.step()
+            else:
+                skipped += 1
+        return sums, skipped
+
+    def _batch(self, glob: Tensor) -> Tensor:
+        """Gradients of one global mini-batch (sharded over the processes, summed) -> its
+        loss terms ``[len(keys)]``, summed over the processes."""
+        local = ddp.shard(glob)
+        self.opt.zero_grad(set_to_none=True)
+        keys = self.keys
+        stats = torch.zeros(len(keys), dtype=torch.float64)
+        if len(local):
+            frac = len(local) / len(glob)  # local mean -> share of the global mean
+            part = self.data.take(local)
+            if self.cache is not None:
+                lval, terms = windowed_loss(
+                    self.filt, part, local, self.cache, self.weights,
+                    use_containment=self.cont, use_consistency=self.cons,
+                )
+            else:
+                out = filter_with_predictions(self.filt, part.y, part.u)
+                lval, terms = total_loss(
+                    out, part.x, self.weights, use_containment=self.cont,
+                    use_consistency=self.cons,
+                )
+            (lval * frac).backward()
+            stats = torch.stack([lval.detach()] + [terms[k] for k in keys[1:]]).cpu() * frac
+        ddp.all_reduce_grads(self.tuned)
+        if self.cache is not None:
+            self.cache.sync(glob)  # every process keeps every trajectory's window states
+        _tie_grads(self.groups)
+        return ddp.all_reduce_sum(stats)
+
+    def save_last(self, path: Path, epoch: int, history: list, best: tuple) -> None:
+        """The checkpoint to resume from (``resume=path``)."""
+        _save(path, {
+            "filter": self.filt.state_dict(), "optimizer": self.opt.state_dict(),
+            "epoch": epoch, "history": history, "best_loss": best[0], "best_state": best[1],
+            "best_epoch": best[2],
+        })
 
 
 def simulate_finite(system: Any, steps: int, batch: int, seed: int, noise: str) -> Any:
