@@ -33,12 +33,22 @@ from diffsmf.pwl.partition import (
     grid_partition,
     simplex_domain,
 )
+from diffsmf.pwl.refine import (
+    _extend_prior,
+    _locate_tracked,
+    _longest_edge_midpoint,
+    _marked,
+    _refine_worst_first,
+    _split_candidates,
+)
 from diffsmf.pwl.scplnn import SCPLNN
 
 __all__ = ["FitReport", "as_xy", "default_max_regions", "domain_box", "fit_partition", "fit_scplnn",
            "fit_weights"]
 
 _F64 = torch.float64
+
+
 BOX_MAX_DIM = 5  # beyond this a box domain needs > 2n (n-1)! = 1440 initial simplices
 
 
@@ -590,23 +600,7 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
         V0, S0 = simplex_domain(lo, hi), torch.arange(n + 1)[None]
     ref = BisectionRefiner(V0, S0, scale=hi - lo, min_edge=1e-7)
     prior = torch.cat([V0, torch.ones(V0.shape[0], 1, dtype=_F64)], 1) @ coef
-    k_hold = int(opts.holdout * N)
-    if k_hold < 10 or N - k_hold < n + 2:
-        k_hold = 0
-    train = torch.ones(N, dtype=torch.bool)
-    if k_hold:  # hold out whole groups of duplicates (distinct X values)
-        grp = ctx.group if ctx.group is not None else torch.arange(N)
-        G = int(grp.max()) + 1
-        perm = torch.randperm(G, generator=torch.Generator().manual_seed(opts.seed))
-        size = torch.bincount(grp, minlength=G)[perm]
-        held = perm[: int((torch.cumsum(size, 0) < k_hold).sum()) + 1]
-        is_held = torch.zeros(G, dtype=torch.bool)
-        is_held[held] = True
-        train = ~is_held[grp]
-        k_hold = int((~train).sum())
-        if k_hold == N or N - k_hold < n + 2:
-            train[:] = True
-            k_hold = 0
+    train, k_hold = _holdout(N, n, opts, ctx)
     unreach = ctx.unreachable if ctx.unreachable is not None else torch.zeros(N, dtype=torch.bool)
     bar = tqdm(total=None, disable=(not progress) if progress is not None else None,
                delay=0 if progress else 2.0, desc="fit_scplnn", unit="round", leave=False)
@@ -641,14 +635,7 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
         if phase == 1:  # held-out samples count only where the region is resolvable
             cnt = torch.bincount(sid[train], minlength=S.shape[0])
             bad = bad & (train | (cnt[sid] >= n + 1))
-        marked_local = set(sid[bad].tolist())
-        onface = bad & (lam.amin(-1) < 1e-9)
-        if bool(onface.any()):  # a sample on a face: every region sharing the face
-            for row, lm in zip(idx[onface].tolist(), lam[onface].tolist()):
-                marked_local.update(-1 - g for g in ref.containing(
-                    [v for v, w in zip(row, lm) if w > 1e-9]))
-        if rscore is not None:
-            marked_local.update((rscore >= level).nonzero().flatten().tolist())
+        marked_local = _marked(ref, sid, lam, idx, bad, rscore, level)
         if not marked_local:
             if phase == 1:  # phase 1 done: record the held-out error, refit on all samples
                 ctx.heldout = resid[~train].abs().amax(0)
@@ -663,20 +650,7 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
         if ref.n_simplices >= max_regions:
             reason = "max_regions reached"
             break
-        live = ref.live
-        glob = [(-1 - m) if m < 0 else int(live[m]) for m in marked_local]
-        pr = torch.zeros(ref.M, dtype=_F64)
-        reg_score = torch.zeros(S.shape[0], dtype=_F64).scatter_reduce(0, sid, score, "amax")
-        pr[live] = reg_score
-        if rscore is not None:
-            pr[live] = torch.maximum(pr[live], rscore)
-        glob.sort(key=lambda g: -float(pr[g]) if g < pr.shape[0] else 0.0)
-        added = 0
-        for g in glob:
-            added += ref.refine(g)
-            if ref.n_simplices >= max_regions:
-                break
-        if added == 0:
+        if _refine_worst_first(ref, marked_local, sid, score, rscore, max_regions) == 0:
             reason = "no splittable region left (regions at the minimum edge length)"
             if phase == 1:
                 ctx.heldout = resid[~train].abs().amax(0)
@@ -701,65 +675,27 @@ def _bisection_loop(X: Tensor, Y: Tensor, e: Tensor, lo: Tensor, hi: Tensor, use
                    ctx)
 
 
-def _locate_tracked(ref: BisectionRefiner, Xn: Any, gs: Any) -> tuple[Tensor, Tensor]:
-    """Samples' live simplices (local ids ``[N]``) and barycentric coordinates ``[N, n+1]``,
-    updating ``gs`` (global ids, numpy, in place) by descending the bisections."""
-    import numpy as np
-
-    gs[:] = ref.descend(Xn, gs)
-    live = ref.live.numpy()
-    remap = np.full(ref.M, -1, dtype=np.int64)
-    remap[live] = np.arange(len(live))
-    B = ref.bary(gs)
-    lam = np.einsum("kij,kj->ki", B[:, :, :-1], Xn) + B[:, :, -1]
-    lam = np.clip(lam, 0.0, None)
-    lam /= lam.sum(-1, keepdims=True)
-    return torch.from_numpy(remap[gs]), torch.from_numpy(lam)
-
-
-def _extend_prior(prior: Tensor, parents: list[tuple[int, int]]) -> Tensor:
-    """Values ``[nv, p]`` at all vertices: new vertex k is the midpoint of edge ``parents[k]``,
-    so the current (continuous, edge-linear) model there is the mean of its endpoints'."""
-    k0, nv = prior.shape[0], len(parents)
-    if k0 >= nv:
-        return prior
-    import numpy as np
-
-    P = np.empty((nv, prior.shape[1]))
-    P[:k0] = prior.numpy()
-    for k in range(k0, nv):  # parents precede children
-        a, b = parents[k]
-        P[k] = 0.5 * (P[a] + P[b])
-    return torch.from_numpy(P)
-
-
-def _longest_edge_midpoint(ref: Refiner, s: int) -> Tensor:
-    """Midpoint ``[n]`` of the longest edge of live simplex s (in the Refiner's scaled metric),
-    so that `Refiner.split` bisects that edge (conforming newest-edge refinement)."""
-    Vs = ref.V[ref.S[s]]
-    d = torch.cdist(Vs / ref.scale, Vs / ref.scale)
-    k = int(d.argmax())
-    return 0.5 * (Vs[k // d.shape[0]] + Vs[k % d.shape[0]])
-
-
-def _split_candidates(assign: Tensor, score: Tensor, cap: int, level: float) -> Tensor:
-    """Max-error sample of each region whose max error (in units of eps) is at least ``level``,
-    sorted by decreasing error. Returns sample indices."""
-    reg_max = torch.zeros(cap, dtype=_F64).scatter_reduce(0, assign, score, "amax")
-    is_best = (score == reg_max[assign]) & (score >= level)
-    pts = is_best.nonzero().flatten()
-    # one per region (first index), then by decreasing error
-    _, first = _first_per_group(assign[pts])
-    pts = pts[first]
-    return pts[torch.argsort(score[pts], descending=True)]
-
-
-def _first_per_group(g: Tensor) -> tuple[Tensor, Tensor]:
-    """For group labels g [k]: unique labels and the index of each label's first occurrence."""
-    uniq, inv = torch.unique(g, return_inverse=True)
-    first = torch.full((uniq.numel(),), g.numel(), dtype=torch.long).scatter_reduce(
-        0, inv, torch.arange(g.numel()), "amin")
-    return uniq, first
+def _holdout(N: int, n: int, opts: _Opts, ctx: _Ctx) -> tuple[Tensor, int]:
+    """The training mask ``[N]`` of phase 1 and the number of held-out samples: whole groups of
+    duplicates (distinct X values) drawn by ``opts.seed`` up to ``opts.holdout * N`` samples;
+    none (all True, 0) when that leaves too few samples on either side."""
+    k_hold = int(opts.holdout * N)
+    train = torch.ones(N, dtype=torch.bool)
+    if k_hold < 10 or N - k_hold < n + 2:
+        return train, 0
+    grp = ctx.group if ctx.group is not None else torch.arange(N)
+    G = int(grp.max()) + 1
+    perm = torch.randperm(G, generator=torch.Generator().manual_seed(opts.seed))
+    size = torch.bincount(grp, minlength=G)[perm]
+    held = perm[: int((torch.cumsum(size, 0) < k_hold).sum()) + 1]
+    is_held = torch.zeros(G, dtype=torch.bool)
+    is_held[held] = True
+    train = ~is_held[grp]
+    k_hold = int((~train).sum())
+    if k_hold == N or N - k_hold < n + 2:
+        train[:] = True
+        k_hold = 0
+    return train, k_hold
 
 
 def _finish(V: Tensor, S: Tensor, coef: Tensor | None, W: Tensor | None, X: Tensor, Y: Tensor,
