@@ -19,6 +19,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -194,22 +195,7 @@ def containment(
     """
     check_filter("filt", filt, None if system is None else check_system("system", system))
     system = filt.system if system is None else system
-    if not is_int(trials) or trials < 1:
-        raise ValueError(f"trials: must be an integer >= 1, got {trials!r}")
-    if steps is not None and (not is_int(steps) or steps < 1):
-        raise ValueError(f"steps: must be an integer >= 1 or None, got {steps!r}")
-    if not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and 0 <= tol < 1):
-        raise ValueError(f"tol: must be a number in [0, 1) (relative gauge tolerance), got {tol!r}")
-    if not is_int(first) or not 0 <= first < trials:
-        raise ValueError(
-            f"first: must be an integer in 0..{trials - 1} (trials = {trials}), got {first!r}"
-        )
-    count = trials - first if count is None else count
-    if not is_int(count) or not 1 <= count <= trials - first:
-        raise ValueError(
-            f"count: must be an integer in 1..{trials - first} (trajectories {first}.."
-            f"{trials - 1} of {trials}), got {count!r}"
-        )
+    count = _check_audit_args(trials, steps, tol, first, count)
     steps = paper_steps(system) if steps is None else steps
     if has_gaussian_noise(system) and is_guaranteed(filt):
         warnings.warn(
@@ -223,29 +209,13 @@ def containment(
     bar = progress_bar(progress, count, f"audit ({noise} noise)", "traj")
     for i in range(first, first + count, chunk):
         j = min(i + chunk, first + count)
-        x = traj.x[i:j]
-        u = None if traj.u is None else traj.u[i:j]
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            res = filt(traj.y[i:j], u=u)
-        dt = time.perf_counter() - t0
-        g = gauge(res.sets, x, tol)  # [b, T+1]
-        if res.bounded is not None:  # flagged unbounded: the set is R^n (counted apart)
-            g = torch.where(res.bounded, g, torch.zeros_like(g))
-        part = {
-            "start": i, "stop": j, "violations": int((g > 1 + tol).sum()),
-            "pairs": (j - i) * (steps + 1),
-            "worst_distance": float((g - 1).clamp_min(0).max()),
-            "volume_sum": float(res.volume[:, 1:].sum()),
-            "inconsistent": int((~res.consistent).sum()), "seconds": dt,
-            "unbounded": 0 if res.bounded is None else int((~res.bounded).sum()),
-        }
+        part = _audit_chunk(filt, traj, i, j, steps, tol)
         viol_n += part["violations"]
         worst = max(worst, part["worst_distance"])
         vol_sum += part["volume_sum"]
         incons += part["inconsistent"]
         unb += part["unbounded"]
-        seconds += dt
+        seconds += part["seconds"]
         if on_chunk is not None:
             on_chunk(part)
         if bar is not None:  # running counts: a stopped audit still tells what it checked
@@ -286,3 +256,47 @@ def gaussian_note(system) -> str:
         "sets, which no set filter bounds, so pairs outside are expected here and are no "
         "violation of a guarantee"
     )
+
+
+def _check_audit_args(trials: Any, steps: Any, tol: Any, first: Any, count: Any) -> int:
+    """Validate `containment`'s counts (errors name the argument) -> ``count`` resolved."""
+    if not is_int(trials) or trials < 1:
+        raise ValueError(f"trials: must be an integer >= 1, got {trials!r}")
+    if steps is not None and (not is_int(steps) or steps < 1):
+        raise ValueError(f"steps: must be an integer >= 1 or None, got {steps!r}")
+    if not (isinstance(tol, (int, float)) and not isinstance(tol, bool) and 0 <= tol < 1):
+        raise ValueError(f"tol: must be a number in [0, 1) (relative gauge tolerance), got {tol!r}")
+    if not is_int(first) or not 0 <= first < trials:
+        raise ValueError(
+            f"first: must be an integer in 0..{trials - 1} (trials = {trials}), got {first!r}"
+        )
+    count = trials - first if count is None else count
+    if not is_int(count) or not 1 <= count <= trials - first:
+        raise ValueError(
+            f"count: must be an integer in 1..{trials - first} (trajectories {first}.."
+            f"{trials - 1} of {trials}), got {count!r}"
+        )
+    return count
+
+
+def _audit_chunk(filt: torch.nn.Module, traj: Any, i: int, j: int, steps: int, tol: float
+                 ) -> dict:
+    """Filter trajectories ``i .. j - 1`` of ``traj`` and count them (`containment`'s
+    ``on_chunk`` dict)."""
+    x = traj.x[i:j]
+    u = None if traj.u is None else traj.u[i:j]
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        res = filt(traj.y[i:j], u=u)
+    dt = time.perf_counter() - t0
+    g = gauge(res.sets, x, tol)  # [b, T+1]
+    if res.bounded is not None:  # flagged unbounded: the set is R^n (counted apart)
+        g = torch.where(res.bounded, g, torch.zeros_like(g))
+    return {
+        "start": i, "stop": j, "violations": int((g > 1 + tol).sum()),
+        "pairs": (j - i) * (steps + 1),
+        "worst_distance": float((g - 1).clamp_min(0).max()),
+        "volume_sum": float(res.volume[:, 1:].sum()),
+        "inconsistent": int((~res.consistent).sum()), "seconds": dt,
+        "unbounded": 0 if res.bounded is None else int((~res.bounded).sum()),
+    }

@@ -37,6 +37,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -441,27 +442,7 @@ def main(args: argparse.Namespace) -> int:
     y, u = read_log(system, args.data, outs, ins, allow_blank=args.skip_missing)
     Y = y.numpy()
     T = Y.shape[0]
-    kw = {}
-    wn = _floats(args.process_noise, "--process-noise", system.n)
-    vn = _floats(args.measurement_noise, "--measurement-noise", system.m)
-    if getattr(args, "bounds", None) is not None:  # explicit --*-noise values win
-        tuned = read_bounds(args.bounds, system.n, system.m, what="--bounds")
-        wn = tuned["process_noise"] if wn is None else wn
-        vn = tuned["measurement_noise"] if vn is None else vn
-    if wn is not None:
-        kw["process_noise"] = wn
-    if vn is not None:
-        kw["measurement_noise"] = vn
-    if args.skip_missing:
-        kw["skip_nan"] = True
-    try:
-        filt = cls(system, **kw)
-    except TypeError as exc:  # a filter without that option (e.g. CombinedFilter's own bounds)
-        opts = ", ".join(f"--{k.replace('_', '-')}" for k in kw if k != "skip_nan")
-        if not opts or "unexpected keyword" not in str(exc):
-            raise
-        raise ValueError(f"{opts}: the {cls.__name__} filter does not take this option "
-                         "(it has its own noise parameters)") from None
+    filt = _build_filter(cls, system, args)
     if getattr(args, "bounds", None) is not None:
         _check_bounds_centres(args.bounds, filt)
     state_names = _state_names(getattr(args, "state_names", None), system.n)
@@ -522,7 +503,41 @@ def main(args: argparse.Namespace) -> int:
         "diffsmf_version": ds.__version__,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    # warnings go to stderr, also with --quiet: they say the bounds cannot be used as they are
+    _report(args, run, out, files, name, system.name, T, inconsistent, lost, guaranteed)
+    return status
+
+
+def _build_filter(cls: type, system: Any, args: argparse.Namespace) -> Any:
+    """The filter ``cls`` on ``system`` with the noise bounds of ``--process-noise``,
+    ``--measurement-noise`` and ``--bounds`` (explicit values win) and ``--skip-missing``."""
+    kw = {}
+    wn = _floats(args.process_noise, "--process-noise", system.n)
+    vn = _floats(args.measurement_noise, "--measurement-noise", system.m)
+    if getattr(args, "bounds", None) is not None:  # explicit --*-noise values win
+        tuned = read_bounds(args.bounds, system.n, system.m, what="--bounds")
+        wn = tuned["process_noise"] if wn is None else wn
+        vn = tuned["measurement_noise"] if vn is None else vn
+    if wn is not None:
+        kw["process_noise"] = wn
+    if vn is not None:
+        kw["measurement_noise"] = vn
+    if args.skip_missing:
+        kw["skip_nan"] = True
+    try:
+        return cls(system, **kw)
+    except TypeError as exc:  # a filter without that option (e.g. CombinedFilter's own bounds)
+        opts = ", ".join(f"--{k.replace('_', '-')}" for k in kw if k != "skip_nan")
+        if not opts or "unexpected keyword" not in str(exc):
+            raise
+        raise ValueError(f"{opts}: the {cls.__name__} filter does not take this option "
+                         "(it has its own noise parameters)") from None
+
+
+def _report(args: argparse.Namespace, run: FilterRun, out: Path, files: dict, name: str,
+            system: str, T: int, inconsistent: list[int], lost: int | None,
+            guaranteed: bool) -> None:
+    """The warnings (stderr, also with ``--quiet``: they say the bounds cannot be used as they
+    are) and, without ``--quiet``, the summary lines of a run."""
     if inconsistent:
         print(f"diffsmf filter: warning: {len(inconsistent)} inconsistent step(s) (measurement "
               f"outside the predicted set: the model, the noise bounds or the data were "
@@ -531,17 +546,17 @@ def main(args: argparse.Namespace) -> int:
     if lost is not None:
         print(f"diffsmf filter: warning: the guarantee was lost at step {lost}: "
               f"{_event_reason(run)}; see {out / 'summary.json'}", file=sys.stderr)
-    if not args.quiet:
-        width = run.upper[-1] - run.lower[-1]
-        print(f"{name} on {system.name}: {T} steps in {run.seconds:.2f} s; final bound widths "
-              f"{np.array2string(width, precision=3)}")
-        if not inconsistent:
-            print("  every measurement was consistent with the model and the noise bounds")
-        if not guaranteed:
-            print(f"  note: {name} is not a guaranteed filter; its bounds are not guaranteed")
-        print(f"  wrote {out / files['bounds']}, " +
-              (f"{out / 'bounds.png'}, " if args.figure else "") + f"{out / 'summary.json'}")
-    return status
+    if args.quiet:
+        return
+    width = run.upper[-1] - run.lower[-1]
+    print(f"{name} on {system}: {T} steps in {run.seconds:.2f} s; final bound widths "
+          f"{np.array2string(width, precision=3)}")
+    if not inconsistent:
+        print("  every measurement was consistent with the model and the noise bounds")
+    if not guaranteed:
+        print(f"  note: {name} is not a guaranteed filter; its bounds are not guaranteed")
+    print(f"  wrote {out / files['bounds']}, " +
+          (f"{out / 'bounds.png'}, " if args.figure else "") + f"{out / 'summary.json'}")
 
 
 def _check_bounds_centres(path: Path, filt) -> None:

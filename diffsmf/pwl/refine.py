@@ -10,14 +10,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from diffsmf.pwl.partition import (
-    BisectionRefiner,
-    Refiner,
-)
+from diffsmf.pwl.partition import BisectionRefiner, Refiner
 
 __all__: list[str] = []
 
 _F64 = torch.float64
+
 
 def _marked(ref: BisectionRefiner, sid: Tensor, lam: Tensor, idx: Tensor, bad: Tensor,
             rscore: Tensor | None, level: float) -> set[int]:

@@ -257,12 +257,7 @@ class Parallelotope(ConvexSet):
         a = _expand(a, (*batch, n))
         y, sig = _expand(y.unsqueeze(-1), (*batch, 1)), _expand(sig.unsqueeze(-1), (*batch, 1))
         tiny = torch.finfo(T0.dtype).tiny
-        # a zero halfwidth is widened by 1e-15 of the strip's scale (outward, keeps p finite)
-        with torch.no_grad():  # (no gradient through the widening; no detach call)
-            scale = small_sum(a.abs() * (xc.abs() + small_sum(T0.abs(), -1)), -1, keepdim=True)
-            floor = 1e-15 * scale + tiny
-        sig = torch.maximum(sig, floor)
-        p, c = a / sig, y / sig  # eq. 24-25 normalisation
+        p, c = _normalised_strip(a, y, sig, xc, T0)  # eq. 24-25
         # direction convention (eq. before 33): p t_i >= 0 (column i negated where p t_i < 0)
         pt = small_sum(p.unsqueeze(-1) * T0, -2)  # [..., n]
         neg = (pt < 0).unsqueeze(-2)
@@ -322,6 +317,19 @@ class Parallelotope(ConvexSet):
 def _expand(t: Tensor, shape: tuple[int, ...]) -> Tensor:
     """``t`` expanded to ``shape`` (itself, no call, when it has that shape already)."""
     return t if t.shape == shape else t.expand(shape)
+
+
+def _normalised_strip(a: Tensor, y: Tensor, sig: Tensor, xc: Tensor, T: Tensor
+                      ) -> tuple[Tensor, Tensor]:
+    """Wang et al. 2022, eq. 24-25: the strip ``|a.x - y| <= sig`` as ``|p x - c| <= 1``
+    (``a [..., n]``, ``y``, ``sig [..., 1]``) -> ``(p [..., n], c [..., 1])``. A zero
+    half-width is widened by 1e-15 of the strip's scale over the parallelotope ``(xc, T)``
+    (outward, keeps ``p`` finite; no gradient through the widening)."""
+    with torch.no_grad():
+        scale = small_sum(a.abs() * (xc.abs() + small_sum(T.abs(), -1)), -1, keepdim=True)
+        floor = 1e-15 * scale + torch.finfo(T.dtype).tiny
+    sig = torch.maximum(sig, floor)
+    return a / sig, y / sig
 
 
 def _tie_rule(T_bar: Tensor, pbt: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:

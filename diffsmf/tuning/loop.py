@@ -349,65 +349,45 @@ def tune(
         loss: ``"auto"`` (containment if ``x`` is given, else consistency), ``"consistency"``
             (no ground truth), ``"containment"`` or ``"both"``; always plus log-volume.
         val_every, patience: validate every ``val_every`` epochs; stop after ``patience``
-            validations without improvement of the validation loss; the best validated
-            parameters are restored at the end (without validation: those of the epoch with
-            the best training loss, as they were when that loss was computed, i.e. at the
-            epoch's start).
+            validations without improvement; the best validated parameters are restored at
+            the end (without validation: those with the best training loss, at the start of
+            that epoch, when the loss was computed).
         checkpoint_dir: write ``last.pt`` every ``checkpoint_every`` epochs and ``best.pt``.
         resume: a ``last.pt`` to continue from.
         seed: seeds the mini-batch order (deterministic; identical across DDP processes).
-        tie: groups of hyperparameters that share ONE multiplicative factor (every element
-            of every member), e.g. ``[("process_noise", "measurement_noise")]`` or the
-            shorthand ``"noise"``: only the overall scale of the bounds is learned, their
-            shape is kept. Without ground truth the split of uncertainty between process and
-            measurement noise is not identifiable from data (docs/training.md), so the
-            consistency loss should be used with ``tie="noise"``.
-        window: ``None`` (default: back-propagate through the whole horizon) or a number of
-            steps ``L``: truncated back-propagation with carried states
-            (`diffsmf.tuning.windows`): all ``ceil(T / L)`` windows of a mini-batch run side by
-            side, ``L`` sequential steps per pass instead of ``T`` (about ``T / L`` times
-            faster on a CPU). The gradient is truncated at window boundaries and the window
-            start states lag one epoch; validation and the returned filter are exact.
-            Under ``torch.distributed`` the window states are shared after every mini-batch,
-            so K processes follow the single-process run. ``LossWeights.skip`` applies per
+        tie: groups of hyperparameters that share ONE multiplicative factor, e.g.
+            ``[("process_noise", "measurement_noise")]`` or the shorthand ``"noise"``: only the
+            overall scale of the bounds is learned. Without ground truth the split between
+            process and measurement noise is not identifiable (docs/training.md): use the
+            consistency loss with ``tie="noise"``.
+        window: ``None`` (default: back-propagate through the whole horizon) or ``L``:
+            truncated back-propagation over windows of ``L`` steps run side by side, with
+            carried states (`diffsmf.tuning.windows`; about ``T / L`` times faster on a CPU;
+            validation and the returned filter are exact). ``LossWeights.skip`` applies per
             window.
         progress: ``True`` for a progress bar over the epochs (tqdm), or a bar factory
             (`diffsmf.utils.progress_bar`); off by default (``diffsmf tune`` shows it).
-        compile: compile the filter's step first (``filt.compile()``, in place; a filter
-            compiled before the call is used as it is): every pass of the loop, training and
-            validation, then runs the compiled step together with the consistency excess
-            (`filter_with_predictions`), with the same sets and
-            gradients as eagerly up to rounding. Pays a one-off compile per batch size and grad
-            mode (about 1-3 minutes for HSNSMF on a 2-core CPU) and is then 5-8x faster per
-            epoch (measured, docs/training.md). CZSMF tunes eagerly.
+        compile: tune through the compiled step (``filt.compile()``, in place; a filter
+            compiled before is used as it is): the same sets and gradients up to rounding,
+            a one-off compile per batch size and grad mode, then 5-8x faster per epoch
+            (docs/training.md). CZSMF tunes eagerly.
 
     Under ``torch.distributed`` each global mini-batch is sharded over the processes and the
     gradients are summed, so K processes follow the single-process trajectory.
     """
     check_filter("filt", filt)
-    for label, v in (("epochs", epochs), ("batch_size", batch_size), ("val_every", val_every),
-                     ("patience", patience)):
-        if not is_int(v) or v < 1:
-            raise ValueError(f"{label}: must be a positive integer, got {v!r}")
+    _check_counts(epochs=epochs, batch_size=batch_size, val_every=val_every, patience=patience)
     if not isinstance(compile, bool):
         raise ValueError(f"compile: expected True or False, got {compile!r}")
     t0 = time.perf_counter()
     if compile and getattr(filt, "_compiled_step", None) is None:
         filt.compile(progress=bool(progress) and ddp.rank() == 0)
     weights = weights or LossWeights()
-    data, val = _split(_nonempty("trajectories", as_data(trajectories)), validation, seed)
-    if val is not None:
-        _nonempty("validation", val)
-    cont, cons = _loss_flags(loss, data.x is not None)
+    data, val, cont, cons = _tuning_data(trajectories, validation, seed, loss)
     chosen, skipped = resolve_params(filt, params)
     groups = _tie_groups(tie, chosen)
     names, tuned = list(chosen), list(chosen.values())
-    frozen = [p for p in filt.parameters() if all(p is not q for q in tuned)]
-    saved_flags = [p.requires_grad for p in frozen]
-    for p in frozen:
-        p.requires_grad_(False)
-    for p in tuned:
-        p.requires_grad_(True)
+    restore = _train_only(filt, tuned)
     ddp.broadcast_parameters(filt)
     run = _Run(filt, data, weights, cont, cons, tuned, groups,
                _make_optimizer(optimizer, tuned, lr), batch_size, seed,
@@ -417,62 +397,56 @@ def tune(
         final={}, loss_mode=loss, weights=weights.to_dict(), world_size=ddp.world_size(),
         tied=[list(g) for g in groups], window=window,
     )
-    start_epoch = 0
-    best = (math.inf, copy.deepcopy(filt.state_dict()), 0)
-    if resume is not None:
-        ck = torch.load(resume, weights_only=False)
-        filt.load_state_dict(ck["filter"])
-        run.opt.load_state_dict(ck["optimizer"])
-        start_epoch, report.history = ck["epoch"], ck["history"]
-        best = (ck["best_loss"], ck["best_state"], ck["best_epoch"])
+    start_epoch, best = run.resume(resume, report)
     if val is not None:
         report.validation_before = evaluate(filt, val, weights, loss=loss)
-    is_main = ddp.rank() == 0
-    bar = progress_bar(progress if is_main else False, epochs - start_epoch, "tune", "epoch")
-    bad_vals = 0
-    for epoch in range(start_epoch, epochs):
-        # without validation an epoch is scored by its training loss, which was computed with
-        # the values at the epoch's start: those are the ones to keep if it is the best
-        start = copy.deepcopy(filt.state_dict()) if val is None else None
-        sums, nonfinite = run.epoch(epoch)
-        report.nonfinite_steps += nonfinite
-        row: dict[str, float] = {"epoch": epoch + 1, **sums}
-        for name, vals in hyperparameter_values(filt, names).items():  # for the figures
-            row.update({f"{name}[{i}]": v for i, v in enumerate(vals)})
-        if val is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs):
-            m = evaluate(filt, val, weights, loss=loss)
-            row.update({f"val_{k}": v for k, v in m.items()})
-            score = m["loss"]
-        else:
-            score = sums["loss"] if val is None else None
-        if score is not None:
-            if score < best[0] - 1e-12:
-                best = (score, start if start is not None else copy.deepcopy(filt.state_dict()),
-                        epoch + 1)
-                bad_vals = 0
-                if checkpoint_dir is not None and is_main:
-                    _save(Path(checkpoint_dir) / "best.pt", {"filter": best[1], "epoch": epoch + 1})
-            else:
-                bad_vals += 1
-        report.history.append(row)
-        _advance(bar, sums["loss"], best[0])
-        if checkpoint_dir is not None and is_main and (epoch + 1) % checkpoint_every == 0:
-            run.save_last(Path(checkpoint_dir) / "last.pt", epoch + 1, report.history, best)
-        if val is not None and bad_vals >= patience:
-            report.stopped_early = True
-            break
-    if bar is not None:
-        bar.close()
+    bar = progress_bar(progress if ddp.rank() == 0 else False, epochs - start_epoch, "tune",
+                       "epoch")
+    best = run.train(report, range(start_epoch, epochs), best, val, loss, val_every, patience,
+                     checkpoint_dir, checkpoint_every, bar)
     if best[2] > 0:
         filt.load_state_dict(best[1])
     report.best_epoch = best[2]
-    for p, f in zip(frozen, saved_flags):
-        p.requires_grad_(f)
+    restore()
     report.final = hyperparameter_values(filt, names)
     if val is not None:
         report.validation_after = evaluate(filt, val, weights, loss=loss)
     report.seconds = time.perf_counter() - t0
     return report, filt
+
+
+def _tuning_data(trajectories: Any, validation: Any, seed: int, loss: str
+                 ) -> tuple[Any, Any, bool, bool]:
+    """The training and validation data of `tune` and which loss terms it uses."""
+    data, val = _split(_nonempty("trajectories", as_data(trajectories)), validation, seed)
+    if val is not None:
+        _nonempty("validation", val)
+    cont, cons = _loss_flags(loss, data.x is not None)
+    return data, val, cont, cons
+
+
+def _check_counts(**counts: Any) -> None:
+    """Every count a positive integer (the error names it)."""
+    for label, v in counts.items():
+        if not is_int(v) or v < 1:
+            raise ValueError(f"{label}: must be a positive integer, got {v!r}")
+
+
+def _train_only(filt: nn.Module, tuned: list[Tensor]) -> Any:
+    """Gradients for the ``tuned`` parameters of ``filt`` only -> a function that restores the
+    others' ``requires_grad`` flags."""
+    frozen = [p for p in filt.parameters() if all(p is not q for q in tuned)]
+    saved = [p.requires_grad for p in frozen]
+    for p in frozen:
+        p.requires_grad_(False)
+    for p in tuned:
+        p.requires_grad_(True)
+
+    def restore() -> None:
+        for p, f in zip(frozen, saved):
+            p.requires_grad_(f)
+
+    return restore
 
 
 def _advance(bar: Any, loss: float, best: float) -> None:
@@ -553,6 +527,58 @@ class _Run:
             self.cache.sync(glob)  # every process keeps every trajectory's window states
         _tie_grads(self.groups)
         return ddp.all_reduce_sum(stats)
+
+    def resume(self, path: str | Path | None, report: TuneReport) -> tuple[int, tuple]:
+        """Continue from the checkpoint ``path`` (``None``: start afresh) -> (the first epoch,
+        ``best``: the best score, its state dict and its epoch)."""
+        if path is None:
+            return 0, (math.inf, copy.deepcopy(self.filt.state_dict()), 0)
+        ck = torch.load(path, weights_only=False)
+        self.filt.load_state_dict(ck["filter"])
+        self.opt.load_state_dict(ck["optimizer"])
+        report.history = ck["history"]
+        return ck["epoch"], (ck["best_loss"], ck["best_state"], ck["best_epoch"])
+
+    def train(self, report: TuneReport, epochs: range, best: tuple, val: Any, loss: str,
+              val_every: int, patience: int, checkpoint_dir: str | Path | None,
+              checkpoint_every: int, bar: Any) -> tuple:
+        """The epochs of `tune`: train, score (validation loss every ``val_every`` epochs, or
+        the training loss), checkpoint, stop after ``patience`` validations without
+        improvement -> ``best``. Closes ``bar`` (if any) at the end."""
+        is_main = ddp.rank() == 0
+        bad_vals = 0
+        for epoch in epochs:
+            # without validation an epoch is scored by its training loss, which was computed
+            # with the values at the epoch's start: those are the ones to keep if it is best
+            start = copy.deepcopy(self.filt.state_dict()) if val is None else None
+            sums, nonfinite = self.epoch(epoch)
+            report.nonfinite_steps += nonfinite
+            row: dict[str, float] = {"epoch": epoch + 1, **sums}
+            for name, vals in hyperparameter_values(self.filt, report.params).items():
+                row.update({f"{name}[{i}]": v for i, v in enumerate(vals)})  # for the figures
+            score = sums["loss"] if val is None else None
+            if val is not None and ((epoch + 1) % val_every == 0 or epoch + 1 == epochs.stop):
+                m = evaluate(self.filt, val, self.weights, loss=loss)
+                row.update({f"val_{k}": v for k, v in m.items()})
+                score = m["loss"]
+            if score is not None and score < best[0] - 1e-12:
+                best = (score, start if start is not None else
+                        copy.deepcopy(self.filt.state_dict()), epoch + 1)
+                bad_vals = 0
+                if checkpoint_dir is not None and is_main:
+                    _save(Path(checkpoint_dir) / "best.pt", {"filter": best[1], "epoch": epoch + 1})
+            elif score is not None:
+                bad_vals += 1
+            report.history.append(row)
+            _advance(bar, sums["loss"], best[0])
+            if checkpoint_dir is not None and is_main and (epoch + 1) % checkpoint_every == 0:
+                self.save_last(Path(checkpoint_dir) / "last.pt", epoch + 1, report.history, best)
+            if val is not None and bad_vals >= patience:
+                report.stopped_early = True
+                break
+        if bar is not None:
+            bar.close()
+        return best
 
     def save_last(self, path: Path, epoch: int, history: list, best: tuple) -> None:
         """The checkpoint to resume from (``resume=path``)."""
