@@ -645,8 +645,8 @@ def streaming(filt: nn.Module) -> Iterator[nn.Module]:
     (`diffsmf.filters.streaming`): the step is captured once per input structure (set
     type, tensor shapes, strides, dtypes, devices, ``u`` given or not) with ``make_fx``,
     from the same branch-free code that ``torch.compile`` traces, and compiled by Inductor
-    (seconds, once; reused by later blocks of the same configuration). The EKF's online step
-    at B = 1 went from 0.25 to 0.06 ms (docs/filter_core.md). The inputs are still
+    (seconds, once; reused by later blocks of the same configuration); the online step then
+    skips Dynamo's per-call overhead (docs/filter_core.md). The inputs are still
     validated (``y`` shape, inf / NaN; ``u`` by the system). ``forward`` called inside
     the block runs the same captured step in its loop. While autograd records (or with
     another backend) a call runs the Dynamo-compiled step and skips its guard checks once
@@ -754,8 +754,8 @@ def compiled_hull_and_volume(
         or torch.is_grad_enabled() or tracing()
     ):
         return None
-    # two graphs: fused into one, the two reductions ran at 54 ms instead of 12 + 12
-    # (B = 110,000, m = 24, 1 thread, the filter's scalar-code options)
+    # two graphs: the two reductions fused into one graph run several times slower than
+    # apart with the filter's scalar-code options (large batches)
     hull_fn = compiled_function(filt, "hull", _flat_hull, dynamic=None)
     volume_fn = (compiled_function(filt, "volume", _flat_volume, dynamic=None)
                  if sets.dim == 2 else None)  # None from n = 3 too (an eager volume)

@@ -2,7 +2,7 @@
 
 A call of a ``torch.compile``-d step passes through Dynamo's frame (guard evaluation, or
 entering and leaving its skip-guards stance) and AOTAutograd's and Inductor's wrappers before
-the kernels run. For a 2-state EKF at batch 1 that was about 200 us of a 250 us online step
+the kernels run: at batch 1 that is most of a small filter's online step
 (docs/filter_core.md). Inside `SetFilter.streaming` the filter does not change (its
 documented contract), so the guards have nothing to check. There the step is
 
@@ -62,14 +62,10 @@ _STACK_OPTIONS = {"aot_inductor.allow_stack_allocation": True, "memory_planning"
 #: the filter's own: an intermediate read more than twice, or computed by more than 16 ops, is
 #: stored once instead of recomputed inside every loop that reads it. The code to generate
 #: and compile shrinks, and at batch 1 the step is no slower where the stored values live in
-#: stack arrays. Measured on spring_damper (B = 1, cold cache, one thread, each step paired
-#: with the numpy Alamo loop, alternating runs on a loaded machine): MSZM compiles in 20.6-21.8
-#: s instead of 25.2-29.2 s with Inductor's defaults, and its step runs at 0.42x the numpy loop
-#: (0.41-0.44x with the defaults; 0.38x with thresholds of 1 read and 8 ops, which compile as
-#: fast); HSNSMF compiles as fast as with (1, 8), which took its cold compile from 21.5 to 14 s
-#: on a quieter machine, at 1.09-1.12x against 1.08-1.09x. A step with sorts keeps tensor
-#: handles, one more per stored value at every call, and a large batch pays for the stores
-#: (30 % slower at B = 10,000 with (1, 8)): both keep the defaults.
+#: stack arrays: on spring_damper at B = 1 both HSNSMF and MSZM compile faster and step at
+#: least as fast as with Inductor's defaults (`benchmarks/streaming_bench.py`). A step with
+#: sorts keeps tensor handles, one more per stored value at every call, and a large batch pays
+#: for the stores: both keep the defaults.
 SMALL_STEP_OPTIONS = {"realize_reads_threshold": 2, "realize_opcount_threshold": 16}
 _SORTS = ("sort", "argsort", "topk", "kthvalue", "msort")
 
