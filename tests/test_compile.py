@@ -140,8 +140,8 @@ def test_online_step_runs_the_compiled_step(name, system, hsnsmf_eager_compiled,
     else:
         comp = ds.filters.by_name(name)(s).compile(backend="eager")
     calls = []
-    inner = comp._compiled_step
-    monkeypatch.setattr(comp, "_compiled_step", lambda *a: calls.append(1) or inner(*a))
+    inner = comp._runtime.step
+    monkeypatch.setattr(comp._runtime, "step", lambda *a: calls.append(1) or inner(*a))
     with torch.no_grad():
         ref = eager(tr.y)
         st = comp.initial_state(batch=2)
@@ -204,7 +204,7 @@ def test_streaming_skips_guards_only_for_a_known_structure(monkeypatch, hsnsmf_e
             hull = st.set.interval_hull()
             torch.testing.assert_close(hull.lower, ref.lower[:, -1], rtol=1e-10, atol=1e-13)
             torch.testing.assert_close(hull.upper, ref.upper[:, -1], rtol=1e-10, atol=1e-13)
-    assert comp._stream is None
+    assert comp._runtime.stream is None
     n0 = len(skipped)
     comp.step(comp.initial_state(batch=2), None, tr.y[:2, 0])  # outside the block: guarded
     assert len(skipped) == n0

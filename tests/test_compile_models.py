@@ -12,6 +12,7 @@ import pytest
 import torch
 
 import diffsmf as ds
+from diffsmf.filters.runtime import runtime_of
 
 pytestmark = [pytest.mark.usefixtures("fresh_dynamo"), pytest.mark.slow]  # compiles: slow
 
@@ -170,14 +171,14 @@ def test_compiled_forward_zonotope_hull_and_volume_match_eager():
         torch.testing.assert_close(rc.volume, re.volume, rtol=1e-12, atol=0.0)
         torch.testing.assert_close(rc.lower, re.lower, rtol=1e-12, atol=1e-15)
         torch.testing.assert_close(rc.upper, re.upper, rtol=1e-12, atol=1e-15)
-    assert {"hull", "volume"} <= set(comp._compiled_functions)
+    assert {"hull", "volume"} <= set(comp._runtime.functions)
     # under a recorded gradient the hull and volume stay eager (no compiled backward for them)
     comp2 = ds.filters.MSZM(s).compile(backend="eager")
     tr = s.simulate(steps=2, batch=3, seed=0, noise="vertex")
     res = comp2(tr.y)
     res.volume[:, -1].log().sum().backward()
     assert comp2.raw_process_noise.grad is not None
-    assert not {"hull", "volume"} & set(getattr(comp2, "_compiled_functions", {}))
+    assert not {"hull", "volume"} & set(runtime_of(comp2).functions)
 
 
 @pytest.mark.parametrize("m", [1, 2, 7, 24, 70])

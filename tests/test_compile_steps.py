@@ -48,8 +48,8 @@ def test_steps_per_call_one_graph_same_sets(name, system):
     tr = s.simulate(steps=5, batch=2, seed=1, noise="vertex")  # 5 = 2 + 2 + 1 (+ 1 padded)
     eager = ds.filters.by_name(name)(s)
     comp = ds.filters.by_name(name)(s).compile(steps_per_call=2, backend="eager")
-    calls, inner = [], comp._compiled_steps
-    comp._compiled_steps = lambda *a: calls.append(1) or inner(*a)
+    calls, inner = [], comp._runtime.steps
+    comp._runtime.steps = lambda *a: calls.append(1) or inner(*a)
     torch._dynamo.utils.counters.clear()
     with torch.no_grad():
         re = eager(tr.y, u=tr.u)
@@ -128,7 +128,7 @@ def test_compiled_zonotope_volumes_of_two_systems_in_one_process():
                 re = ds.filters.by_name("mszm")(s)(tr.y[:b], u=u)
                 torch.testing.assert_close(rc.volume, re.volume, rtol=1e-9, atol=0.0)
             # the volume is compiled in 2-D only (from n = 3 its trace can take minutes)
-            assert ("volume" in filt._compiled_functions) == (s.n == 2)
+            assert ("volume" in filt._runtime.functions) == (s.n == 2)
 
 
 def test_inductor_default_options_match_eager():

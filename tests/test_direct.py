@@ -85,7 +85,7 @@ def test_streaming_step_is_dynamo_free_and_matches_eager():
         ref = _run(eager, tr.y, 2)
         with comp.streaming():
             got = _run(comp, tr.y, 2)
-            ((direct, _),) = comp._direct_cache.values()
+            ((direct, _),) = comp._runtime.direct_cache.values()
             built = len(direct._entries)
         with comp.streaming():
             again = _run(comp, tr.y, 2)
@@ -123,7 +123,7 @@ def test_a_changed_global_or_attribute_gives_a_new_compiled_step():
                 _close(got, ref)
     finally:
         _GAIN = old
-    assert len(comp._direct_cache) == 4
+    assert len(comp._runtime.direct_cache) == 4
     key = streaming.config_key(comp)
     comp.skip_nan = True
     assert streaming.config_key(comp) != key
@@ -147,7 +147,7 @@ def test_direct_step_validates_inputs_and_grad_mode_uses_dynamo(monkeypatch):
             comp.step(st, torch.zeros(2, 1), torch.zeros(2, 1))
         comp.step(st, None, [[0.1], [0.2]])  # a nested list is converted as in step
     calls = []
-    monkeypatch.setattr(comp, "_compiled_step", lambda *a: calls.append(a) or a[0])
+    monkeypatch.setattr(comp._runtime, "step", lambda *a: calls.append(a) or a[0])
     with torch.enable_grad(), comp.streaming():
         comp.step(st, None, torch.zeros(2, 1, dtype=torch.float64))
     assert len(calls) == 1
@@ -161,7 +161,7 @@ def test_a_step_that_cannot_be_captured_falls_back_to_dynamo(monkeypatch):
     tr = s.simulate(steps=4, batch=2, seed=1)
     eager = ds.filters.EKF(s)
     comp = ds.filters.EKF(s).compile(backend="eager")
-    comp._direct_options = ({}, {})  # as after an Inductor compile: streaming() tries
+    comp._runtime.direct_options = ({}, {})  # as after an Inductor compile: streaming() tries
 
     def fail(*args, **kw):
         raise NotImplementedError("no fake implementation of some op")

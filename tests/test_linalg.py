@@ -334,7 +334,6 @@ def test_all_minors_match_determinants_and_the_lu_search(n: int, m: int, monkeyp
     `_combinations`, against numpy's determinants, with a repeated column (zero minors) and
     columns of 1e-12, also in chunks of the batch; the basis search chooses the same bases
     with it as with one LU per basis (`_lu_abs_dets`)."""
-    from diffsmf.sets import combinatorics
     from diffsmf.sets import outer_parallelotope as zono
 
     g = torch.Generator().manual_seed(7 * n + m)

@@ -53,7 +53,7 @@ def test_compiled_guarded_step_equals_eager(sd, name):
     torch.testing.assert_close(oc.excess, oe.excess, rtol=1e-12, atol=1e-15)
     for a, b in zip(gc, ge):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-15)
-    assert "guarded_step" in comp.__dict__["_compiled_functions"]  # the compiled path ran
+    assert "guarded_step" in comp._runtime.functions  # the compiled path ran
 
 
 def test_tune_compiled_follows_eager(sd):
@@ -83,7 +83,7 @@ def test_eager_block_bypasses_the_compiled_step(sd):
         out = filter_with_predictions(f, y[:2])
     torch.testing.assert_close(res.volume, ref.volume, rtol=0, atol=0)
     torch.testing.assert_close(out.result.volume[:, :1], ref.volume[:, :1], rtol=0, atol=0)
-    assert f.__dict__.get("_compiled_step") is not None  # kept for after the block
+    assert f._runtime.step is not None  # kept for after the block
     with pytest.raises(Exception, match="eager"):
         f(y[:2])
 

@@ -444,9 +444,14 @@ class SetFilter(nn.Module):
         ``compile()`` (or while tracing) it is the eager ``update(predict(state, u), y)``.
         See also `streaming`.
         """
-        if getattr(self, "_compiled_step", None) is None or tracing():
+        if not self.compiled or tracing():
             return self._eager_step(state, u, y)
         return runtime.online_step(self, state, u, y)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the step is compiled (after ``compile()``, outside an ``eager()`` block)."""
+        return runtime.runtime_of(self).step is not None
 
     def compile(  # type: ignore[override]
         self, steps_per_call: int = 1, *, retain_memory: bool = False, progress: bool = False,

@@ -9,8 +9,9 @@ is ``step``, and `compiled_loop` gives other time loops (the tuning pass) the sa
 The filter's methods ``compile``, ``eager``, ``compiled_function``, ``step``, ``streaming``
 and ``forward`` delegate here.
 
-The runtime keeps its state on the filter (the attributes listed in
-`diffsmf.filters.streaming.RUNTIME_ATTRS`, which are not part of its configuration).
+The runtime keeps what it needs between calls in one `Runtime` object held by the filter
+(``filt._runtime``, `runtime_of`), which is not part of the filter's configuration
+(`diffsmf.filters.streaming.RUNTIME_ATTRS`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import time
 import types
 import warnings
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -51,6 +53,46 @@ __all__ = [
     "streaming",
     "unflatten",
 ]
+
+
+
+@dataclass(eq=False)
+class Runtime:
+    """What a compiled filter keeps between calls (one object per filter, `runtime_of`).
+
+    Attributes:
+        step: the compiled step ``(state, u, y) -> state`` (None: not compiled).
+        steps: ``steps_per_call`` compiled steps in one graph, ``(state, us, ys) -> [state]``.
+        steps_per_call: how many steps ``steps`` runs.
+        out_type: the set type of the states the compiled step returns.
+        compile_kwargs: the ``torch.compile`` arguments of `compile_filter`.
+        functions: other compiled functions of the filter by name (`compiled_function`).
+        progress: print a note per compile (``compile(progress=True)``).
+        guarded_calls: compiled calls with Dynamo's full guard check (`run_steps`).
+        direct_options: Inductor options for the Dynamo-free steps (None: not available).
+        direct_cache: the Dynamo-free steps per configuration (`_direct_steps`).
+        stream: the state of the open ``streaming()`` block (None outside one).
+    """
+
+    step: Callable[..., Any] | None = None
+    steps: Callable[..., Any] | None = None
+    steps_per_call: int = 1
+    out_type: type | None = None
+    compile_kwargs: dict | None = None
+    functions: dict = field(default_factory=dict)
+    progress: Any = False
+    guarded_calls: int = 0
+    direct_options: Any = None
+    direct_cache: dict = field(default_factory=dict)
+    stream: dict | None = None
+
+
+def runtime_of(filt: nn.Module) -> Runtime:
+    """The filter's `Runtime` (created empty on first use)."""
+    rt = filt.__dict__.get("_runtime")
+    if rt is None:
+        rt = filt.__dict__["_runtime"] = Runtime()
+    return rt
 
 
 #: Compiled steps of a ``forward`` call that run Dynamo's full guard check (counted per call of
@@ -343,17 +385,14 @@ def compile_filter(
     if retain_memory:
         retain_freed_memory()
     kw = {"fullgraph": True, "dynamic": False, **compile_kwargs}
-    filt._direct_options = None  # streaming() calls Inductor's graphs directly
+    # a fresh runtime; an open streaming() block keeps its state
+    rt = Runtime(compile_kwargs=kw, progress=progress, stream=runtime_of(filt).stream)
     if kw.get("backend", "inductor") == "inductor" and "mode" not in kw:
         kw["options"] = {**compile_options(), **_check_options(kw.get("options"))}
         if set(kw) <= {"fullgraph", "dynamic", "options", "backend"} and not kw["dynamic"]:
-            filt._direct_options = kw["options"]
-    filt.__dict__.pop("_direct_cache", None)
-    filt.__dict__.pop("_compiled_functions", None)
-    filt.__dict__.pop("_guarded_step_failed", None)
-    filt._compile_kwargs = kw
+            rt.direct_options = kw["options"]  # streaming() calls Inductor's graphs directly
+    filt.__dict__["_runtime"] = rt
     # each its own code object (own recompile budget, see _own_code); compiled lazily
-    filt._compile_progress = progress
     one = _quiet(torch.compile(_own_code(flat_step).__get__(filt), **kw), filt, "step")
     multi = _quiet(torch.compile(_own_code(flat_steps).__get__(filt), **kw), filt,
                    f"{steps_per_call} steps")
@@ -361,30 +400,29 @@ def compile_filter(
     def compiled(state: FilterState, u: Tensor | None, y: Tensor) -> FilterState:
         if not filt._compile_ready(state):
             return filt._eager_step(state, u, y)
-        filt._guarded_calls = getattr(filt, "_guarded_calls", 0) + 1  # see run_steps
+        rt.guarded_calls += 1  # see run_steps
         return unflatten(filt, one(*step_args(filt, state), u, y, type(state.set)))
 
     def compiled_steps(state: FilterState, us: Tensor | None, ys: Tensor) -> list[FilterState]:
-        filt._guarded_calls = getattr(filt, "_guarded_calls", 0) + 1
+        rt.guarded_calls += 1
         outs = multi(*step_args(filt, state), us, ys, type(state.set))
         return [unflatten(filt, o) for o in outs]
 
-    filt._out_type = type(filt.initial_state(batch=1).set)
-    filt._steps_per_call = steps_per_call
-    filt._compiled_step = compiled
-    filt._compiled_steps = compiled_steps
+    rt.out_type = type(filt.initial_state(batch=1).set)
+    rt.steps_per_call = steps_per_call
+    rt.step, rt.steps = compiled, compiled_steps
 
 
 @contextlib.contextmanager
 def eager(filt: nn.Module) -> Iterator[nn.Module]:
     """Inside the block the compiled filter ``filt`` runs eagerly (`SetFilter.eager`); the
     compiled graphs are kept for after the block."""
-    keys = ("_compiled_step", "_compile_kwargs")
-    saved = {k: filt.__dict__.pop(k) for k in keys if k in filt.__dict__}
+    saved = runtime_of(filt)
+    filt.__dict__["_runtime"] = Runtime(stream=saved.stream)
     try:
         yield filt
     finally:
-        filt.__dict__.update(saved)
+        filt.__dict__["_runtime"] = saved
 
 
 class _NoShimNotes(logging.Filter):
@@ -410,7 +448,7 @@ def _quiet(
 
     def call(*args: Any, **kwargs: Any) -> Any:
         key = None
-        if filt is not None and getattr(filt, "_compile_progress", False):
+        if filt is not None and runtime_of(filt).progress:
             key = _call_signature(args)
             key = None if key in seen else key
         t0 = time.perf_counter()
@@ -466,10 +504,10 @@ def compiled_function(
     is cached under ``name`` until the next ``compile()``. Call it on `step_args` and
     rebuild the state with `unflatten`, as the compiled step does.
     """
-    kw = getattr(filt, "_compile_kwargs", None)
+    kw = runtime_of(filt).compile_kwargs
     if kw is None:
         return None
-    cache = filt.__dict__.setdefault("_compiled_functions", {})
+    cache = runtime_of(filt).functions
     if name not in cache:
         cache[name] = _quiet(
             torch.compile(_own_code(fn).__get__(filt), **{**kw, **overrides}), filt,
@@ -489,7 +527,8 @@ def unflatten(filt: nn.Module, out: tuple) -> FilterState:
     """The `FilterState` of a compiled step's output ``(fields, consistent, bounded,
     extras)`` (its set of the filter's compiled set type)."""
     fields, consistent, bounded, extras = out
-    return FilterState(filt._out_type._from_tensors(fields), consistent, extras, bounded)
+    return FilterState(runtime_of(filt).out_type._from_tensors(fields), consistent, extras,
+                       bounded)
 
 
 # ------------------------------------------------------------------------------- time loops
@@ -519,7 +558,8 @@ def _run_steps(
     states = [state]
     ys = y.unbind(1)
     us = [None] * T if u is None else u.unbind(1)
-    if getattr(filt, "_compiled_step", None) is None or tracing():
+    rt = runtime_of(filt)
+    if rt.step is None or tracing():
         with _gc_paused():
             for k in range(T):
                 state = filt._eager_step(state, us[k], ys[k])
@@ -527,7 +567,7 @@ def _run_steps(
                 if bar is not None:
                     bar.update(1)
         return states
-    stream = getattr(filt, "_stream", None)
+    stream = rt.stream
     if stream is not None and stream["direct"] is not None and not torch.is_grad_enabled():
         try:
             with _gc_paused():
@@ -542,8 +582,8 @@ def _run_steps(
             state, states = states[0], states[:1]
             if bar is not None and hasattr(bar, "reset"):
                 bar.reset(total=T)
-    filt._guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
-    K = getattr(filt, "_steps_per_call", 1)
+    rt.guarded_calls = 0  # compiled calls of this forward with Dynamo's full guard check
+    K = rt.steps_per_call
     ys_pad = _pad_horizon(y, K)
     us_pad = None if u is None else _pad_horizon(u, K)
     with contextlib.ExitStack() as stack:
@@ -551,7 +591,7 @@ def _run_steps(
         skipping, k = False, 0
         while k < T:
             if K == 1 or not filt._compile_ready(state):
-                state = filt._compiled_step(state, us[k], ys[k])  # eager when not ready
+                state = rt.step(state, us[k], ys[k])  # eager when not ready
                 states.append(state)
                 k += 1
                 if bar is not None:
@@ -559,13 +599,13 @@ def _run_steps(
             else:  # K steps in one graph; a last part past T runs on repeated y / u
                 chunk = slice(k, k + K)
                 uk = None if us_pad is None else us_pad[:, chunk].contiguous()
-                new = filt._compiled_steps(state, uk, ys_pad[:, chunk].contiguous())
+                new = rt.steps(state, uk, ys_pad[:, chunk].contiguous())
                 states.extend(new[: T - k])
                 state = states[-1]
                 if bar is not None:
                     bar.update(min(K, T - k))
                 k += K
-            if not skipping and filt._guarded_calls >= GUARDED_STEPS:
+            if not skipping and rt.guarded_calls >= GUARDED_STEPS:
                 stack.enter_context(skip_guards())  # once, for the rest of the loop
                 skipping = True
     return states
@@ -615,8 +655,8 @@ def online_step(filt: nn.Module, state: FilterState, u: Tensor | None, y: Tensor
     """``SetFilter.step`` after ``compile()``: the compiled step on validated ``u``, ``y``
     (inside `streaming`: the Dynamo-free step in no-grad mode, else the Dynamo-compiled
     step with its guard checks skipped once two guarded calls saw the same structure)."""
-    compiled = filt._compiled_step
-    stream = getattr(filt, "_stream", None)
+    rt = runtime_of(filt)
+    compiled, stream = rt.step, rt.stream
     if stream is not None and stream["direct"] is not None and not torch.is_grad_enabled():
         return _direct_step(filt, stream, state, u, y)
     u = filt._check_u(u, state)
@@ -629,9 +669,9 @@ def online_step(filt: nn.Module, state: FilterState, u: Tensor | None, y: Tensor
     if stream["guarded"] >= GUARDED_STEPS:
         with skip_guards():
             return compiled(state, u, y)
-    before = getattr(filt, "_guarded_calls", 0)
+    before = rt.guarded_calls
     new = compiled(state, u, y)
-    stream["guarded"] += getattr(filt, "_guarded_calls", 0) > before  # a compiled call
+    stream["guarded"] += rt.guarded_calls > before  # a compiled call
     return new
 
 
@@ -659,8 +699,9 @@ def streaming(filt: nn.Module) -> Iterator[nn.Module]:
     one is compiled anew. Parameters and buffers are inputs of the compiled step (their
     current values are used at every call). Without `compile` it changes nothing.
     """
-    old = getattr(filt, "_stream", None)
-    filt._stream = {
+    rt = runtime_of(filt)
+    old = rt.stream
+    rt.stream = {
         "sig": None, "guarded": 0, "direct": _direct_steps(filt),
         "n_inputs": filt.system.n_inputs, "m": filt.system.m,
         "dtype": filt.system.x0_set.dtype,
@@ -668,7 +709,7 @@ def streaming(filt: nn.Module) -> Iterator[nn.Module]:
     try:
         yield filt
     finally:
-        filt._stream = old
+        runtime_of(filt).stream = old
 
 
 def _direct_step(
@@ -684,7 +725,7 @@ def _direct_step(
         return _direct_call(filt, stream["direct"], state, u, y)
     except CaptureError as err:
         _drop_direct(stream, err)
-    return filt._compiled_step(state, u, y)
+    return runtime_of(filt).step(state, u, y)
 
 
 def _drop_direct(stream: dict, err: CaptureError) -> None:
@@ -714,12 +755,13 @@ def _direct_call(
 def _direct_steps(filt: nn.Module) -> DirectSteps | None:
     """The Dynamo-free compiled steps (`diffsmf.filters.streaming`) for the filter's
     current configuration, or None when it is not compiled with Inductor."""
-    options = getattr(filt, "_direct_options", None)
-    if options is None or getattr(filt, "_compiled_step", None) is None:
+    rt = runtime_of(filt)
+    options = rt.direct_options
+    if options is None or rt.step is None:
         return None
     pins: list = []
     key = config_key(filt, pins)
-    cache = filt.__dict__.setdefault("_direct_cache", {})
+    cache = rt.direct_cache
     if key not in cache:
         if len(cache) >= _DIRECT_CONFIGS:
             cache.pop(next(iter(cache)))

@@ -40,11 +40,7 @@ from diffsmf.filters.state import flat_step
 from diffsmf.utils import traced
 
 #: Attributes of a filter that change while it runs, not its configuration.
-RUNTIME_ATTRS = frozenset({
-    "_compiled_step", "_compiled_steps", "_direct_cache", "_guarded_calls", "_out_type",
-    "_steps_per_call", "_stream", "_direct_options", "_compile_kwargs", "_compiled_functions",
-    "_guarded_step_failed", "_compile_progress",
-})
+RUNTIME_ATTRS = frozenset({"_runtime"})
 
 #: Compiled structures kept per configuration (least recently used dropped first).
 MAX_ENTRIES = 8
@@ -258,7 +254,7 @@ class DirectSteps:
             compiled = inductor_compile(gm, example, options={
                 **small, **options, **(_STACK_OPTIONS if on else {})})
         (n_out, out_extras), = out_keys
-        out_struct = (self._module.filt._out_type, n_out, out_extras)
+        out_struct = (self._module.filt._runtime.out_type, n_out, out_extras)
         call, head = _entry(compiled, example)
         head = [*head, *self._tensors]
         out_meta: list[tuple] = []

@@ -380,7 +380,7 @@ def tune(
     if not isinstance(compile, bool):
         raise ValueError(f"compile: expected True or False, got {compile!r}")
     t0 = time.perf_counter()
-    if compile and getattr(filt, "_compiled_step", None) is None:
+    if compile and not filt.compiled:
         filt.compile(progress=bool(progress) and ddp.rank() == 0)
     weights = weights or LossWeights()
     data, val, cont, cons = _tuning_data(trajectories, validation, seed, loss)
