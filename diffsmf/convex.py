@@ -191,6 +191,11 @@ class ConvexSet:
     _fields: ClassVar[tuple[str, ...]] = ()
     _event_dims: ClassVar[tuple[int, ...]] = ()
 
+    def _rand(self, k: int, m: int, generator: torch.Generator | None = None) -> Tensor:
+        """``k`` draws of ``m`` uniform numbers in ``[0, 1)`` per set -> ``[..., k, m]``."""
+        return torch.rand((*self.batch_shape, k, m), dtype=self.dtype, device=self.device,
+                          generator=generator)
+
     # ------------------------------------------------------------------ structure
     @property
     def center(self) -> Tensor:  # pragma: no cover - abstract

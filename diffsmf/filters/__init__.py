@@ -1,4 +1,7 @@
-"""Filters: HSNSMF, MSZM, CDSMF, ESMF, CombinedFilter, EKF (all ``nn.Module``)."""
+"""Filters: HSNSMF, MSZM, CDSMF, ESMF, CZSMF, CombinedFilter, EKF (all ``nn.Module``).
+
+`SetFilter` is the contract of every filter; `LinearisingFilter` the base of the ones that
+linearise about the set's centre (HSNSMF, MSZM, CDSMF, ESMF, CZSMF)."""
 
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.filters.cdsmf import CDSMF
@@ -8,6 +11,7 @@ from diffsmf.filters.ekf import EKF
 from diffsmf.filters.esmf import ESMF
 from diffsmf.filters.events import FilterEvent, describe_events, event_text
 from diffsmf.filters.hsnsmf import HSNSMF
+from diffsmf.filters.linearising import LinearisingFilter
 from diffsmf.filters.mszm import MSZM
 
 __all__ = [
@@ -21,6 +25,7 @@ __all__ = [
     "FilterEvent",
     "FilterResult",
     "FilterState",
+    "LinearisingFilter",
     "ALIASES",
     "SET_FAMILIES",
     "SetFilter",

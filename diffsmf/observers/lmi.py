@@ -585,13 +585,8 @@ def design_lipschitz_observer(
     if max_gain is not None:
         par["kappa"].value = max_gain
     search = _Search(prob, par, var, con, solver, n)
-    alpha, status = _alpha_search(search, alpha_max, objective, iters)
-    base = dict(time=time, lipschitz=gamma, approx_error=eps, structured=structure is not None)
-    if alpha is None:
-        return _failed(status, base, search, t0, gamma)
-    res = _first_verified(search, alpha, A, C, None, gamma, eps, (Bf, H), base)
-    res.solves, res.seconds = search.solves, _time.perf_counter() - t0
-    return res
+    return _search_verified(search, alpha_max, objective, iters, A, C, None, gamma, eps,
+                            (Bf, H), time, structure is not None, t0)
 
 
 def analyze_observer_gain(
@@ -623,11 +618,21 @@ def analyze_observer_gain(
     par["margin"].value = margin
     par["A"].value, par["g2"].value = A - L @ C, gamma**2
     search = _Search(prob, par, var, con, solver, n)
-    alpha, status = _alpha_search(search, alpha_max, "bound", iters)
-    base = dict(time=time, lipschitz=gamma, approx_error=eps, structured=structure is not None)
+    return _search_verified(search, alpha_max, "bound", iters, A, C, L, gamma, eps, (Bf, H),
+                            time, structure is not None, t0)
+
+
+def _search_verified(search: _Search, alpha_max: float, objective: str, iters: int,
+                     A: np.ndarray, C: np.ndarray, L: np.ndarray | None, gamma: float,
+                     eps: float, BfH: tuple, time: str, structured: bool, t0: float
+                     ) -> ObserverDesign:
+    """The search over alpha, then the first design that verifies (`_first_verified`), or
+    the failed design; with the solve count and the time since ``t0``."""
+    alpha, status = _alpha_search(search, alpha_max, objective, iters)
+    base = dict(time=time, lipschitz=gamma, approx_error=eps, structured=structured)
     if alpha is None:
         return _failed(status, base, search, t0, gamma)
-    res = _first_verified(search, alpha, A, C, L, gamma, eps, (Bf, H), base)
+    res = _first_verified(search, alpha, A, C, L, gamma, eps, BfH, base)
     res.solves, res.seconds = search.solves, _time.perf_counter() - t0
     return res
 

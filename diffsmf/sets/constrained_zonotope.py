@@ -151,10 +151,7 @@ class ConstrainedZonotope(ConvexSet):
             raise ValueError(f"m: cannot pad {k} generators down to {m}")
         if m == k:
             return self
-        G = torch.cat(
-            [self.generators, self.generators.new_zeros(*self.generators.shape[:-1], m - k)], -1
-        )
-        A = torch.cat([self.A, self.A.new_zeros(*self.A.shape[:-1], m - k)], -1)
+        G, A = _zero_pad(self.generators, -1, m - k), _zero_pad(self.A, -1, m - k)
         return ConstrainedZonotope._make(self._c, G, A, self.b)
 
     def pad_constraints(self, k: int) -> ConstrainedZonotope:
@@ -164,10 +161,7 @@ class ConstrainedZonotope(ConvexSet):
             raise ValueError(f"k: cannot pad {j} constraints down to {k}")
         if k == j:
             return self
-        A = torch.cat(
-            [self.A, self.A.new_zeros(*self.A.shape[:-2], k - j, self.num_generators)], -2
-        )
-        b = torch.cat([self.b, self.b.new_zeros(*self.b.shape[:-1], k - j)], -1)
+        A, b = _zero_pad(self.A, -2, k - j), _zero_pad(self.b, -1, k - j)
         return ConstrainedZonotope._make(self._c, self.generators, A, b)
 
     def pad(self, m: int, k: int) -> ConstrainedZonotope:
@@ -755,6 +749,13 @@ class ConstrainedZonotope(ConvexSet):
 
 
 # ---------------------------------------------------------------------- helpers
+def _zero_pad(t: Tensor, dim: int, count: int) -> Tensor:
+    """``t`` with ``count`` zeros appended along ``dim``."""
+    shape = list(t.shape)
+    shape[dim] = count
+    return torch.cat([t, t.new_zeros(shape)], dim)
+
+
 def as_constrained_zonotope(S: ConvexSet) -> ConstrainedZonotope:
     """Same as `ConstrainedZonotope.from_set`."""
     return ConstrainedZonotope.from_set(S)

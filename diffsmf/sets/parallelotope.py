@@ -187,24 +187,12 @@ class Parallelotope(ConvexSet):
 
     def sample(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` points uniform in P -> ``[..., k, n]``."""
-        k = check_count("k", k)
-        u = torch.rand(
-            (*self.batch_shape, k, self.dim),
-            dtype=self.dtype,
-            device=self.device,
-            generator=generator,
-        )
+        u = self._rand(check_count("k", k), self.dim, generator)
         return self._c.unsqueeze(-2) + (2 * u - 1) @ self.T.transpose(-1, -2)
 
     def sample_extreme(self, k: int, generator: torch.Generator | None = None) -> Tensor:
         """``k`` random vertices ``c + T s`` -> ``[..., k, n]``."""
-        k = check_count("k", k)
-        u = torch.rand(
-            (*self.batch_shape, k, self.dim),
-            dtype=self.dtype,
-            device=self.device,
-            generator=generator,
-        )
+        u = self._rand(check_count("k", k), self.dim, generator)
         s = torch.where(u >= 0.5, 1.0, -1.0).to(self.dtype)
         return self._c.unsqueeze(-2) + s @ self.T.transpose(-1, -2)
 
