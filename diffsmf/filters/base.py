@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.convex import ConvexSet, align, family, where
-from diffsmf.filters import runtime
+from diffsmf.filters import measurements, runtime
 from diffsmf.filters.events import (
     MAX_SET_RADIUS,
     FilterEvent,
@@ -385,7 +385,7 @@ class SetFilter(nn.Module):
         if tracing():
             return y
         dtype = self.system.x0_set.dtype
-        return runtime.check_step_y(y, state, self.system.m, dtype, self.skip_nan)
+        return measurements.check_step_y(y, state, self.system.m, dtype, self.skip_nan)
 
     def _check_u(self, u: Tensor | None, state: FilterState) -> Tensor | None:
         """``u [B, p]`` validated by the system (skipped while tracing for torch.compile)."""
@@ -410,10 +410,10 @@ class SetFilter(nn.Module):
         ``progress``: ``True`` shows a progress bar over the T steps (tqdm), or pass a bar
         factory such as ``tqdm`` itself (`diffsmf.utils.progress_bar`); off by default.
         """
-        y = runtime.measurements(y, self.system.m, self.system.x0_set.dtype, self.skip_nan)
+        y = measurements.measurements(y, self.system.m, self.system.x0_set.dtype, self.skip_nan)
         B, T, _ = y.shape
         if not tracing():
-            runtime.check_log(y, u)
+            measurements.check_log(y, u)
             u = self.system.check_input(u, (B, T))
         states = runtime.run_steps(self, self.initial_state(batch=B), y, u, progress)
         return self.collect(states)

@@ -18,9 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
-import itertools
 import logging
-import math
 import sys
 import time
 import types
@@ -33,6 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from diffsmf.convex import ConvexSet
+from diffsmf.filters.measurements import check_step_y
 from diffsmf.filters.state import FilterState, flat_args, flat_step, flat_steps
 from diffsmf.filters.streaming import CaptureError, DirectSteps, config_key, known_options
 from diffsmf.utils import progress_bar, retain_freed_memory, tracing
@@ -53,8 +52,6 @@ __all__ = [
     "streaming",
     "unflatten",
 ]
-
-
 
 @dataclass(eq=False)
 class Runtime:
@@ -107,11 +104,6 @@ GUARDED_STEPS = 2
 
 #: Filter configurations whose Dynamo-free compiled steps are kept (see `_direct_steps`).
 _DIRECT_CONFIGS = 4
-
-
-#: Measurements with at most this many entries are checked for inf / NaN in Python (an
-#: online step's ``y [1, m]``: 1 us instead of two tensor ops and a sync, about 11 us here).
-_SMALL_Y = 64
 
 
 #: Inductor options of `compile_filter`. A filter step is hundreds of operations on
@@ -172,7 +164,6 @@ def _own_code(fn: Any) -> Any:
     return types.FunctionType(code, fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
 
 
-
 def _gc_paused() -> contextlib.AbstractContextManager:
     """Python's cyclic garbage collector off inside ``forward``'s time loop (restored after);
     a no-op while traced (``torch.compile`` of the whole module).
@@ -227,7 +218,6 @@ def _signature(state: FilterState, u: Tensor | None, y: Tensor) -> tuple:
     )
 
 
-
 def _pad_horizon(x: Tensor, K: int) -> Tensor:
     """``x [B, T, d]`` padded along T to a multiple of ``K`` by repeating its last step."""
     pad = -x.shape[1] % K
@@ -247,88 +237,6 @@ def _flat_volume(filt: nn.Module, *fields: Tensor, set_type: type) -> Tensor:
     """Volume ``[N]`` of the set of type ``set_type`` with ``fields`` (batch ``[N]``);
     compiled by `compiled_hull_and_volume`."""
     return set_type._from_tensors(fields).volume()
-
-
-
-def _y_tensor(y: Any, dtype: torch.dtype, device: torch.device | None) -> Tensor:
-    """``y`` as a tensor; ``ValueError`` naming ``y`` when it is None or not numeric (NaN is
-    left to the callers, which honour ``skip_nan``)."""
-    try:
-        return torch.as_tensor(y, dtype=dtype, device=device)
-    except (TypeError, ValueError, RuntimeError) as exc:
-        raise ValueError(f"y: cannot convert {type(y).__name__} to measurements ({exc})") from exc
-
-
-def check_step_y(y: Any, state: FilterState, m: int, dtype: torch.dtype, skip_nan: bool) -> Tensor:
-    """``y [B, m]`` for one step, as a ``dtype`` tensor on the state's device: shape (``B``
-    from ``state.consistent [B]``; the system's ``m``), inf / NaN (`check_finite_y`). ``m``
-    and ``dtype`` are passed in so that `streaming` reads them once per block."""
-    c = state.consistent
-    if not isinstance(y, Tensor) or y.dtype != dtype or y.device != c.device:
-        y = _y_tensor(y, dtype, c.device)
-    if y.shape != (*c.shape, m):
-        expected = [*c.shape, m]
-        raise ValueError(f"y: expected shape {expected} for this state, got {list(y.shape)}")
-    return check_finite_y(y, skip_nan)
-
-
-def check_finite_y(y: Tensor, skip_nan: bool) -> Tensor:
-    """``y`` unchanged; inf raises, NaN raises unless ``skip_nan`` (host syncs)."""
-    if y.numel() <= _SMALL_Y and y.is_cpu:  # online B = 1: no tensor ops
-        values = y.tolist() if y.dim() == 2 else [y.reshape(-1).tolist()]  # [B, m] rows
-        if all(map(math.isfinite, itertools.chain.from_iterable(values))):
-            return y
-    elif bool(torch.isfinite(y).all()):  # the common case: one check
-        return y
-    if torch.isinf(y).any():
-        raise ValueError("y: contains inf")
-    if not skip_nan:
-        raise ValueError("y: contains NaN (pass skip_nan=True to skip those updates)")
-    return y
-
-
-def measurements(y: Any, m: int, dtype: torch.dtype, skip_nan: bool) -> Tensor:
-    """``y [B, T, m]`` of ``forward`` (a ``[T, m]`` log gets ``B = 1``), checked once for the
-    whole horizon (shape; inf / NaN unless traced)."""
-    y = _y_tensor(y, dtype, None) if not isinstance(y, Tensor) else y
-    given = tuple(y.shape)  # the shape the caller passed, for the message
-    if y.dim() == 2:
-        y = y.unsqueeze(0)
-    if y.dim() != 3 or y.shape[-1] != m:
-        raise ValueError(f"y: expected shape [B, T, {m}] (or [T, {m}] for one trajectory), got "
-                         f"{given}{_y_hint(given, m)}")
-    if tracing():  # value checks would sync with the host (torch.compile of forward)
-        return y
-    return check_finite_y(y, skip_nan)
-
-
-def _y_hint(given: tuple[int, ...], m: int) -> str:
-    """What a wrong shape of ``y`` most likely means, as a hint for its error message."""
-    if m == 1 and len(given) == 2 and given[-1] != 1:
-        return ("; with one output keep its dimension: y.unsqueeze(-1) for [B, T] "
-                "measurements")
-    if len(given) == 3 and m in given[:-1]:
-        return "; the outputs go last: [B, T, m]"
-    return ""
-
-
-def check_log(y: Tensor, u: Any) -> None:
-    """Name both ``y [B, T, m]`` and ``u [B, T, p]`` of ``forward`` when one of them has time
-    first: ``u``'s leading dims are ``y``'s swapped (which of the two is transposed cannot
-    be told from the shapes, so the message gives both).
-
-    Raises:
-        ValueError: starting with ``y:``, with both shapes as passed and the fix.
-    """
-    B, T = int(y.shape[0]), int(y.shape[1])
-    shape = getattr(u, "shape", None)
-    if B == T or shape is None or len(shape) != 3 or tuple(shape[:2]) != (T, B):
-        return
-    raise ValueError(
-        f"y: shape {tuple(y.shape)} and u: shape {tuple(shape)} disagree on which dimension is "
-        "time; both must be [B, T, ...] (trajectories first, then steps): transpose the one "
-        "given as [T, B, ...] with .transpose(0, 1)"
-    )
 
 
 # ------------------------------------------------------------------------------- compile
