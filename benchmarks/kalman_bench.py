@@ -110,8 +110,8 @@ def main() -> None:
     st = ekf.initial_state(batch=1)
     x0 = st.set.center[0].numpy()
     P0 = st.extras["covariance"][0].numpy()
-    Q = np.diag(ekf.process_noise.detach().numpy() ** 2 / 3)  # uniform-noise variances
-    R = np.diag(ekf.measurement_noise.detach().numpy() ** 2 / 3)
+    Q = np.diag(ekf.process_half_widths.detach().numpy() ** 2 / 3)  # uniform-noise variances
+    R = np.diag(ekf.measurement_half_widths.detach().numpy() ** 2 / 3)
 
     def reference() -> float:  # filterpy seconds for the horizon
         return filterpy_seconds(y[0].numpy(), x0, P0, Q, R)

@@ -93,8 +93,9 @@ class _Problem:
             raise ValueError(f"system: unsupported initial set {type(X0).__name__}")
         self.c0, self.G = c0, G
         self.p = G.shape[-1]
-        wc, wr = filt.process_noise_center.detach(), filt.process_noise.detach()
-        self.vc, self.vr = filt.measurement_noise_center.detach(), filt.measurement_noise.detach()
+        wc, wr = filt.process_noise_center.detach(), filt.process_half_widths.detach()
+        self.vc, self.vr = (filt.measurement_noise_center.detach(),
+                            filt.measurement_half_widths.detach())
         P = system.parameters
         self.q = 0 if P is None else P.dim
         lo = [-np.ones(self.p)] + [(wc - wr).numpy()] * k

@@ -333,10 +333,17 @@ class Positive:
 
     ``obj.name`` returns ``scale * softplus(raw_name)`` (differentiable in ``raw_name``);
     ``obj.name = value`` resets ``scale`` to ``value`` and ``raw`` to ``inv_softplus(1)``.
+    ``storage``: the name the hyperparameter was registered under, when the attribute has
+    another (``process_half_widths = Positive(storage="process_noise")`` reads
+    ``raw_process_noise``).
     """
 
+    def __init__(self, storage: str | None = None) -> None:
+        self.storage = storage
+
     def __set_name__(self, owner: type, name: str) -> None:
-        self.name = name
+        self.attr = name
+        self.name = self.storage or name
 
     def __get__(self, obj: Any, objtype: type | None = None) -> Any:
         if obj is None:
@@ -359,7 +366,7 @@ class Positive:
 
     def __set__(self, obj: Any, value: Any) -> None:
         scale = getattr(obj, f"{self.name}_scale")
-        v = check_half_widths(self.name, value, scale.numel(), scale.dtype).to(scale.device)
+        v = check_half_widths(self.attr, value, scale.numel(), scale.dtype).to(scale.device)
         with torch.no_grad():
             scale.copy_(v.expand_as(scale))
             getattr(obj, f"raw_{self.name}").fill_(_SOFTPLUS_ONE)

@@ -108,7 +108,7 @@ def run(epochs: int = 30, runs: int = 12, steps: int = 30, seed: int = 0,
     return {"before": before, "after": held_out_figures(filt, data, held),
             "history": history, "omega": omega, "learned": learned,
             "true": -2.0 * torch.tanh(3.0 * omega),
-            "process_noise": filt.process_noise.detach().tolist()}
+            "process_noise": filt.process_half_widths.detach().tolist()}
 
 
 def figure(out: dict, path: str | Path) -> None:

@@ -87,13 +87,15 @@ def _run_stats(rep) -> dict:
 def part_bounds(a: argparse.Namespace) -> dict:
     sys_ = ds.systems.get("spring_damper")
     ref = ds.filters.HSNSMF(sys_)
-    b_w, b_v = ref.process_noise.detach().clone(), ref.measurement_noise.detach().clone()
+    b_w = ref.process_half_widths.detach().clone()
+    b_v = ref.measurement_half_widths.detach().clone()
     train = simulate_finite(sys_, a.train_steps, a.train, a.seed, "vertex")
     val = simulate_finite(sys_, a.train_steps, a.val, a.seed + 1, "vertex")
     test = simulate_finite(sys_, 100, a.test, a.seed + 2, "vertex")
     out = {"b_star": {"process_noise": b_w.tolist(), "measurement_noise": b_v.tolist()}}
     for start in [float(v) for v in a.bound_starts.split(",")]:
-        f = ds.filters.HSNSMF(sys_, process_noise=start * b_w, measurement_noise=start * b_v)
+        f = ds.filters.HSNSMF(sys_, process_half_widths=start * b_w,
+                              measurement_half_widths=start * b_v)
         # before-tuning audit on all held-out trajectories at 5 b* (the area reduction), on
         # the first 200 at 0.2 b* (only its consistency is of interest; saves CPU time)
         before = _audit(f, test if start > 1 else _head(test, 200))
@@ -155,7 +157,7 @@ def part_stirling(a: argparse.Namespace) -> dict:
         test = simulate_finite(sys_, steps, a.test_stirling, a.seed + 2, "vertex")
         cls = ds.filters.by_name(fname)
         plain = cls(sys_)
-        w = plain.process_noise.detach().clone()  # process-noise radius b*_w
+        w = plain.process_half_widths.detach().clone()  # process-noise radius b*_w
         m0 = a.margin_start * w
         f = cls(sys_, remainder_margin=m0)
         params = ("stirling_step", "remainder_margin") if a.margin_start > 0 else ("stirling_step",)
@@ -315,12 +317,14 @@ def part_timing(a: argparse.Namespace) -> dict:
     back-propagation (``--timing-epochs`` epochs timed, extrapolated to 200)."""
     sys_ = ds.systems.get("spring_damper")
     ref = ds.filters.HSNSMF(sys_)
-    b_w, b_v = ref.process_noise.detach().clone(), ref.measurement_noise.detach().clone()
+    b_w = ref.process_half_widths.detach().clone()
+    b_v = ref.measurement_half_widths.detach().clone()
     train = simulate_finite(sys_, 100, 64, a.seed, "vertex")
     test = simulate_finite(sys_, 100, a.test_timing, a.seed + 2, "vertex")
     out = {}
     for window, epochs in ((a.timing_window, 200), (None, a.timing_epochs)):
-        f = ds.filters.HSNSMF(sys_, process_noise=5 * b_w, measurement_noise=5 * b_v)
+        f = ds.filters.HSNSMF(sys_, process_half_widths=5 * b_w,
+                              measurement_half_widths=5 * b_v)
         before = _audit(f, test)
         rep, f = tune(
             f,

@@ -235,3 +235,21 @@ def test_esmf_gradcheck_in_the_ellipsoidal_V_scale():
 
     raw = filt.raw_measurement_noise.detach().clone().requires_grad_()
     assert torch.autograd.gradcheck(vol, (raw,), eps=1e-6, atol=1e-8, rtol=1e-4)
+
+
+def test_the_noise_half_widths_have_their_own_name_and_the_old_one_warns():
+    system = ds.systems.get("spring_damper")
+    filt = ds.filters.HSNSMF(system, process_half_widths=[1e-3, 2e-3])
+    assert filt.process_half_widths.tolist() == [1e-3, 2e-3]
+    assert torch.equal(filt.measurement_half_widths, system.measurement_noise.radius)
+    with pytest.warns(DeprecationWarning, match="process_noise: the filter's noise"):
+        assert torch.equal(filt.process_noise, filt.process_half_widths)
+    with pytest.warns(DeprecationWarning, match="measurement_noise: renamed"):
+        old = ds.filters.HSNSMF(system, measurement_noise=[0.05])
+    assert old.measurement_half_widths.tolist() == [0.05]
+    with pytest.raises(ValueError, match="process_half_widths: give it or its deprecated"):
+        ds.filters.HSNSMF(system, process_half_widths=1e-3, process_noise=1e-3)
+    with pytest.raises(ValueError, match="process_half_widths"):
+        ds.filters.HSNSMF(system, process_half_widths=[-1.0, 1.0])
+    # the stored parameter keeps its name: state dicts, tuning names and bounds files
+    assert "raw_process_noise" in dict(filt.named_parameters())

@@ -482,10 +482,10 @@ def main(args: argparse.Namespace) -> int:
         "steps": T,
         "state_dim": system.n,
         "settings": {
-            "process_noise": filt.process_noise.detach().tolist()
-            if hasattr(filt, "process_noise") else None,
-            "measurement_noise": filt.measurement_noise.detach().tolist()
-            if hasattr(filt, "measurement_noise") else None,
+            "process_noise": filt.process_half_widths.detach().tolist()
+            if hasattr(filt, "process_half_widths") else None,
+            "measurement_noise": filt.measurement_half_widths.detach().tolist()
+            if hasattr(filt, "measurement_half_widths") else None,
             "bounds_file": None if getattr(args, "bounds", None) is None else str(args.bounds),
             "skip_missing": bool(args.skip_missing),
             "format": args.format,
@@ -518,15 +518,17 @@ def _build_filter(cls: type, system: Any, args: argparse.Namespace) -> Any:
         wn = tuned["process_noise"] if wn is None else wn
         vn = tuned["measurement_noise"] if vn is None else vn
     if wn is not None:
-        kw["process_noise"] = wn
+        kw["process_half_widths"] = wn
     if vn is not None:
-        kw["measurement_noise"] = vn
+        kw["measurement_half_widths"] = vn
     if args.skip_missing:
         kw["skip_nan"] = True
     try:
         return cls(system, **kw)
     except TypeError as exc:  # a filter without that option (e.g. CombinedFilter's own bounds)
-        opts = ", ".join(f"--{k.replace('_', '-')}" for k in kw if k != "skip_nan")
+        flags = {"process_half_widths": "--process-noise",
+                 "measurement_half_widths": "--measurement-noise"}
+        opts = ", ".join(flags[k] for k in kw if k in flags)
         if not opts or "unexpected keyword" not in str(exc):
             raise
         raise ValueError(f"{opts}: the {cls.__name__} filter does not take this option "

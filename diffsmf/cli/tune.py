@@ -212,8 +212,8 @@ def build_model_run(cfg: TuneConfig) -> tuple[Any, SetFilter, Data, Data, Data |
     system = load_model(cfg.model)
     filt = _make_filter(cfg, system)
     if cfg.init_scale != 1.0:
-        filt.process_noise = filt.process_noise.detach() * cfg.init_scale
-        filt.measurement_noise = filt.measurement_noise.detach() * cfg.init_scale
+        filt.process_half_widths = filt.process_half_widths.detach() * cfg.init_scale
+        filt.measurement_half_widths = filt.measurement_half_widths.detach() * cfg.init_scale
     logs = _logs(system, cfg)
     k = len(logs) - cfg.val_runs
     idx = torch.arange(len(logs))
@@ -234,12 +234,12 @@ def build(cfg: TuneConfig) -> tuple[Any, SetFilter, dict[str, Any]]:
     system = ds.systems.get(cfg.system)
     filt = _make_filter(cfg, system)
     true = {
-        "process_noise": filt.process_noise.detach().clone(),
-        "measurement_noise": filt.measurement_noise.detach().clone(),
+        "process_noise": filt.process_half_widths.detach().clone(),
+        "measurement_noise": filt.measurement_half_widths.detach().clone(),
     }
     if cfg.init_scale != 1.0:
-        filt.process_noise = true["process_noise"] * cfg.init_scale
-        filt.measurement_noise = true["measurement_noise"] * cfg.init_scale
+        filt.process_half_widths = true["process_noise"] * cfg.init_scale
+        filt.measurement_half_widths = true["measurement_noise"] * cfg.init_scale
     sim = {
         split: simulate_finite(system, cfg.steps, b, cfg.seed + off, cfg.noise)
         for split, b, off in (

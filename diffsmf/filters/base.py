@@ -136,12 +136,32 @@ def warn_uncertified_fit(system: System, filter_name: str) -> None:
             UserWarning, stacklevel=user_stacklevel())
 
 
+def _deprecated(old: str, new: str) -> None:
+    warnings.warn(f"{old}: the filter's noise half-widths are now {new} (the system's "
+                  f"{old} is a set)", DeprecationWarning, stacklevel=3)
+
+
+def _renamed(old: str, old_value: Any, new: str, new_value: Any) -> Any:
+    """The value of the argument ``new``, or of its deprecated name ``old`` (both: an error
+    naming them)."""
+    if old_value is None:
+        return new_value
+    if new_value is not None:
+        raise ValueError(f"{new}: give it or its deprecated name {old}, not both")
+    warnings.warn(f"{old}: renamed {new} (the system's {old} is a set)", DeprecationWarning,
+                  stacklevel=4)
+    return old_value
+
+
 class SetFilter(nn.Module):
     """Base class of every filter (set-membership or Kalman).
 
-    Learnable hyperparameters shared by all filters: ``process_noise [n]`` and
-    ``measurement_noise [m]``, the half-widths of box noise bounds centred at the system's
-    noise centres (default: the half-widths of the interval hulls of the system's noise sets).
+    Learnable hyperparameters shared by all filters: ``process_half_widths [n]`` and
+    ``measurement_half_widths [m]``, the half-widths of the noise bounds, per component
+    (default: the half-widths of the interval hulls of the system's noise sets, so the
+    system's sets themselves; `process_noise_set` scales the system's set to them). The
+    system's ``process_noise`` is a set; ``filt.process_noise`` is a deprecated name of
+    ``filt.process_half_widths``.
 
     A subclass implements ``_predict(state, u)`` (time update on a validated ``u``) and
     ``_update(state, y)`` (measurement update on a finite ``y``), and ``_initial_state(batch)``
@@ -153,13 +173,38 @@ class SetFilter(nn.Module):
 
     Args:
         system: the `System` to filter.
-        process_noise: process noise half-width override ``[n]``.
-        measurement_noise: measurement noise half-width override ``[m]``.
+        process_half_widths: process noise half-widths ``[n]`` instead of the system's.
+        measurement_half_widths: measurement noise half-widths ``[m]`` instead of the
+            system's.
+        process_noise, measurement_noise: deprecated names of the two above.
         skip_nan: skip the update of a batch element whose measurement has NaN (else raise).
     """
 
-    process_noise = Positive()
-    measurement_noise = Positive()
+    process_half_widths = Positive(storage="process_noise")
+    measurement_half_widths = Positive(storage="measurement_noise")
+
+    @property
+    def process_noise(self) -> Tensor:
+        """Deprecated name of `process_half_widths` (the system's ``process_noise`` is a set)."""
+        _deprecated("process_noise", "process_half_widths")
+        return self.process_half_widths
+
+    @process_noise.setter
+    def process_noise(self, value: Tensor) -> None:
+        _deprecated("process_noise", "process_half_widths")
+        self.process_half_widths = value
+
+    @property
+    def measurement_noise(self) -> Tensor:
+        """Deprecated name of `measurement_half_widths`."""
+        _deprecated("measurement_noise", "measurement_half_widths")
+        return self.measurement_half_widths
+
+    @measurement_noise.setter
+    def measurement_noise(self, value: Tensor) -> None:
+        _deprecated("measurement_noise", "measurement_half_widths")
+        self.measurement_half_widths = value
+
     #: Whether ``predict`` and ``update`` give sets of the same field shapes (False for CZSMF,
     #: whose predicted set is larger than its capped update); tuning compiles its guarded step
     #: (`diffsmf.tuning.losses.filter_with_predictions`) only for such filters.
@@ -169,10 +214,12 @@ class SetFilter(nn.Module):
         self,
         system: System,
         *,
-        process_noise: Tensor | None = None,
-        measurement_noise: Tensor | None = None,
+        process_half_widths: Tensor | None = None,
+        measurement_half_widths: Tensor | None = None,
         skip_nan: bool = False,
         learn_noise: bool = True,
+        process_noise: Tensor | None = None,
+        measurement_noise: Tensor | None = None,
     ) -> None:
         super().__init__()
         check_system("system", system)
@@ -181,9 +228,13 @@ class SetFilter(nn.Module):
         self.skip_nan = skip_nan
         n, m = system.n, system.m
         dt = system.x0_set.dtype
-        for name, s, dim, override in (
-            ("process_noise", system.process_noise, n, process_noise),
-            ("measurement_noise", system.measurement_noise, m, measurement_noise),
+        process_half_widths = _renamed("process_noise", process_noise, "process_half_widths",
+                                       process_half_widths)
+        measurement_half_widths = _renamed("measurement_noise", measurement_noise,
+                                           "measurement_half_widths", measurement_half_widths)
+        for noise, s, dim, override in (
+            ("process", system.process_noise, n, process_half_widths),
+            ("measurement", system.measurement_noise, m, measurement_half_widths),
         ):
             if s is None:
                 c, r = torch.zeros(dim, dtype=dt), torch.zeros(dim, dtype=dt)
@@ -191,9 +242,10 @@ class SetFilter(nn.Module):
                 hull = s.interval_hull()
                 c, r = hull.center.detach(), hull.radius.detach()
             if override is not None:
-                r = check_half_widths(name, override, dim, dt)
-            register_positive(self, name, r, learnable=learn_noise)
-            self.register_buffer(f"{name}_center", c.clone())
+                r = check_half_widths(f"{noise}_half_widths", override, dim, dt)
+            # stored as raw_process_noise / process_noise_scale (the tuning names)
+            register_positive(self, f"{noise}_noise", r, learnable=learn_noise)
+            self.register_buffer(f"{noise}_noise_center", c.clone())
         # the hull half-widths of the system's W and V: process_noise_set / measurement_noise_set
         # scale the set per component by the half-width / these (scale 1 is the system's set,
         # for any set type)
@@ -206,21 +258,22 @@ class SetFilter(nn.Module):
 
     # ------------------------------------------------------------------ noise sets
     def process_noise_box(self) -> Interval:
-        """Current process-noise box W ``[n]`` (differentiable in ``process_noise``)."""
-        return _noise_box(self, "process_noise", self.process_noise_center, self.process_noise)
+        """Current process-noise box W ``[n]`` (differentiable in ``process_half_widths``)."""
+        return _noise_box(self, "process_noise", self.process_noise_center,
+                          self.process_half_widths)
 
     def process_noise_set(self) -> ConvexSet:
         """The process-noise set W as given by the system, scaled per component, ``[n]``.
 
-        ``W_s = c + diag(s) (W - c)`` with ``s = process_noise / (half-width of W's interval
+        ``W_s = c + diag(s) (W - c)`` with ``s = process_half_widths / (half-width of W's interval
         hull)``: for a box this is exactly `process_noise_box`; a ``Zonotope`` /
         ``Parallelotope`` keeps its generators (``diag(s) G``) and an ``Ellipsoid`` its shape
         (``diag(s) S diag(s)``), so no filter pays for the interval hull of a non-box W.
         ``s = 1`` (the default) is the system's set. Differentiable in
-        ``process_noise``. A component with a zero hull half-width stays zero.
+        ``process_half_widths``. A component with a zero hull half-width stays zero.
         """
         return self._scaled_noise_set(
-            self.system.process_noise, self.process_noise_box(), self.process_noise,
+            self.system.process_noise, self.process_noise_box(), self.process_half_widths,
             self.process_noise_hull_radius, self.process_noise_center,
         )
 
@@ -228,8 +281,9 @@ class SetFilter(nn.Module):
         """The measurement-noise set V as given by the system, scaled per component, ``[m]``
         (as `process_noise_set`; a box V is exactly `measurement_noise_box`)."""
         return self._scaled_noise_set(
-            self.system.measurement_noise, self.measurement_noise_box(), self.measurement_noise,
-            self.measurement_noise_hull_radius, self.measurement_noise_center,
+            self.system.measurement_noise, self.measurement_noise_box(),
+            self.measurement_half_widths, self.measurement_noise_hull_radius,
+            self.measurement_noise_center,
         )
 
     @staticmethod
@@ -254,9 +308,11 @@ class SetFilter(nn.Module):
         return box
 
     def measurement_noise_box(self) -> Interval:
-        """Current measurement-noise box V ``[m]`` (differentiable in ``measurement_noise``)."""
+        """Current measurement-noise box V ``[m]`` (differentiable in
+        ``measurement_half_widths``)."""
         return _noise_box(
-            self, "measurement_noise", self.measurement_noise_center, self.measurement_noise
+            self, "measurement_noise", self.measurement_noise_center,
+            self.measurement_half_widths,
         )
 
 

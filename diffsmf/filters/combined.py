@@ -140,8 +140,8 @@ class CombinedFilter(SetFilter):
         process_cov: override Q.
         measurement_cov: override R.
 
-    Learnable (softplus-positive): ``process_noise [n]``, ``measurement_noise [m]`` (interval
-    hull half-widths of D, E: ``D = diag(r/r0) D0 diag(r/r0)``), ``process_std [n]``,
+    Learnable (softplus-positive): ``process_half_widths [n]``, ``measurement_half_widths [m]``
+    (interval hull half-widths of D, E: ``D = diag(r/r0) D0 diag(r/r0)``), ``process_std [n]``,
     ``measurement_std [m]`` (square roots of the diagonals of Q, R, scaled the same way).
 
     State: ``set = Ellipsoid(a, S)`` ``[B]``, ``extras["covariance"] = P [B, n, n]``.
@@ -187,8 +187,8 @@ class CombinedFilter(SetFilter):
         )
         super().__init__(
             system,
-            process_noise=None if process_shape is None else _diag_sqrt(D0),
-            measurement_noise=None if measurement_shape is None else _diag_sqrt(E0),
+            process_half_widths=None if process_shape is None else _diag_sqrt(D0),
+            measurement_half_widths=None if measurement_shape is None else _diag_sqrt(E0),
             skip_nan=skip_nan,
             learn_noise=learn_noise,
         )
@@ -224,20 +224,20 @@ class CombinedFilter(SetFilter):
         self.register_buffer("E0", E0)
         self.register_buffer("Q0", Q0)
         self.register_buffer("R0", R0)
-        self.register_buffer("r_w0", self.process_noise.detach().clone())
-        self.register_buffer("r_v0", self.measurement_noise.detach().clone())
+        self.register_buffer("r_w0", self.process_half_widths.detach().clone())
+        self.register_buffer("r_v0", self.measurement_half_widths.detach().clone())
         register_positive(self, "process_std", _diag_sqrt(Q0), learnable=learn_noise)
         register_positive(self, "measurement_std", _diag_sqrt(R0), learnable=learn_noise)
         self._gaussian_meas = bool((R0 != 0).any())
 
     # ------------------------------------------------------------------ noise matrices
     def process_bound(self) -> Tensor:
-        """Bounded process-noise shape ``D [n, n]`` (differentiable in ``process_noise``)."""
-        return _scaled(self.D0, self.process_noise, self.r_w0)
+        """Bounded process-noise shape ``D [n, n]`` (differentiable in ``process_half_widths``)."""
+        return _scaled(self.D0, self.process_half_widths, self.r_w0)
 
     def measurement_bound(self) -> Tensor:
         """Bounded measurement-noise shape ``E [m, m]`` (differentiable)."""
-        return _scaled(self.E0, self.measurement_noise, self.r_v0)
+        return _scaled(self.E0, self.measurement_half_widths, self.r_v0)
 
     def process_covariance(self) -> Tensor:
         """Gaussian process covariance ``Q [n, n]`` (differentiable in ``process_std``)."""

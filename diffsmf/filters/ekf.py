@@ -59,12 +59,12 @@ class EKF(SetFilter):
 
     def process_covariance(self) -> Tensor:
         """``Q [n, n]``: ``diag(r_w^2 / 3)`` (+ ``system.process_cov``)."""
-        Q = torch.diag_embed(self.process_noise**2 / 3)
+        Q = torch.diag_embed(self.process_half_widths**2 / 3)
         return Q if self.system.process_cov is None else Q + self.system.process_cov
 
     def measurement_covariance(self) -> Tensor:
         """``R [m, m]``: ``diag(r_v^2 / 3)`` (+ ``system.measurement_cov``)."""
-        R = torch.diag_embed(self.measurement_noise**2 / 3)
+        R = torch.diag_embed(self.measurement_half_widths**2 / 3)
         return R if self.system.measurement_cov is None else R + self.system.measurement_cov
 
     def _initial_state(self, batch: int | None = None) -> FilterState:

@@ -93,7 +93,7 @@ def noise_generators(filt: SetFilter) -> tuple[Tensor, Tensor, Tensor | None]:
     W0 = filt.system.process_noise
     if (W0 is None or isinstance(W0, Interval)) and _plain_noise_set(filt):
         # the box W itself (`SetFilter.process_noise_box`), without forming the Interval
-        return filt.process_noise_center, filt.process_noise, None
+        return filt.process_noise_center, filt.process_half_widths, None
     W = filt.process_noise_set()
     if isinstance(W, Zonotope):
         return W.center, torch.zeros_like(W.center), W.generators

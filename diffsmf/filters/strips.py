@@ -293,7 +293,7 @@ def _measurement_box(filt: SetFilter) -> Interval | _NoiseBox:
     that method (as `diffsmf.filters.prediction.noise_generators` does for W), else the
     filter's own override."""
     if type(filt).measurement_noise_box is SetFilter.measurement_noise_box:
-        return _NoiseBox(filt.measurement_noise_center, filt.measurement_noise)
+        return _NoiseBox(filt.measurement_noise_center, filt.measurement_half_widths)
     return filt.measurement_noise_box()
 
 

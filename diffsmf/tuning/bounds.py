@@ -39,8 +39,8 @@ def write_bounds(
 
     Args:
         path: the file to write.
-        filt: a filter with ``process_noise [n]`` and ``measurement_noise [m]`` half-widths
-            and their centres (``*_center``), e.g. the filter `tune` returned.
+        filt: a filter with ``process_half_widths [n]`` and ``measurement_half_widths [m]``
+            and the noise centres (``*_noise_center``), e.g. the filter `tune` returned.
         safety: factor >= 1 on the tuned half-widths (your engineering margin).
         initial: optional half-widths before tuning, kept in the file for the record.
         record: more entries for the record (JSON values), e.g. ``consistency_scale``.
@@ -53,7 +53,7 @@ def write_bounds(
                            "system": getattr(getattr(filt, "system", None), "name", None),
                            "safety": float(safety), "tuned": {}}
     for name in NOISES:
-        half = getattr(filt, name, None)
+        half = getattr(filt, name.replace("_noise", "_half_widths"), None)
         if not isinstance(half, Tensor):
             raise ValueError(f"filt: {type(filt).__name__} has no {name} half-widths to write")
         center = getattr(filt, f"{name}_center", torch.zeros_like(half))

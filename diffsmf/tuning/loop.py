@@ -36,6 +36,11 @@ DEFAULT_PARAMS = ("process_noise", "measurement_noise", "stirling_step")
 # ESMF have a Minkowski-weight scale) is skipped.
 OPTIONAL_PARAMS = ("remainder_margin", "minkowski_scale")
 KNOWN_PARAMS = DEFAULT_PARAMS + OPTIONAL_PARAMS
+#: Tuning names of the noise bounds (as in bounds files and on the command line) -> the
+#: filter's parameters (`SetFilter.process_half_widths`, ...); the latter are accepted too.
+NOISE_PARAMS = {"process_noise": "process_half_widths",
+                "measurement_noise": "measurement_half_widths"}
+_STORED = {v: k for k, v in NOISE_PARAMS.items()}  # the filter's name -> the stored one
 LOSS_MODES = ("auto", "consistency", "containment", "both")
 
 
@@ -126,9 +131,10 @@ def resolve_params(
         names = [names]
     out, skipped = {}, []
     for n in names:
-        if f"raw_{n}" in named:
-            out[n] = named[f"raw_{n}"]
-            scale = getattr(filt, f"{n}_scale", None)
+        attr = _STORED.get(n, n)
+        if f"raw_{attr}" in named:
+            out[n] = named[f"raw_{attr}"]
+            scale = getattr(filt, f"{attr}_scale", None)
             if isinstance(scale, Tensor) and not bool((scale != 0).any()):
                 warnings.warn(
                     f"params: {n!r} is 0 (scale * softplus(raw) with scale 0) and stays 0 "
@@ -151,7 +157,7 @@ def hyperparameter_values(filt: nn.Module, names: Sequence[str]) -> dict[str, li
     named = dict(filt.named_parameters())
     out = {}
     for n in names:
-        v = getattr(filt, n, None) if "." not in n else None
+        v = getattr(filt, NOISE_PARAMS.get(n, n), None) if "." not in n else None
         if not isinstance(v, Tensor):
             v = named[n]
         out[n] = torch.as_tensor(v).detach().reshape(-1).tolist()
@@ -252,7 +258,7 @@ def _tie_groups(
     if tie is None:
         return {}
     if tie == "noise":
-        tie = [[n for n in ("process_noise", "measurement_noise") if n in chosen]]
+        tie = [[n for n in (*NOISE_PARAMS, *NOISE_PARAMS.values()) if n in chosen]]
     if isinstance(tie, str):
         raise ValueError(f"tie: expected 'noise', None or groups of names, got {tie!r}")
     out = {}

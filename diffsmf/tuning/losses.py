@@ -174,8 +174,8 @@ def consistency_excess(filt: SetFilter, predicted: ConvexSet, y: Tensor) -> Tens
     else:
         r = hi - Jc  # [m, B]; the set is symmetric about c
     r = r.movedim(0, -1)  # [B, m]
-    rv = filt.measurement_noise
-    scale = (rv + (J.abs() * filt.process_noise).sum(-1)).clamp_min(1e-12)
+    rv = filt.measurement_half_widths
+    scale = (rv + (J.abs() * filt.process_half_widths).sum(-1)).clamp_min(1e-12)
     return ((y - mid).abs() - r - rv) / scale
 
 
@@ -347,7 +347,7 @@ def prediction_loss(filt: SetFilter, result: FilterResult, y: Tensor, u: Tensor 
     system = filt.system
     x_pred = system(result.center[:, :-1], u)  # [B, T, n]
     y_pred = system.h(x_pred) + filt.measurement_noise_center
-    e = system.innovation(y, y_pred) / filt.measurement_noise.detach().clamp_min(1e-300)
+    e = system.innovation(y, y_pred) / filt.measurement_half_widths.detach().clamp_min(1e-300)
     return (e * e).mean()
 
 
