@@ -95,3 +95,13 @@ def test_bad_settings_name_the_field():
 def test_esmf_refuses_a_stirling_step_by_name():
     with pytest.raises(ValueError, match="stirling_step: ESMF linearises with the autograd"):
         ds.filters.ESMF(ds.systems.get("spring_damper"), stirling_step=0.1)
+
+
+def test_the_enclosure_type_has_one_name_and_the_old_one_warns():
+    from diffsmf.interval.engine import Enclosure
+
+    assert ds.linearize.Enclosure is Enclosure
+    with pytest.warns(DeprecationWarning, match="renamed Enclosure"):
+        assert ds.linearize.Jet is Enclosure
+    with pytest.raises(AttributeError, match="no attribute 'Jett'"):
+        ds.linearize.Jett  # noqa: B018

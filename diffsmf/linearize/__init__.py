@@ -1,7 +1,13 @@
 """Linearisation: point Jacobians (autograd, Stirling), interval jets and remainder bounds."""
 
 from diffsmf.linearize.jacobians import hessian, jacobian, stirling_jacobian
-from diffsmf.linearize.jets import Jet, JetError, interval_hessian, interval_jacobian, jet_eval
+from diffsmf.linearize.jets import (
+    Enclosure,
+    JetError,
+    interval_hessian,
+    interval_jacobian,
+    jet_eval,
+)
 from diffsmf.linearize.remainders import (
     AUTO_VERTEX_MAX_N,
     REMAINDERS,
@@ -28,7 +34,7 @@ __all__ = [
     "Lagrange",
     "MeanValue",
     "RemainderBound",
-    "Jet",
+    "Enclosure",
     "JetError",
     "dc_remainder",
     "diagonal_shift",
@@ -45,3 +51,12 @@ __all__ = [
     "stirling_jacobian",
 ]
 __all__ += ["axis_points", "statistical_linearization"]
+
+
+def __getattr__(name: str):
+    """``Jet``: the deprecated name of `Enclosure` (`diffsmf.linearize.jets`)."""
+    if name == "Jet":
+        from diffsmf.linearize import jets
+
+        return jets.__getattr__(name)
+    raise AttributeError(f"module 'diffsmf.linearize' has no attribute {name!r}")

@@ -17,7 +17,7 @@ from diffsmf.convex import ConvexSet
 from diffsmf.interval.arith import Stacked
 from diffsmf.interval.box import Interval
 from diffsmf.linearize.jacobians import jacobian, value_and_jacobian
-from diffsmf.linearize.jets import Jet, JetError, jet_eval
+from diffsmf.linearize.jets import Enclosure, JetError, jet_eval
 from diffsmf.utils import tracing
 
 __all__ = ["float_padding", "is_affine"]
@@ -71,7 +71,7 @@ def is_affine(fn: Fn, S: ConvexSet) -> bool:
     return known
 
 
-def _remember(fn: Fn, jet: Jet) -> bool:
+def _remember(fn: Fn, jet: Enclosure) -> bool:
     """Record ``fn`` as affine when ``jet``'s Hessian is structurally zero -> that flag."""
     if jet.hess_is_zero and not tracing():
         try:
@@ -172,7 +172,7 @@ def _quad_form(H: Interval, d: Interval) -> Interval:
 
 
 def _lagrange(
-    jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, D: Tensor | None
+    jet: Enclosure, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, D: Tensor | None
 ) -> Interval:
     """Song et al. 2017, eq. 26-28 from the jet over ``box``; ``D = J_exact(c) - J`` or None."""
     d = box.__sub__(c)  # [..., n] (outward rounded; the method call traces under Dynamo)
@@ -186,7 +186,7 @@ def _lagrange(
 
 
 def _lower_order(
-    fn: Fn, jet: Jet, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, R: Interval,
+    fn: Fn, jet: Enclosure, box: Interval, S: ConvexSet, c: Tensor, J: Tensor | None, R: Interval,
     jv: Tensor | None = None, d: tuple[Tensor, Tensor, Tensor] | None = None,
 ) -> Interval:
     """``R`` intersected with the bounds of lower order, per output.

@@ -9,6 +9,7 @@ included (their Hessian enclosure is ``[-inf, inf]`` where a kink lies in the bo
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -16,10 +17,7 @@ from diffsmf.interval.box import Interval
 from diffsmf.interval.capture import EngineError
 from diffsmf.interval.engine import Enclosure, enclose
 
-__all__ = ["Jet", "JetError", "interval_hessian", "interval_jacobian", "jet_eval"]
-
-#: The enclosures of a model over a box (value, Jacobian, Hessians).
-Jet = Enclosure
+__all__ = ["Enclosure", "JetError", "interval_hessian", "interval_jacobian", "jet_eval"]
 #: A model the engine cannot enclose (a ``ValueError``: the CLI prints one line).
 JetError = EngineError
 
@@ -52,3 +50,13 @@ def interval_hessian(fn: Callable[[Any], Any], box: Interval) -> Interval:
     out = enclose(fn, box, 2)
     assert out.hess is not None
     return out.hess
+
+
+def __getattr__(name: str) -> Any:
+    """``Jet``: the deprecated name of `Enclosure` here (``diffsmf.interval.jet.Jet`` is the
+    engine's interval jet, another type)."""
+    if name == "Jet":
+        warnings.warn("diffsmf.linearize.Jet is renamed Enclosure (diffsmf.interval.jet.Jet is "
+                      "the engine's interval jet)", DeprecationWarning, stacklevel=2)
+        return Enclosure
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

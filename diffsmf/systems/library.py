@@ -6,7 +6,7 @@ tests: ``horizon`` (the simulation length used here; the papers' figures, or a s
 where the paper gives none) and ``paper_x0`` (the paper's true initial state, or ``None``).
 The model functions use only ``x[..., i]`` indexing, ``torch.stack``, arithmetic and
 elementwise torch functions, so they also run on `Interval` arguments
-(interval extensions) and on `Jet` (interval Hessians).
+(interval extensions) and on the engine's enclosures (interval Hessians).
 """
 
 from __future__ import annotations
