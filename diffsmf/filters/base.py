@@ -15,6 +15,8 @@ are `diffsmf.filters.state`.
 from __future__ import annotations
 
 import contextlib
+import os
+import sys
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -136,9 +138,33 @@ def warn_uncertified_fit(system: System, filter_name: str) -> None:
             UserWarning, stacklevel=user_stacklevel())
 
 
-def _deprecated(old: str, new: str) -> None:
-    warnings.warn(f"{old}: the filter's noise half-widths are now {new} (the system's "
-                  f"{old} is a set)", DeprecationWarning, stacklevel=3)
+class _Renamed:
+    """A deprecated attribute name that reads and writes the attribute ``new`` (a
+    `DeprecationWarning` at the user's line)."""
+
+    def __init__(self, new: str) -> None:
+        self.new = new
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.old = name
+        self.__doc__ = f"Deprecated name of `{self.new}`."
+
+    def __get__(self, obj: Any, objtype: type | None = None) -> Any:
+        if obj is None:
+            return self
+        self._warn()
+        return getattr(obj, self.new)
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        self._warn()
+        setattr(obj, self.new, value)
+
+    def _warn(self) -> None:
+        level, frame = 3, sys._getframe(2)  # the user, past torch's Module.__setattr__
+        while frame is not None and f"{os.sep}torch{os.sep}" in frame.f_code.co_filename:
+            frame, level = frame.f_back, level + 1
+        warnings.warn(f"{self.old}: the filter's noise half-widths are now {self.new} (the "
+                      f"system's {self.old} is a set)", DeprecationWarning, stacklevel=level)
 
 
 def _renamed(old: str, old_value: Any, new: str, new_value: Any) -> Any:
@@ -149,7 +175,7 @@ def _renamed(old: str, old_value: Any, new: str, new_value: Any) -> Any:
     if new_value is not None:
         raise ValueError(f"{new}: give it or its deprecated name {old}, not both")
     warnings.warn(f"{old}: renamed {new} (the system's {old} is a set)", DeprecationWarning,
-                  stacklevel=4)
+                  stacklevel=user_stacklevel())
     return old_value
 
 
@@ -183,27 +209,8 @@ class SetFilter(nn.Module):
     process_half_widths = Positive(storage="process_noise")
     measurement_half_widths = Positive(storage="measurement_noise")
 
-    @property
-    def process_noise(self) -> Tensor:
-        """Deprecated name of `process_half_widths` (the system's ``process_noise`` is a set)."""
-        _deprecated("process_noise", "process_half_widths")
-        return self.process_half_widths
-
-    @process_noise.setter
-    def process_noise(self, value: Tensor) -> None:
-        _deprecated("process_noise", "process_half_widths")
-        self.process_half_widths = value
-
-    @property
-    def measurement_noise(self) -> Tensor:
-        """Deprecated name of `measurement_half_widths`."""
-        _deprecated("measurement_noise", "measurement_half_widths")
-        return self.measurement_half_widths
-
-    @measurement_noise.setter
-    def measurement_noise(self, value: Tensor) -> None:
-        _deprecated("measurement_noise", "measurement_half_widths")
-        self.measurement_half_widths = value
+    process_noise = _Renamed("process_half_widths")
+    measurement_noise = _Renamed("measurement_half_widths")
 
     #: Whether ``predict`` and ``update`` give sets of the same field shapes (False for CZSMF,
     #: whose predicted set is larger than its capped update); tuning compiles its guarded step
