@@ -106,6 +106,8 @@ def test_noise_override_errors_name_the_argument(bad):
         ds.filters.HSNSMF(s, measurement_noise=bad)
     with pytest.raises(ValueError, match="process_noise"):
         ds.filters.CDSMF(s, process_noise=[1e-3, 1e-3, 1e-3] if bad != "x" else "x")
+    with pytest.raises(ValueError, match="measurement_half_widths"):  # the current name
+        ds.filters.MSZM(s, measurement_half_widths=bad)
 
 
 def _tank_cascade(n: int = 6) -> ds.System:

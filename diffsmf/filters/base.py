@@ -167,17 +167,16 @@ class _Renamed:
                       f"system's {self.old} is a set)", DeprecationWarning, stacklevel=level)
 
 
-def _renamed(old: str, old_value: Any, new: str, new_value: Any) -> Any:
-    """The value of the argument ``new``, or of its deprecated name ``old`` (both: an error
-    naming them)."""
+def _renamed(old: str, old_value: Any, new: str, new_value: Any) -> tuple[Any, str]:
+    """``(value, name)`` of the argument ``new`` or of its deprecated name ``old``, the name
+    the caller used (for the errors); both given: an error naming them."""
     if old_value is None:
-        return new_value
+        return new_value, new
     if new_value is not None:
         raise ValueError(f"{new}: give it or its deprecated name {old}, not both")
     warnings.warn(f"{old}: renamed {new} (the system's {old} is a set)", DeprecationWarning,
                   stacklevel=user_stacklevel())
-    return old_value
-
+    return old_value, old
 
 class SetFilter(nn.Module):
     """Base class of every filter (set-membership or Kalman).
@@ -235,13 +234,13 @@ class SetFilter(nn.Module):
         self.skip_nan = skip_nan
         n, m = system.n, system.m
         dt = system.x0_set.dtype
-        process_half_widths = _renamed("process_noise", process_noise, "process_half_widths",
-                                       process_half_widths)
-        measurement_half_widths = _renamed("measurement_noise", measurement_noise,
-                                           "measurement_half_widths", measurement_half_widths)
-        for noise, s, dim, override in (
-            ("process", system.process_noise, n, process_half_widths),
-            ("measurement", system.measurement_noise, m, measurement_half_widths),
+        for noise, s, dim, override, label in (
+            ("process", system.process_noise, n,
+             *_renamed("process_noise", process_noise, "process_half_widths",
+                       process_half_widths)),
+            ("measurement", system.measurement_noise, m,
+             *_renamed("measurement_noise", measurement_noise, "measurement_half_widths",
+                       measurement_half_widths)),
         ):
             if s is None:
                 c, r = torch.zeros(dim, dtype=dt), torch.zeros(dim, dtype=dt)
@@ -249,7 +248,7 @@ class SetFilter(nn.Module):
                 hull = s.interval_hull()
                 c, r = hull.center.detach(), hull.radius.detach()
             if override is not None:
-                r = check_half_widths(f"{noise}_half_widths", override, dim, dt)
+                r = check_half_widths(label, override, dim, dt)
             # stored as raw_process_noise / process_noise_scale (the tuning names)
             register_positive(self, f"{noise}_noise", r, learnable=learn_noise)
             self.register_buffer(f"{noise}_noise_center", c.clone())
