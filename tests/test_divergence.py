@@ -167,3 +167,19 @@ def test_linalg_cholesky_gives_nan_for_a_non_pd_element_only():
     L = linalg.cholesky(S)
     assert torch.equal(L[0], torch.linalg.cholesky(S[0]))
     assert bool(torch.isnan(L[1]).all()) and bool(torch.isnan(L[2]).all())
+
+
+def test_mszm_with_tightened_strips_is_tighter_on_a_tank_cascade():
+    """Every second level measured: the published strip family keeps the measured levels no
+    narrower than the strips, the cut strips follow the overlap (0 outside either way)."""
+    s = _tank_cascade(6)
+    tr = s.simulate(10, batch=2, seed=0, noise="vertex")
+    with torch.no_grad():
+        plain = ds.filters.MSZM(s)(tr.y)
+        cut = ds.filters.MSZM(s, tighten_strips=True)(tr.y)
+    for res in (plain, cut):
+        assert bool(res.bounded.all()) and bool(res.sets.contains(tr.x).all())
+    width = lambda r: (r.upper[:, -1] - r.lower[:, -1]).sum(-1)  # noqa: E731
+    assert bool((width(cut) < 0.8 * width(plain)).all()), (width(cut), width(plain))
+    with pytest.raises(ValueError, match="tighten_strips: expected True or False"):
+        ds.filters.MSZM(s, tighten_strips="yes")

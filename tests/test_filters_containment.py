@@ -41,3 +41,17 @@ def test_guaranteed_containment(filter_name, system_name, noise):
     assert rep.violations == 0, str(rep)
     assert rep.inconsistent == 0, str(rep)  # true data never contradict the model
     assert rep.mean_volume > 0 and torch.isfinite(torch.tensor(rep.mean_volume))
+
+
+@pytest.mark.parametrize("system_name", _bounded_systems())
+def test_mszm_with_tightened_strips_contains_and_is_no_looser(system_name):
+    """MSZM's cut strips (``tighten_strips=True``): 0 outside with vertex noise, and a mean
+    volume no larger than the published strips' on the same trajectories."""
+    system = systems.get(system_name)
+    trials, steps = BUDGET.get(system_name, (300, 8))
+    rep = containment(filters.MSZM(system, tighten_strips=True), system, trials=trials,
+                      steps=steps, noise="vertex", seed=11)
+    plain = containment(filters.MSZM(system), system, trials=trials, steps=steps,
+                        noise="vertex", seed=11)
+    assert rep.violations == 0 and rep.inconsistent == 0, str(rep)
+    assert rep.mean_volume <= plain.mean_volume * (1 + 1e-9), (rep, plain)

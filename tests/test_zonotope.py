@@ -292,6 +292,46 @@ def test_intersect_strip_outer(method, n, m):
     assert R.volume() < Z.volume()
 
 
+@pytest.mark.parametrize("method", ["fradius", "volume"])
+@pytest.mark.parametrize("n,m,shift", [(2, 4, 0.7), (3, 5, 1.1), (3, 6, 0.0)])
+def test_intersect_strip_tightened_is_outer_and_no_wider(method, n, m, shift):
+    """``tighten=True``: still an outer bound of Z cap S (sampled points and the exact
+    vertices of the intersection). With the F-radius weight its range along the strip's
+    normal is never wider than the published family's, ``(1 - t) rho + t sigma`` with the
+    weight ``t`` moving to the narrower, cut strip; strictly narrower on a partial overlap."""
+    Z = rand_zono(n, m, seed=50 + n + m)
+    g = torch.Generator().manual_seed(7)
+    a = torch.randn(n, generator=g, dtype=torch.float64)
+    rho = float((a @ Z.generators).abs().sum())
+    y = float(a @ Z.center) + shift * rho
+    S = ds.Strip(a, y, 0.6 * rho)
+    R = Z.intersect_strip(S, method=method, tighten=True)
+    x = Z.sample(4000, generator=g)
+    Vs = torch.as_tensor(strip_vertices(Z.center.numpy(), Z.generators.numpy(), a.numpy(), y,
+                                        0.6 * rho))
+    assert R.contains(x[S.contains(x)]).all() and R.contains(Vs).all()
+    if method == "fradius":
+        plain = Z.intersect_strip(S, method=method)
+        along = float((a @ R.generators).abs().sum())
+        before = float((a @ plain.generators).abs().sum())
+        assert along <= before * (1 + 1e-12)
+        if shift > 0:  # the strip reaches past Z: a partial overlap
+            assert along < before * 0.99
+
+
+def test_intersect_strip_tightened_in_one_dimension_is_the_exact_intersection():
+    """In one dimension the volume weight (lambda = 1) on the cut strip gives the interval
+    Z cap S itself; the published family is no narrower than the narrower operand."""
+    Z = ds.Zonotope(torch.tensor([0.0], dtype=torch.float64),
+                    torch.tensor([[1.0, 0.5]], dtype=torch.float64))  # [-1.5, 1.5]
+    S = ds.Strip(torch.tensor([1.0], dtype=torch.float64), 1.2, 0.5)  # [0.7, 1.7]
+    H = Z.intersect_strip(S, method="volume", tighten=True).interval_hull()
+    assert H.lower.item() == pytest.approx(0.7, abs=1e-12)
+    assert H.upper.item() == pytest.approx(1.5, abs=1e-12)
+    H0 = Z.intersect_strip(S, method="volume").interval_hull()
+    assert (H0.upper - H0.lower).item() >= 1.0 - 1e-12
+
+
 def test_intersect_strip_volume_method_beats_fradius_and_random_lambdas():
     Z = rand_zono(2, 5, seed=30)
     S = ds.Strip(torch.tensor([1.0, -0.5]), (torch.tensor([1.0, -0.5]) @ Z.center).item(), 0.4)
