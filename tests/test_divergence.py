@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import load_script
 
 import diffsmf as ds
 
@@ -111,26 +112,10 @@ def test_noise_override_errors_name_the_argument(bad):
 
 
 def _tank_cascade(n: int = 6) -> ds.System:
-    """Tanks in a row with square-root outflows, every second level measured: the ellipsoidal
-    sets of ESMF grow until they leave sqrt's domain (levels below 0)."""
-    g, k, dt = 9.81, 0.015, 1.0
-
-    def f(x, u=None, theta=None):
-        q = k * torch.sqrt(2 * g * x)
-        inflow = torch.cat([torch.full_like(x[..., :1], 0.1), q[..., :-1]], -1)
-        return x + dt * (inflow - q)
-
-    idx = list(range(1, n, 2))
-
-    def h(x):
-        return x[..., idx]
-
-    def box(lo, hi, d):
-        return ds.Interval(torch.full((d,), lo, dtype=F64), torch.full((d,), hi, dtype=F64))
-
-    return ds.System(f, h, box(16.0, 24.0, n), box(-0.01, 0.01, n), box(-0.2, 0.2, len(idx)),
-                     name="tanks")
-
+    """Tanks in a row with square-root outflows, every second level measured (the plant of
+    ``benchmarks/large_plants.py``): the ellipsoidal sets of ESMF grow until they leave
+    sqrt's domain (levels below 0)."""
+    return load_script("benchmarks", "large_plants").tank_cascade(n)
 
 def test_esmf_on_a_tank_cascade_flags_each_trajectory_and_never_raises():
     """Three measured levels make the update's factorisations LAPACK's (m >= 3); a diverged
