@@ -34,7 +34,7 @@ import torch
 import diffsmf as ds
 
 F64 = torch.float64
-GUARANTEED = ("hsnsmf", "mszm", "mszm-cut", "cdsmf", "esmf", "czsmf")
+GUARANTEED = ("hsnsmf", "mszm", "mszm-cut", "cdsmf", "esmf", "czsmf", "interval")
 #: Rows that are a filter with options: the name, the filter and its options.
 VARIANTS = {"mszm-cut": ("mszm", {"tighten_strips": True})}
 

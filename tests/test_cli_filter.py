@@ -287,7 +287,8 @@ def diverging(case):
     return d, model, log, traj
 
 
-@pytest.mark.parametrize("name", ["hsnsmf", "mszm", "cdsmf", "esmf", "czsmf", "combined"])
+@pytest.mark.parametrize("name", ["hsnsmf", "mszm", "cdsmf", "esmf", "czsmf", "combined",
+                                  "interval"])
 def test_unbounded_steps_are_inf_never_a_finite_placeholder(diverging, capsys, name):
     d, model, log, traj = diverging
     out = d / f"div_{name}"

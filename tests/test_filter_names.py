@@ -12,7 +12,7 @@ from diffsmf import filters
 from diffsmf.sets import ConstrainedZonotope, Ellipsoid, Parallelotope, Zonotope
 
 SET_CLASS = {"parallelotope": Parallelotope, "zonotope": Zonotope, "ellipsoid": Ellipsoid,
-             "constrained-zonotope": ConstrainedZonotope}
+             "constrained-zonotope": ConstrainedZonotope, "interval": ds.Interval}
 
 
 @pytest.mark.parametrize(("name", "cls"), [

@@ -12,7 +12,7 @@ import torch
 import diffsmf as ds
 from diffsmf.filters import CDSMF, EKF, ESMF, HSNSMF, MSZM, by_name
 
-GUARANTEED = [HSNSMF, MSZM, CDSMF, ESMF]
+GUARANTEED = [HSNSMF, MSZM, CDSMF, ESMF, ds.filters.IntervalFilter]
 ALL = [*GUARANTEED, EKF]
 
 A_LIN = torch.tensor([[0.9, 0.2], [-0.1, 0.8]], dtype=torch.float64)
@@ -237,7 +237,7 @@ def test_nan_raises_and_skip_nan_skips(cls):
 
 
 @pytest.mark.parametrize(
-    "name", ["hsnsmf", "mszm", "cdsmf", "esmf", "ekf", "czsmf", "combined"]
+    "name", ["hsnsmf", "mszm", "cdsmf", "esmf", "ekf", "czsmf", "combined", "interval"]
 )
 def test_eager_update_and_step_check_y(name):
     """``update`` / ``step`` (eager) refuse a measurement that would broadcast (``[1, m]``,
@@ -267,7 +267,7 @@ def test_eager_update_and_step_check_y(name):
 
 
 @pytest.mark.parametrize(
-    "name", ["hsnsmf", "mszm", "cdsmf", "esmf", "ekf", "czsmf", "combined"]
+    "name", ["hsnsmf", "mszm", "cdsmf", "esmf", "ekf", "czsmf", "combined", "interval"]
 )
 def test_initial_state_batch_checked(name):
     """``initial_state(batch=...)``: a count or None; -1, True, 2.5 raise naming ``batch``

@@ -31,7 +31,7 @@ def _bounded_systems() -> list[str]:
 
 @pytest.mark.parametrize("noise", ["vertex", "uniform"])
 @pytest.mark.parametrize("system_name", _bounded_systems())
-@pytest.mark.parametrize("filter_name", ["hsnsmf", "mszm", "cdsmf", "esmf"])
+@pytest.mark.parametrize("filter_name", ["hsnsmf", "mszm", "cdsmf", "esmf", "interval"])
 def test_guaranteed_containment(filter_name, system_name, noise):
     system = systems.get(system_name)
     trials, steps = BUDGET.get(system_name, DEFAULT)

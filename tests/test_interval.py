@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 import diffsmf as ds
 from diffsmf.sets.interval import Interval, interval_eval
+from diffsmf.utils import HIGHS_OPTIONS
 
 SETTINGS = settings(max_examples=25, deadline=None)
 
@@ -443,3 +444,81 @@ def test_traced_rounding_moves_k_ulps_and_never_makes_a_subnormal(dtype) -> None
                       (both[1], 1, math.inf), (point[0], 1, -math.inf), (point[1], 1, math.inf)):
         ref = rounding._traced_step(t, k, d)
         torch.testing.assert_close(got, ref, rtol=0, atol=0, equal_nan=True)
+
+
+def _lp_hull(lo, hi, a, y, w):
+    """Exact hull of the box [lo, hi] cut by |a.x - y| <= w, by scipy HiGHS (None: empty)."""
+    import numpy as np
+    from scipy.optimize import linprog
+
+    n = len(lo)
+    A_ub, b_ub = np.vstack([a, -a]), np.array([y + w, w - y])
+    out = []
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = 1.0
+        kw = {"bounds": list(zip(lo, hi)), "method": "highs", "options": HIGHS_OPTIONS}
+        r1 = linprog(e, A_ub=A_ub, b_ub=b_ub, **kw)
+        r2 = linprog(-e, A_ub=A_ub, b_ub=b_ub, **kw)
+        if r1.status == 2:
+            return None
+        out.append((r1.fun, -r2.fun))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_intersect_strip_is_the_exact_hull_of_box_and_strip(seed):
+    """Against HiGHS's min / max of every coordinate over the box cut by the strip: the same
+    bounds to 1e-9, never inside them (outward), and a zero slope leaves its coordinate."""
+    import numpy as np
+
+    g = torch.Generator().manual_seed(seed)
+    n = 2 + seed % 3
+    lo = torch.randn(n, generator=g, dtype=torch.float64)
+    hi = lo + 0.1 + torch.rand(n, generator=g, dtype=torch.float64)
+    a = torch.randn(n, generator=g, dtype=torch.float64)
+    a[0] = 0.0 if seed % 2 else a[0]
+    box = Interval(lo, hi)
+    mid = float(a @ box.center)
+    y, w = mid + 0.3 * float(a.abs() @ box.radius), 0.25 * float(a.abs() @ box.radius)
+    got = box.intersect_strip(ds.Strip(a, y, w))
+    ref = _lp_hull(lo.numpy(), hi.numpy(), a.numpy(), y, w)
+    assert ref is not None
+    ref_lo, ref_hi = np.array(ref).T
+    x = box.sample(20000, generator=g)
+    keep = ds.Strip(a, y, w).contains(x)
+    assert keep.any() and got.contains(x[keep]).all()  # outward: every point of the cut
+    np.testing.assert_allclose(got.lower.numpy(), ref_lo, atol=1e-9)
+    np.testing.assert_allclose(got.upper.numpy(), ref_hi, atol=1e-9)
+    if seed % 2:
+        assert got.lower[0] == lo[0] and got.upper[0] == hi[0]
+
+
+def test_intersect_strip_with_infinite_bounds_and_an_empty_cut():
+    inf = float("inf")
+    box = Interval(torch.tensor([-inf, 0.0, 0.0]), torch.tensor([inf, 1.0, 1.0]))
+    a = torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)
+    got = box.intersect_strip(ds.Strip(a, 0.5, 0.5))  # 0 <= x0 + x1 <= 1
+    assert not torch.isnan(got.lower).any() and not torch.isnan(got.upper).any()
+    assert got.lower[0] == pytest.approx(-1.0) and got.upper[0] == pytest.approx(1.0)
+    assert got.lower[1] == 0.0 and got.upper[1] == 1.0  # x0 is unbounded: x1 keeps its box
+    far = box.intersect_strip(ds.Strip(torch.tensor([0.0, 1.0, 0.0]), 5.0, 1.0))
+    assert torch.equal(far.lower, box.lower) and torch.equal(far.upper, box.upper)  # empty
+
+
+def test_intersect_strip_batched_and_differentiable():
+    g = torch.Generator().manual_seed(3)
+    lo = torch.randn(4, 3, generator=g, dtype=torch.float64)
+    r = (0.2 + torch.rand(4, 3, generator=g, dtype=torch.float64)).requires_grad_()
+    a = torch.randn(4, 3, generator=g, dtype=torch.float64)
+    y = (a * lo).sum(-1)
+    w = torch.full((4,), 0.3, dtype=torch.float64, requires_grad=True)
+
+    def hull(r, w):
+        out = Interval(lo, lo + r).intersect_strip(ds.Strip(a, y, w))
+        return out.lower, out.upper
+
+    assert torch.autograd.gradcheck(hull, (r, w))
+    one = Interval(lo[1], lo[1] + r[1]).intersect_strip(ds.Strip(a[1], y[1], w[1]))
+    both = hull(r, w)
+    assert torch.equal(one.lower, both[0][1]) and torch.equal(one.upper, both[1][1])

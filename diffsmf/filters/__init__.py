@@ -1,7 +1,8 @@
-"""Filters: HSNSMF, MSZM, CDSMF, ESMF, CZSMF, CombinedFilter, EKF (all ``nn.Module``).
+"""Filters: HSNSMF, MSZM, CDSMF, ESMF, CZSMF, IntervalFilter, CombinedFilter, EKF (all
+``nn.Module``).
 
 `SetFilter` is the contract of every filter; `LinearisingFilter` the base of the ones that
-linearise about the set's centre (HSNSMF, MSZM, CDSMF, ESMF, CZSMF)."""
+linearise about the set's centre (HSNSMF, MSZM, CDSMF, ESMF, CZSMF, IntervalFilter)."""
 
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
 from diffsmf.filters.cdsmf import CDSMF
@@ -11,6 +12,7 @@ from diffsmf.filters.ekf import EKF
 from diffsmf.filters.esmf import ESMF
 from diffsmf.filters.events import FilterEvent, describe_events, event_text
 from diffsmf.filters.hsnsmf import HSNSMF
+from diffsmf.filters.interval_filter import IntervalFilter
 from diffsmf.filters.linearising import LinearisingFilter
 from diffsmf.filters.mszm import MSZM
 
@@ -21,6 +23,7 @@ __all__ = [
     "EKF",
     "ESMF",
     "HSNSMF",
+    "IntervalFilter",
     "MSZM",
     "FilterEvent",
     "FilterResult",
@@ -39,7 +42,7 @@ __all__ = [
 
 _NAMES: dict[str, type[SetFilter]] = {
     "hsnsmf": HSNSMF, "mszm": MSZM, "cdsmf": CDSMF, "esmf": ESMF, "ekf": EKF, "czsmf": CZSMF,
-    "combined": CombinedFilter,
+    "combined": CombinedFilter, "interval": IntervalFilter,
 }
 
 #: Other names of the filters: CORA's observer names (Althoff's toolbox) for the ones it has,

@@ -414,6 +414,32 @@ class Interval(ConvexSet, IntervalArray):
             torch.maximum(self.lower, other.lower), torch.minimum(self.upper, other.upper)
         )
 
+    def intersect_strip(self, strip: Any) -> Interval:
+        """Interval hull of the box and ``strip`` ``{x : |a.x - y| <= w}`` (``normal``,
+        ``offset``, ``halfwidth``), exact up to an outward rounding margin: for each ``j``
+        with ``a_j != 0``, ``x_j`` lies in ``(y +- w - sum_{k != j} a_k x_k) / a_j``, the
+        projection of the box cut by the strip (the revise step of interval constraint
+        propagation, Jaulin et al. 2001). Infinite bounds are handled (an unbounded
+        component leaves the others' bounds unbounded, never NaN). An empty intersection
+        returns the box unchanged; `intersects_strip` flags it.
+        """
+        a, y, w = strip.normal, strip.offset.unsqueeze(-1), strip.halfwidth.unsqueeze(-1)
+        lo, hi = self.lower, self.upper
+        zero = a == 0
+        t1, t2 = a * lo, a * hi
+        t_lo = torch.minimum(t1, t2).masked_fill(zero, 0.0)  # a_j x_j over the box [..., n]
+        t_hi = torch.maximum(t1, t2).masked_fill(zero, 0.0)
+        other_lo, other_hi = _sum_of_others(t_lo), _sum_of_others(t_hi)
+        num_lo, num_hi = y - w - other_hi, y + w - other_lo  # range of a_j x_j [..., n]
+        a_safe = a.masked_fill(zero, 1.0)
+        q1, q2 = num_lo / a_safe, num_hi / a_safe
+        mag = (t_lo.abs() + t_hi.abs()).nan_to_num(posinf=0.0).sum(-1, keepdim=True)
+        pad = 8 * (a.shape[-1] + 2) * eps(lo) * (y.abs() + w + mag) / a_safe.abs()
+        new_lo = torch.where(zero, lo, torch.maximum(lo, torch.minimum(q1, q2) - pad))
+        new_hi = torch.where(zero, hi, torch.minimum(hi, torch.maximum(q1, q2) + pad))
+        empty = (new_lo > new_hi).any(-1, keepdim=True)
+        return Interval._make(torch.where(empty, lo, new_lo), torch.where(empty, hi, new_hi))
+
     def is_empty(self) -> Tensor:
         """True where some component has ``lower > upper`` -> bool ``batch_shape``."""
         return (self.lower > self.upper).any(-1)
@@ -443,6 +469,17 @@ class Interval(ConvexSet, IntervalArray):
             return NotImplemented
         return impl(*args, **kwargs)
 
+
+
+def _sum_of_others(t: Tensor) -> Tensor:
+    """``sum_{k != j} t_k`` for every ``j`` ``[..., n]``, where ``t`` may hold ``inf`` terms of
+    one sign: infinite where another term is, never ``inf - inf``."""
+    inf = torch.isinf(t)
+    finite = t.masked_fill(inf, 0.0)
+    total = finite.sum(-1, keepdim=True)
+    others_inf = inf.sum(-1, keepdim=True) - inf.to(torch.int64) > 0
+    sign = torch.where(inf, t, torch.zeros_like(t)).sum(-1, keepdim=True).sign()
+    return torch.where(others_inf, sign * torch.inf, total - finite)
 
 class _StackedInterval(Stacked, Interval):
     """An Interval stored as one tensor ``both [2, ...]``; ``lower``/``upper`` are views."""
