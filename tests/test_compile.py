@@ -22,6 +22,7 @@ CASES = [
     ("esmf", "spring_damper"),
     ("esmf", "mismatch_quadratic"),  # square H: the two-sided update, traced branch-free
     ("ekf", "spring_damper"),
+    ("interval", "vdp"),
     ("combined", "radar"),
 ]
 
