@@ -41,6 +41,9 @@ __all__ = [
 
 #: the folder of the diffsmf package (frames there are not the user's, `user_stacklevel`)
 _PACKAGE_ROOT = str(Path(__file__).resolve().parent)
+#: torch's folder: its frames between the user and diffsmf (``nn.Module.__call__``,
+#: ``__setattr__``) are not the user's either
+_TORCH_ROOT = str(Path(torch.__file__).resolve().parent)
 
 
 def progress_bar(progress: Any, total: int, desc: str, unit: str) -> Any:
@@ -65,9 +68,11 @@ def progress_bar(progress: Any, total: int, desc: str, unit: str) -> Any:
 
 def user_stacklevel() -> int:
     """The ``stacklevel`` for ``warnings.warn`` called by the caller of this function that
-    points at the first frame outside the diffsmf package (the user's line)."""
+    points at the first frame outside the diffsmf and torch packages (the user's line, also
+    when torch's ``Module.__call__`` or ``__setattr__`` stands between)."""
     frame, level = sys._getframe(1), 1
-    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE_ROOT):
+    while frame is not None and frame.f_code.co_filename.startswith(
+            (_PACKAGE_ROOT, _TORCH_ROOT)):
         frame, level = frame.f_back, level + 1
     return level
 

@@ -15,8 +15,6 @@ are `diffsmf.filters.state`.
 from __future__ import annotations
 
 import contextlib
-import os
-import sys
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -138,6 +136,12 @@ def warn_uncertified_fit(system: System, filter_name: str) -> None:
             UserWarning, stacklevel=user_stacklevel())
 
 
+#: The noise bounds by their stored and tuning names (``raw_process_noise``, ``params=
+#: ["process_noise"]``, bounds files, the command line) -> the filter's attributes.
+NOISE_HALF_WIDTHS = {"process_noise": "process_half_widths",
+                     "measurement_noise": "measurement_half_widths"}
+
+
 class _Renamed:
     """A deprecated attribute name that reads and writes the attribute ``new`` (a
     `DeprecationWarning` at the user's line)."""
@@ -160,11 +164,9 @@ class _Renamed:
         setattr(obj, self.new, value)
 
     def _warn(self) -> None:
-        level, frame = 3, sys._getframe(2)  # the user, past torch's Module.__setattr__
-        while frame is not None and f"{os.sep}torch{os.sep}" in frame.f_code.co_filename:
-            frame, level = frame.f_back, level + 1
         warnings.warn(f"{self.old}: the filter's noise half-widths are now {self.new} (the "
-                      f"system's {self.old} is a set)", DeprecationWarning, stacklevel=level)
+                      f"system's {self.old} is a set)", DeprecationWarning,
+                      stacklevel=user_stacklevel())
 
 
 def _renamed(old: str, old_value: Any, new: str, new_value: Any) -> tuple[Any, str]:
@@ -205,11 +207,11 @@ class SetFilter(nn.Module):
         skip_nan: skip the update of a batch element whose measurement has NaN (else raise).
     """
 
-    process_half_widths = Positive(storage="process_noise")
+    process_half_widths = Positive(storage="process_noise")  # see NOISE_HALF_WIDTHS
     measurement_half_widths = Positive(storage="measurement_noise")
 
-    process_noise = _Renamed("process_half_widths")
-    measurement_noise = _Renamed("measurement_half_widths")
+    process_noise = _Renamed(NOISE_HALF_WIDTHS["process_noise"])
+    measurement_noise = _Renamed(NOISE_HALF_WIDTHS["measurement_noise"])
 
     #: Whether ``predict`` and ``update`` give sets of the same field shapes (False for CZSMF,
     #: whose predicted set is larger than its capped update); tuning compiles its guarded step

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from diffsmf import linalg
 from diffsmf.convex import ConvexSet
 from diffsmf.filters.base import FilterState
 from diffsmf.filters.linearising import LinearisingFilter
@@ -58,7 +57,7 @@ class IntervalFilter(LinearisingFilter):
         E, ev = prediction_remainder(  # not finite: flagged (events), never NaN
             self.system, self.remainder_fn, fn, B, c, F, u, self.remainder_margin, events=True
         )  # eq. 14-18 (+ margin)
-        Z = zonotope_prediction(self, fc, linalg.traced_matmul(F, r.diag_embed()), E)
+        Z = zonotope_prediction(self, fc, F * r.unsqueeze(-2), E)  # F diag(r)
         return predicted_state(state, Z.interval_hull(), ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:

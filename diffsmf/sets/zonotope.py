@@ -375,14 +375,16 @@ class Zonotope(ConvexSet):
         c, G = _expand_to(c, (*batch, self.dim)), _expand_to(G, (*batch, *G.shape[-2:]))
         p, y, sig = _expand_to(p, (*batch, self.dim)), _expand_to(y, batch), _expand_to(sig, batch)
         Gp = (p.unsqueeze(-1) * G).sum(-2)  # p'G [..., m]
-        r = y - (p * c).sum(-1)  # y - p'c
+        pc = (p * c).sum(-1)
+        r = y - pc  # y - p'c
+        rad = Gp.abs().sum(-1)  # the zonotope's half-width along p
         with torch.no_grad():
-            dist, rad = r.abs(), Gp.abs().sum(-1)
+            dist = r.abs()
             inside = dist + rad <= sig
             empty = dist > rad + sig
         if tighten:
-            y, sig = _tightened_strip(p, c, y, sig, Gp, empty)
-            r = y - (p * c).sum(-1)
+            y, sig = _tightened_strip(pc, rad, y, sig, Gp.shape[-1], empty)
+            r = y - pc
         lam = _alamo_lambda(c, G, p, y, sig, method, Gp)
         with torch.no_grad():
             zero = (inside | empty).unsqueeze(-1)
@@ -415,19 +417,19 @@ def _hull_weights(G: Tensor, A: Tensor | None = None) -> Tensor:
 
 
 
-def _tightened_strip(p: Tensor, c: Tensor, y: Tensor, sig: Tensor, Gp: Tensor, empty: Tensor
+def _tightened_strip(pc: Tensor, rad: Tensor, y: Tensor, sig: Tensor, m: int, empty: Tensor
                      ) -> tuple[Tensor, Tensor]:
-    """The strip ``|p.x - y| <= sig`` cut to the range ``p.c +- sum |p'G|`` of the zonotope,
-    padded outward by ``8 (m + 2) eps`` times the magnitudes (so the cut never drops a point
-    of the zonotope to rounding) -> ``(y', sig')`` ``[...]``; an empty overlap keeps the
-    strip (the caller returns the input there)."""
-    pc = (p * c).sum(-1)
-    rad = Gp.abs().sum(-1)
-    pad = 8 * (Gp.shape[-1] + 2) * _EPS * (pc.abs() + rad + y.abs() + sig)
+    """The strip ``|p.x - y| <= sig`` cut to the range ``pc +- rad`` of the zonotope along
+    ``p`` (``pc = p.c``, ``rad = sum |p'G|`` over its ``m`` generators), padded outward by
+    ``8 (m + 2) eps`` times the magnitudes (so the cut never drops a point of the zonotope to
+    rounding) -> ``(y', sig')`` ``[...]``; an empty overlap keeps the strip (the caller
+    returns the input there)."""
+    pad = 8 * (m + 2) * _EPS * (pc.abs() + rad + y.abs() + sig)
     lo = torch.maximum(y - sig, pc - rad - pad)
     hi = torch.minimum(y + sig, pc + rad + pad)
     y2, sig2 = 0.5 * (lo + hi), 0.5 * (hi - lo) + pad
     return torch.where(empty, y, y2), torch.where(empty, sig, sig2)
+
 
 def _uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | None) -> Tensor:
     u = torch.rand(shape, dtype=like.dtype, device=like.device, generator=generator)

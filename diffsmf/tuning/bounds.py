@@ -20,6 +20,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from diffsmf.filters.base import NOISE_HALF_WIDTHS
 from diffsmf.sets.interval import Interval
 
 __all__ = ["FORMAT", "NOISES", "bound_sets", "consistent_scale", "read_bounds", "write_bounds"]
@@ -53,7 +54,7 @@ def write_bounds(
                            "system": getattr(getattr(filt, "system", None), "name", None),
                            "safety": float(safety), "tuned": {}}
     for name in NOISES:
-        half = getattr(filt, name.replace("_noise", "_half_widths"), None)
+        half = getattr(filt, NOISE_HALF_WIDTHS[name], None)
         if not isinstance(half, Tensor):
             raise ValueError(f"filt: {type(filt).__name__} has no {name} half-widths to write")
         center = getattr(filt, f"{name}_center", torch.zeros_like(half))

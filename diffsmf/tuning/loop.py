@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from diffsmf.filters.base import SetFilter, check_filter
+from diffsmf.filters.base import NOISE_HALF_WIDTHS, SetFilter, check_filter
 from diffsmf.systems import Trajectory
 from diffsmf.tuning import ddp
 from diffsmf.tuning.losses import LossWeights, filter_with_predictions, total_loss
@@ -36,11 +36,9 @@ DEFAULT_PARAMS = ("process_noise", "measurement_noise", "stirling_step")
 # ESMF have a Minkowski-weight scale) is skipped.
 OPTIONAL_PARAMS = ("remainder_margin", "minkowski_scale")
 KNOWN_PARAMS = DEFAULT_PARAMS + OPTIONAL_PARAMS
-#: Tuning names of the noise bounds (as in bounds files and on the command line) -> the
-#: filter's parameters (`SetFilter.process_half_widths`, ...); the latter are accepted too.
-NOISE_PARAMS = {"process_noise": "process_half_widths",
-                "measurement_noise": "measurement_half_widths"}
-_STORED = {v: k for k, v in NOISE_PARAMS.items()}  # the filter's name -> the stored one
+#: The filter's names of the noise half-widths -> their tuning (stored) names; both are
+#: accepted (`diffsmf.filters.base.NOISE_HALF_WIDTHS`).
+_STORED = {v: k for k, v in NOISE_HALF_WIDTHS.items()}
 LOSS_MODES = ("auto", "consistency", "containment", "both")
 
 
@@ -157,7 +155,7 @@ def hyperparameter_values(filt: nn.Module, names: Sequence[str]) -> dict[str, li
     named = dict(filt.named_parameters())
     out = {}
     for n in names:
-        v = getattr(filt, NOISE_PARAMS.get(n, n), None) if "." not in n else None
+        v = getattr(filt, NOISE_HALF_WIDTHS.get(n, n), None) if "." not in n else None
         if not isinstance(v, Tensor):
             v = named[n]
         out[n] = torch.as_tensor(v).detach().reshape(-1).tolist()
@@ -258,7 +256,7 @@ def _tie_groups(
     if tie is None:
         return {}
     if tie == "noise":
-        tie = [[n for n in (*NOISE_PARAMS, *NOISE_PARAMS.values()) if n in chosen]]
+        tie = [[n for n in (*NOISE_HALF_WIDTHS, *NOISE_HALF_WIDTHS.values()) if n in chosen]]
     if isinstance(tie, str):
         raise ValueError(f"tie: expected 'noise', None or groups of names, got {tie!r}")
     out = {}
