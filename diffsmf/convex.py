@@ -22,7 +22,7 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor
 
-from diffsmf.utils import checking, is_int, tracing, user_stacklevel
+from diffsmf.utils import broadcast_shapes, checking, is_int, tracing, user_stacklevel
 
 DEFAULT_DTYPE = torch.float64
 
@@ -397,3 +397,27 @@ def where(cond: Tensor, a: ConvexSet, b: ConvexSet) -> ConvexSet:
         c = cond.reshape(cond.shape + (1,) * e)
         out.append(torch.where(c, ta, tb))
     return a._rebuild(out)
+
+
+def strip_fields(strip: Any, ref: ConvexSet) -> tuple[Tensor, Tensor, Tensor]:
+    """(normal [..., n], offset [...], halfwidth [...]) of a strip (any object with those
+    fields, a `diffsmf.sets.Strip`), checked against the set ``ref``."""
+    try:
+        p, y, sig = strip.normal, strip.offset, strip.halfwidth
+    except AttributeError as exc:
+        raise ValueError("strip: expected a Strip (normal, offset, halfwidth)") from exc
+    p = p.to(ref.center.dtype)
+    if p.shape[-1] != ref.dim:
+        raise ValueError(f"strip: normal has dim {p.shape[-1]}, set has dim {ref.dim}")
+    return p, y.to(p.dtype), sig.to(p.dtype)
+
+
+def strip_batch(batch: torch.Size, p: Tensor, y: Tensor, sig: Tensor) -> torch.Size:
+    """Common batch shape of a set and a strip; ``ValueError`` naming ``strip`` otherwise."""
+    try:
+        return broadcast_shapes(batch, p.shape[:-1], y.shape, sig.shape)
+    except RuntimeError as exc:
+        raise ValueError(
+            f"strip: batch shape {tuple(y.shape)} does not broadcast with the set's "
+            f"batch shape {tuple(batch)}"
+        ) from exc

@@ -522,3 +522,11 @@ def test_intersect_strip_batched_and_differentiable():
     one = Interval(lo[1], lo[1] + r[1]).intersect_strip(ds.Strip(a[1], y[1], w[1]))
     both = hull(r, w)
     assert torch.equal(one.lower, both[0][1]) and torch.equal(one.upper, both[1][1])
+
+
+def test_intersect_strip_bad_strips_name_the_argument():
+    box = Interval(torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="strip: normal has dim 3, set has dim 2"):
+        box.intersect_strip(ds.Strip(torch.ones(3), 0.5, 0.1))
+    with pytest.raises(ValueError, match="strip: expected a Strip"):
+        box.intersect_strip("x")

@@ -1,5 +1,5 @@
 """The base of the filters that linearise the model about the set's centre and bound the
-remainder: HSNSMF, MSZM, CDSMF, ESMF and CZSMF.
+remainder: HSNSMF, MSZM, CDSMF, ESMF, CZSMF and IntervalFilter.
 
 `LinearisingFilter` registers, once for all of them, what such a filter learns and chooses
 besides the noise bounds of `SetFilter`: the Stirling step of the linearisation (Wang et al.

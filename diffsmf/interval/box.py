@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.convex import ConvexSet, as_tensor, as_vector, check_count, family
+from diffsmf.convex import ConvexSet, as_tensor, as_vector, check_count, family, strip_fields
 from diffsmf.interval import arith
 from diffsmf.interval.arith import IntervalArray, Stacked, as_interval, is_number
 from diffsmf.interval.rounding import down, eps, up
@@ -423,7 +423,8 @@ class Interval(ConvexSet, IntervalArray):
         component leaves the others' bounds unbounded, never NaN). An empty intersection
         returns the box unchanged; `intersects_strip` flags it.
         """
-        a, y, w = strip.normal, strip.offset.unsqueeze(-1), strip.halfwidth.unsqueeze(-1)
+        a, y, w = strip_fields(strip, self)  # a ValueError naming strip on a wrong dim
+        y, w = y.unsqueeze(-1), w.unsqueeze(-1)
         lo, hi = self.lower, self.upper
         zero = a == 0
         t1, t2 = a * lo, a * hi

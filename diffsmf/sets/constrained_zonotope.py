@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.convex import ConvexSet, as_offset, as_tensor, check_count, check_finite
+from diffsmf.convex import ConvexSet, as_offset, as_tensor, check_count, check_finite, strip_fields
 from diffsmf.sets.czono_elimination import (
     PROPAGATION_SWEEPS,
     _eliminate,
@@ -33,7 +33,6 @@ from diffsmf.sets.czono_elimination import (
     _propagate,
 )
 from diffsmf.sets.czono_lp import LP_ITERS, box_lp, distance_lp, support_value
-from diffsmf.sets.strip import strip_fields
 from diffsmf.utils import descending_order, is_int
 
 __all__ = ["ConstrainedZonotope", "as_constrained_zonotope", "distance_lp"]

@@ -14,9 +14,17 @@ import torch
 from torch import Tensor
 
 from diffsmf import linalg
-from diffsmf.convex import ConvexSet, as_offset, as_tensor, as_vector, check_count, check_finite
+from diffsmf.convex import (
+    ConvexSet,
+    as_offset,
+    as_tensor,
+    as_vector,
+    check_count,
+    check_finite,
+    strip_batch,
+    strip_fields,
+)
 from diffsmf.linalg import small_sum
-from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.utils import broadcast_shapes, checking
 
 if TYPE_CHECKING:  # pragma: no cover

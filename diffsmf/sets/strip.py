@@ -14,10 +14,10 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from diffsmf.convex import ConvexSet, as_tensor, as_vector
+from diffsmf.convex import ConvexSet, as_tensor, as_vector, strip_batch, strip_fields
 from diffsmf.utils import broadcast_shapes, checking
 
-__all__ = ["Strip", "strip_batch", "strip_fields"]
+__all__ = ["Strip", "strip_batch", "strip_fields"]  # the two helpers live in convex
 
 
 class Strip(ConvexSet):
@@ -170,26 +170,3 @@ class Strip(ConvexSet):
 
     def intersects_strip(self, strip: Any, atol: float = 0.0) -> Tensor:
         raise ValueError("Strip.intersects_strip: two strips with different normals always meet")
-
-
-def strip_fields(strip: Any, ref: ConvexSet) -> tuple[Tensor, Tensor, Tensor]:
-    """(normal [..., n], offset [...], halfwidth [...]) of a Strip, checked against ``ref``."""
-    try:
-        p, y, sig = strip.normal, strip.offset, strip.halfwidth
-    except AttributeError as exc:
-        raise ValueError("strip: expected a Strip (normal, offset, halfwidth)") from exc
-    p = p.to(ref.center.dtype)
-    if p.shape[-1] != ref.dim:
-        raise ValueError(f"strip: normal has dim {p.shape[-1]}, set has dim {ref.dim}")
-    return p, y.to(p.dtype), sig.to(p.dtype)
-
-
-def strip_batch(batch: torch.Size, p: Tensor, y: Tensor, sig: Tensor) -> torch.Size:
-    """Common batch shape of a set and a strip; ``ValueError`` naming ``strip`` otherwise."""
-    try:
-        return broadcast_shapes(batch, p.shape[:-1], y.shape, sig.shape)
-    except RuntimeError as exc:
-        raise ValueError(
-            f"strip: batch shape {tuple(y.shape)} does not broadcast with the set's "
-            f"batch shape {tuple(batch)}"
-        ) from exc

@@ -28,6 +28,8 @@ from diffsmf.convex import (
     check_count,
     check_finite,
     family,
+    strip_batch,
+    strip_fields,
 )
 from diffsmf.sets.combinatorics import (
     _EPS,
@@ -40,7 +42,6 @@ from diffsmf.sets.combinatorics import (
     _sum_abs_det,
 )
 from diffsmf.sets.outer_parallelotope import MAX_BASES, _expand_to, _outer_parallelotope
-from diffsmf.sets.strip import strip_batch, strip_fields
 from diffsmf.sets.zonotope_contains import _zonotope_contains
 from diffsmf.sets.zonotope_strip import _alamo_lambda
 from diffsmf.utils import (
