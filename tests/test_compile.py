@@ -18,6 +18,9 @@ import diffsmf as ds
 CASES = [
     ("hsnsmf", "spring_damper"),
     ("mszm", "spring_damper"),
+    ("FRad-B", "spring_damper"),  # MSZM's strip weights: the gains and Bravo's choice
+    ("FRad-C", "fermenter"),
+    ("VolMin-B", "spring_damper"),
     ("cdsmf", "spring_damper"),
     ("esmf", "spring_damper"),
     ("esmf", "mismatch_quadratic"),  # square H: the two-sided update, traced branch-free

@@ -272,7 +272,7 @@ def test_conversions_cover():
 
 
 # ---------------------------------------------------------------------- strips
-@pytest.mark.parametrize("method", ["fradius", "volume"])
+@pytest.mark.parametrize("method", ["fradius", "volume", "bravo"])
 @pytest.mark.parametrize("n,m", [(2, 4), (3, 5)])
 def test_intersect_strip_outer(method, n, m):
     Z = rand_zono(n, m, seed=20 + n)
@@ -292,7 +292,7 @@ def test_intersect_strip_outer(method, n, m):
     assert R.volume() < Z.volume()
 
 
-@pytest.mark.parametrize("method", ["fradius", "volume"])
+@pytest.mark.parametrize("method", ["fradius", "volume", "bravo"])
 @pytest.mark.parametrize("n,m,shift", [(2, 4, 0.7), (3, 5, 1.1), (3, 6, 0.0)])
 def test_intersect_strip_tightened_is_outer_and_no_wider(method, n, m, shift):
     """``tighten=True``: still an outer bound of Z cap S (sampled points and the exact
@@ -317,6 +317,66 @@ def test_intersect_strip_tightened_is_outer_and_no_wider(method, n, m, shift):
         assert along <= before * (1 + 1e-12)
         if shift > 0:  # the strip reaches past Z: a partial overlap
             assert along < before * 0.99
+
+
+def _bravo_numpy(c, G, p, y, sig):
+    """Bravo, Alamo & Camacho 2006, Property 1, written out: for j = 0 (Z itself) and each
+    generator j not orthogonal to p, ``T_i = g_i - (p.g_i / p.g_j) g_j``, ``T_j = sigma g_j /
+    (p.g_j)``, centre ``c + (y - p.c) / (p.g_j) g_j``; the least ``det(T T')``, first on ties."""
+    best = (np.linalg.det(G @ G.T), c, G)
+    for j in range(G.shape[1]):
+        pg = p @ G[:, j]
+        if abs(pg) <= 1e-10 * np.linalg.norm(p) * np.linalg.norm(G[:, j]):
+            continue
+        T = G - np.outer(G[:, j], p @ G) / pg
+        T[:, j] = sig * G[:, j] / pg
+        d = np.linalg.det(T @ T.T)
+        if d < best[0]:
+            best = (d, c + (y - p @ c) / pg * G[:, j], T)
+    return best[1], best[2]
+
+
+@pytest.mark.parametrize("n,m,seed", [(2, 4, 0), (3, 6, 1), (4, 9, 2), (2, 3, 3)])
+def test_bravo_weight_equals_its_written_out_reference(n, m, seed):
+    Z = rand_zono(n, m, seed=seed)
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(n, generator=g, dtype=torch.float64)
+    rho = float((a @ Z.generators).abs().sum())
+    y, sig = float(a @ Z.center) + 0.3 * rho, 0.1 * rho
+    R = Z.intersect_strip(ds.Strip(a, y, sig), method="bravo")
+    c_ref, T_ref = _bravo_numpy(Z.center.numpy(), Z.generators.numpy(), a.numpy(), y, sig)
+    np.testing.assert_allclose(R.center.numpy(), c_ref, rtol=1e-12, atol=1e-12)
+    Rg = R.generators.numpy()  # the Alamo family's columns: g_j zeroed, sigma lambda appended
+    np.testing.assert_allclose(Rg @ Rg.T, T_ref @ T_ref.T, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(np.abs(Rg).sum(1), np.abs(T_ref).sum(1), rtol=1e-10, atol=1e-12)
+    assert not np.allclose(T_ref, Z.generators.numpy())  # a generator was replaced
+
+
+@pytest.mark.parametrize("n,m,k,seed", [(2, 4, 2, 0), (3, 5, 2, 1), (3, 6, 3, 2)])
+def test_intersect_strips_with_any_gain_is_outer(n, m, k, seed):
+    """``Zonotope.intersect_strips``: for random gains (and the F-radius gain), every sampled
+    point and every vertex of Z inside all k strips is in the result; without the strips'
+    own generators ``L diag(w)`` it would not be (the test can fail)."""
+    from diffsmf.filters.zonotope_gains import fradius_gain
+
+    Z = rand_zono(n, m, seed=30 + seed)
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(k, n, generator=g, dtype=torch.float64)
+    rho = (A @ Z.generators).abs().sum(-1)
+    d = A @ Z.center + 0.3 * rho * torch.randn(k, generator=g, dtype=torch.float64)
+    w = 0.5 * rho
+    x = torch.cat([Z.sample(20000, generator=g), torch.as_tensor(all_vertices(Z))])
+    x = x[((x @ A.T - d).abs() <= w).all(-1)]
+    assert len(x) > 50
+    G = Z.generators
+    for L in [torch.randn(n, k, generator=g, dtype=torch.float64),
+              fradius_gain(G @ G.T, A, w)]:
+        R = Z.intersect_strips(A, d, w, L)
+        assert R.num_generators == m + k
+        assert R.contains(x).all()
+        cut = ds.Zonotope(R.center, R.generators[:, :m])
+        assert not cut.contains(x).all()
+    assert R.volume() < Z.volume()
 
 
 def test_intersect_strip_tightened_in_one_dimension_is_the_exact_intersection():

@@ -62,7 +62,7 @@ def main(args: argparse.Namespace) -> int:
         cls = filters.by_name(args.filter)
     except ValueError:
         raise ValueError(
-            f"--filter: unknown filter {args.filter!r}; choose from {filters.names()}"
+            f"--filter: unknown filter {args.filter!r}; choose from {filters.names(presets=True)}"
         ) from None
     system = systems.get(args.system)
     filt = cls(system)

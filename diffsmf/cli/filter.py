@@ -404,7 +404,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--inputs", default=None, metavar="COLS",
       help="comma-separated input columns, in the order of u (default: none, or the model's "
            "own inputs schedule)")
-    a("--filter", default="hsnsmf", help=f"filter: {' | '.join(filter_names())}")
+    a("--filter", default="hsnsmf", help=f"filter: {' | '.join(filter_names(presets=True))}")
     a("--out", default="diffsmf-run", type=Path, help="output folder (created when missing)")
     a("--format", default="csv", choices=["csv", "npz"], help="file format of the bounds")
     a("--process-noise", default=None, metavar="W",
@@ -433,7 +433,7 @@ def main(args: argparse.Namespace) -> int:
         cls = ds.filters.by_name(args.filter)
     except ValueError:
         raise ValueError(f"--filter: unknown filter {args.filter!r}; choose from "
-                         f"{ds.filters.names()}") from None
+                         f"{ds.filters.names(presets=True)}") from None
     system = load_model(args.model)
     out = Path(args.out)
     if out.exists() and not out.is_dir():

@@ -141,7 +141,7 @@ def _check_config(cfg: TuneConfig) -> None:
         ds.filters.by_name(cfg.filter)
     except ValueError:
         raise ValueError(
-            f"--filter: unknown filter {cfg.filter!r}; choose from {ds.filters.names()}"
+            f"--filter: unknown filter {cfg.filter!r}; choose from {ds.filters.names(presets=True)}"
         ) from None
     for key in ("epochs", "batch_size", "trajectories", "steps", "val_every"):
         if getattr(cfg, key) < 1:

@@ -15,6 +15,7 @@ from diffsmf.filters.hsnsmf import HSNSMF
 from diffsmf.filters.interval_filter import IntervalFilter
 from diffsmf.filters.linearising import LinearisingFilter
 from diffsmf.filters.mszm import MSZM
+from diffsmf.filters.presets import Preset
 
 __all__ = [
     "CDSMF",
@@ -30,6 +31,8 @@ __all__ = [
     "FilterState",
     "LinearisingFilter",
     "ALIASES",
+    "PRESETS",
+    "Preset",
     "SET_FAMILIES",
     "SetFilter",
     "by_name",
@@ -55,6 +58,15 @@ ALIASES: dict[str, str] = {
     "CombinedFilter": "combined",
 }
 
+#: Filters with options fixed, by CORA's observer names: the strip weights of `MSZM`
+#: (`diffsmf.filters.mszm.STRIP_WEIGHTS`)
+PRESETS: dict[str, Preset] = {
+    "FRad-B": Preset("FRad-B", MSZM, strip_method="wang"),  # Wang, Puig & Cembrano 2018
+    "FRad-C": Preset("FRad-C", MSZM, strip_method="combastel"),  # Combastel 2015
+    "VolMin-A": Preset("VolMin-A", MSZM, strip_method="volume"),  # Alamo et al. 2005
+    "VolMin-B": Preset("VolMin-B", MSZM, strip_method="bravo"),  # Bravo et al. 2006
+}
+
 #: The set families a filter declares (``set_family``), as the nonlinear observer comparison
 #: of Holzinger and Althoff (2026) names them, plus the parallelotope
 SET_FAMILIES = ("interval", "ellipsoid", "zonotope", "parallelotope", "constrained-zonotope",
@@ -65,27 +77,33 @@ def _key(name: str) -> str:
     return name.lower().replace("-", "").replace("_", "")
 
 
-def names() -> list[str]:
-    """The filters' names, one each (`get` also takes the `ALIASES`)."""
-    return list(_NAMES)
+def names(presets: bool = False) -> list[str]:
+    """The filters' names, one each; with ``presets=True`` followed by the `PRESETS`' (CORA's
+    observer names for filters with options). `get` also takes the `ALIASES`."""
+    return list(_NAMES) + (list(PRESETS) if presets else [])
 
 
-def get(name: str) -> type[SetFilter]:
-    """The filter class for any of its names: ``"hsnsmf" | "mszm" | "cdsmf" | "esmf" | "ekf" |
-    "czsmf" | "combined"`` or an alias (`ALIASES`: CORA's ``"FRad-A"``, ``"CZN-A"``, the
-    papers' ``"HS-NSMF"``), without regard to case, ``-`` or ``_``.
+def get(name: str) -> type[SetFilter] | Preset:
+    """The filter for any of its names: the class for ``"hsnsmf" | "mszm" | "cdsmf" | "esmf" |
+    "ekf" | "czsmf" | "combined" | "interval"`` or an alias (`ALIASES`: CORA's ``"FRad-A"``,
+    ``"CZN-A"``, the papers' ``"HS-NSMF"``), a `Preset` for CORA's names of a filter with
+    options (`PRESETS`: ``"FRad-B"``, ``"FRad-C"``, ``"VolMin-A"``, ``"VolMin-B"``); without
+    regard to case, ``-`` or ``_``. Either is built as ``get(name)(system, **options)``.
 
     Raises:
-        ValueError: starting with ``name:``, listing the names and aliases.
+        ValueError: starting with ``name:``, listing the names, presets and aliases.
     """
     if not isinstance(name, str):
         raise ValueError(f"name: expected a filter name (str), got {type(name).__name__}")
     key = _key(name)
+    preset = next((p for a, p in PRESETS.items() if _key(a) == key), None)
+    if preset is not None:
+        return preset
     key = next((v for a, v in ALIASES.items() if _key(a) == key), key)
     if key in _NAMES:
         return _NAMES[key]
-    raise ValueError(f"name: unknown filter {name!r}; choose from {names()} or the aliases "
-                     f"{list(ALIASES)}")
+    raise ValueError(f"name: unknown filter {name!r}; choose from {names(presets=True)} or "
+                     f"the aliases {list(ALIASES)}")
 
 
 #: `get` under its earlier name

@@ -50,11 +50,12 @@ from diffsmf.filters.params import stirling_steps
 from diffsmf.filters.prediction import prediction_remainder, step_function, zonotope_prediction
 from diffsmf.filters.state import predicted_state, updated_state
 from diffsmf.filters.strips import stirling_strip_update
+from diffsmf.filters.zonotope_gains import GAINS, STRIP_WEIGHTS
 from diffsmf.sets.conversions import as_zonotope
 from diffsmf.systems.system import System
 from diffsmf.utils import descending_order, is_int, tracing
 
-__all__ = ["MSZM"]
+__all__ = ["MSZM", "STRIP_WEIGHTS"]
 
 
 class MSZM(LinearisingFilter):
@@ -65,7 +66,13 @@ class MSZM(LinearisingFilter):
         order: reduction order q (at most ``q * n`` generators after each step), >= 1;
             default 12 (measured table in the module docstring).
         reduce_method: ``Zonotope.reduce`` method (``"girard"``, ``"combastel"``, ...).
-        strip_method: ``Zonotope.intersect_strip`` method (``"fradius"`` | ``"volume"``).
+        strip_method: the weight of the strip intersection, by `STRIP_WEIGHTS` name (CORA's
+            observer in brackets): ``"fradius"`` (FRad-A, Alamo et al. 2005, the default),
+            ``"volume"`` (VolMin-A, Alamo et al. 2005), ``"bravo"`` (VolMin-B, Bravo et al.
+            2006), one strip at a time (`Zonotope.intersect_strip`); ``"wang"`` (FRad-B,
+            Wang, Puig & Cembrano 2018) and ``"combastel"`` (FRad-C, Combastel 2015), all
+            strips at once with one gain matrix (`Zonotope.intersect_strips`). Every weight
+            gives a guaranteed set; they differ in tightness.
         tighten_strips: cut each measurement strip to the zonotope's range along it before
             the intersection (``Zonotope.intersect_strip(tighten=True)``): the same
             guaranteed set, tighter where the prior and the strip overlap only in part.
@@ -97,9 +104,15 @@ class MSZM(LinearisingFilter):
         super().__init__(system, **kw)
         self.order = int(order)
         self.reduce_method = reduce_method
+        if strip_method not in STRIP_WEIGHTS:
+            raise ValueError(f"strip_method: unknown strip weight {strip_method!r}; choose "
+                             f"from {list(STRIP_WEIGHTS)}")
         self.strip_method = strip_method
         if not isinstance(tighten_strips, bool):
             raise ValueError(f"tighten_strips: expected True or False, got {tighten_strips!r}")
+        if tighten_strips and strip_method in GAINS:
+            raise ValueError(f"tighten_strips: cuts the strips of the one-at-a-time weights; "
+                             f"strip_method={strip_method!r} takes all strips at once")
         self.tighten_strips = tighten_strips
 
     def _convert_initial(self, S: ConvexSet) -> ConvexSet:
@@ -146,7 +159,14 @@ class MSZM(LinearisingFilter):
 
     def _initial_state(self, batch: int | None = None) -> FilterState:
         state = super()._initial_state(batch)
-        return state.replace(set=self._fit(state.set))
+        state = state.replace(set=self._fit(state.set))
+        if self.strip_method != "wang":
+            return state
+        # FRad-B's gain maps the set by the last prediction's Jacobian; before the first
+        # prediction there is none, and the identity stands in
+        c = state.set.center
+        eye = torch.eye(c.shape[-1], dtype=c.dtype, device=c.device)
+        return state.replace(extras={**state.extras, "_jacobian": eye.expand(*c.shape, -1)})
 
     def _predict(self, state: FilterState, u: Tensor | None = None) -> FilterState:
         """``f(c) + F (Z - c) (+) E (+) W`` then reduction (Alamo 2005 sec. 4)."""
@@ -166,16 +186,21 @@ class MSZM(LinearisingFilter):
         )
         FG = linalg.traced_matmul(F, G)
         Zp = zonotope_prediction(self, fc, FG, E)  # W's own generators (Alamo 2005)
+        if self.strip_method == "wang":  # FRad-B's gain needs the Jacobian (Wang et al. 2018)
+            J = F.expand(*fc.shape, fc.shape[-1])
+            state = state.replace(extras={**state.extras, "_jacobian": J})
         return predicted_state(state, self._fit(Zp), ev)
 
     def _update(self, state: FilterState, y: Tensor) -> FilterState:
         """Strips (Wang et al. 2022, eq. 23-29) intersected with Alamo 2005 Property 2, then
         reduced."""
         Z = state.set
+        gain = GAINS.get(self.strip_method)
         new, ok, ev = stirling_strip_update(
             self, Z, Z.interval_hull(), y,
             lambda S, st: S.intersect_strip(st, method=self.strip_method,
                                             tighten=self.tighten_strips),
+            gain=None if gain is None else lambda S, A, w: gain(self, state, S, A, w),
         )
         new = where(ok, self._fit(new), Z)  # inconsistent: keep the predicted set exactly
         return updated_state(state, new, ok, ev)

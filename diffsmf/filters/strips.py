@@ -26,6 +26,7 @@ __all__ = [
     "angle_ambiguous",
     "measurement_strips",
     "sequential_strip_update",
+    "simultaneous_strip_update",
     "stirling_strip_update",
 ]
 
@@ -252,16 +253,50 @@ def sequential_strip_update(
     return where(ok, cur, _like(S, cur)), ok, ev
 
 
+def simultaneous_strip_update(
+    S: ConvexSet,
+    normal: Tensor,
+    offset: Tensor,
+    half: Tensor,
+    gain: Callable[[ConvexSet, Tensor, Tensor], Tensor],
+) -> tuple[ConvexSet, Tensor, Tensor]:
+    """Intersect the zonotope ``S`` with all m strips at once, with one gain matrix
+    (`Zonotope.intersect_strips`; Combastel 2015, Wang, Puig & Cembrano 2018).
+
+    ``gain(S, A, w) -> L [B, n, m]`` from the strips' normals ``A [B, m, n]`` and half-widths
+    ``w [B, m]``; a strip to skip (degenerate or of infinite half-width, the rules of
+    `sequential_strip_update`) enters the gain as a zero row of ``A`` with half-width 1, and
+    its column of ``L`` is zeroed, so it takes no part. Consistency: every kept strip meets
+    ``S`` (checked against ``S``, not the partly intersected set). Returns the updated set,
+    ``consistent [B]`` and the `FilterEvent` codes ``[B]``; an inconsistent element keeps
+    ``S``. Branch-free.
+    """
+    degen, skip, ok, atol, ev = _degenerate(normal, offset, half)
+    ok = ok.all(-1)
+    a = normal.masked_fill(degen.unsqueeze(-1), 1.0)
+    d = offset.masked_fill(skip, 0.0)
+    w = half.masked_fill(skip, 1.0)
+    for ai, di, wi, sk, tol in zip(a.unbind(-2), d.unbind(-1), w.unbind(-1), skip.unbind(-1),
+                                   atol.unbind(-1)):
+        ok = ok & (sk | S.intersects_strip(Strip._make(ai, di, wi), atol=tol))
+    L = gain(S, a.masked_fill(skip.unsqueeze(-1), 0.0), w)
+    L = L.masked_fill(skip.unsqueeze(-2), 0.0)
+    new = S.intersect_strips(a, d, w, L)
+    return where(ok, new, _like(S, new)), ok, ev
+
+
 def stirling_strip_update(
     filt: SetFilter,
     S: ConvexSet,
     region: ConvexSet,
     y: Tensor,
     intersect: Callable[[ConvexSet, object], ConvexSet],
+    gain: Callable[[ConvexSet, Tensor, Tensor], Tensor] | None = None,
 ) -> tuple[ConvexSet, Tensor, Tensor]:
     """Wang et al. 2022, Theorem 3 update shared by HSNSMF, MSZM and CDSMF: Stirling slopes of ``h``
     at the centre (eq. 13), DC remainder of ``h`` over ``region`` folded into the strips
-    (eq. 23-29), strips intersected one by one with ``intersect`` -> (set, consistent ``[B]``,
+    (eq. 23-29), strips intersected one by one with ``intersect`` (or, given ``gain``, all at
+    once: `simultaneous_strip_update`) -> (set, consistent ``[B]``,
     `FilterEvent` codes ``[B]``: ``DOMAIN`` / ``DIVERGED`` of the remainder of ``h``, whose
     update is then skipped, and ``DEGENERATE_STRIP``; none of them loses the guarantee).
 
@@ -279,12 +314,21 @@ def stirling_strip_update(
     if is_affine(h, region):
         hc, H = value_and_jacobian(h, c)  # h(c) and the exact slopes from one call of h
         a, d, w = _affine_strips(h, region, c, H, y, vbox, system, hc=hc)
-        new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
-        return new, ok, ev
+        return _intersect_all(S, a, d, w, intersect, gain)
     H = stirling_jacobian(h, c, stirling_steps(filt, c, region.interval_hull().radius))
     a, d, w, ev_h = _strips(h, filt.remainder_fn, region, c, H, y, vbox, system)
-    new, ok, ev = sequential_strip_update(S, a, d, w, intersect)
+    new, ok, ev = _intersect_all(S, a, d, w, intersect, gain)
     return new, ok, ev | ev_h
+
+
+def _intersect_all(
+    S: ConvexSet, a: Tensor, d: Tensor, w: Tensor,
+    intersect: Callable[[ConvexSet, object], ConvexSet],
+    gain: Callable[[ConvexSet, Tensor, Tensor], Tensor] | None,
+) -> tuple[ConvexSet, Tensor, Tensor]:
+    if gain is None:
+        return sequential_strip_update(S, a, d, w, intersect)
+    return simultaneous_strip_update(S, a, d, w, gain)
 
 
 def _measurement_box(filt: SetFilter) -> Interval | _NoiseBox:

@@ -50,7 +50,11 @@ from diffsmf.utils import (
     tracing,
 )
 
-__all__ = ["MAX_BASES", "MAX_VOLUME_SUBSETS", "Zonotope"]
+__all__ = ["MAX_BASES", "MAX_VOLUME_SUBSETS", "STRIP_METHODS", "Zonotope"]
+
+#: The weights of `Zonotope.intersect_strip`: Alamo et al. 2005's F-radius and volume, Bravo
+#: et al. 2006's ``det(T T')`` choice among the generators
+STRIP_METHODS = ("fradius", "volume", "bravo")
 
 if TYPE_CHECKING:  # pragma: no cover
     from diffsmf.sets.ellipsoid import Ellipsoid
@@ -368,8 +372,9 @@ class Zonotope(ConvexSet):
         If the strip contains Z, lambda = 0 (Z itself, padded). If ``Z cap S`` is empty
         (`intersects_strip`) the input padded with a zero generator is returned.
         """
-        if method not in ("fradius", "volume"):
-            raise ValueError(f"method: unknown strip method {method!r}")
+        if method not in STRIP_METHODS:
+            raise ValueError(f"method: unknown strip method {method!r}; choose from "
+                             f"{STRIP_METHODS}")
         p, y, sig = strip_fields(strip, self)
         c, G = self._c, self.generators
         batch = strip_batch(self.batch_shape, p, y, sig)
@@ -395,6 +400,33 @@ class Zonotope(ConvexSet):
         Gn = torch.cat(
             [G - lam.unsqueeze(-1) * Gp.unsqueeze(-2), (sig.unsqueeze(-1) * lam).unsqueeze(-1)], -1
         )
+        return Zonotope._make(cn, Gn)
+
+    def intersect_strips(
+        self, normal: Tensor, offset: Tensor, halfwidth: Tensor, gain: Tensor
+    ) -> Zonotope:
+        """Outer bound of ``Z cap S_1 cap ... cap S_k`` for the strips ``S_i = {x : |a_i.x -
+        d_i| <= w_i}`` with one gain matrix ``L`` (Alamo et al. 2005, Property 1, for k strips
+        at once, as in Combastel 2015 and Wang, Puig & Cembrano 2018):
+
+            ``Z(L) = (c + L (d - A c), [(I - L A) G, L diag(w)])``,
+
+        which contains the intersection for *every* ``L``: ``x = c + G xi`` with ``A x = d + W
+        e``, ``|e| <= 1``, equals ``c + L (d - A c) + (I - L A) G xi + L W e``.
+
+        Args:
+            normal: ``A [..., k, n]``; offset: ``d [..., k]``; halfwidth: ``w [..., k]``
+                (finite; a strip to skip has a zero column in ``gain``).
+            gain: ``L [..., n, k]``.
+
+        Returns:
+            a Zonotope with ``m + k`` generators (batch: the broadcast of the inputs').
+        """
+        c, G = self._c, self.generators
+        LA = gain @ normal  # [..., n, n]
+        r = offset - (normal @ c.unsqueeze(-1)).squeeze(-1)  # d - A c [..., k]
+        cn = c + (gain @ r.unsqueeze(-1)).squeeze(-1)
+        Gn = torch.cat([G - LA @ G, gain * halfwidth.unsqueeze(-2)], -1)
         return Zonotope._make(cn, Gn)
 
     def intersects_strip(self, strip: Any, atol: float = 0.0) -> Tensor:

@@ -1,6 +1,7 @@
-"""The weight of a zonotope-strip intersection that minimises the zonotope's volume (Alamo et al.
-2005, Property 2 with the volume criterion of sec. 5), and the vertex of the zonotope farthest
-along a direction in the 1-norm of its generator coefficients.
+"""The weights of a zonotope-strip intersection (Alamo et al. 2005, Property 2): the one that
+minimises the zonotope's volume (the volume criterion of sec. 5), Bravo et al. 2006's choice
+among the generators by ``det(T T')``, and the vertex of the zonotope farthest along a direction
+in the 1-norm of its generator coefficients.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ def _alamo_lambda(
     lam_f = GGp / denom.clamp_min(torch.finfo(G.dtype).tiny).unsqueeze(-1)
     if method == "fradius":
         return lam_f
+    if method == "bravo":
+        return _bravo_lambda(G, p, sig, Gp)
     n, m = G.shape[-2], G.shape[-1]
     if m < n - 1 or (m >= n and math.comb(m, n) > MAX_VOLUME_SUBSETS):
         return lam_f  # no facets / too many subsets for the exact volume: F-radius lambda
@@ -67,6 +70,39 @@ def _alamo_lambda(
         vol[..., 0] = vol[..., 0] * (1 - 1e-9)  # prefer lambda = 0 on (near) ties
         k = vol.argmin(-1)
     return torch.gather(cands_t, -2, k.reshape(*k.shape, 1, 1).expand(*k.shape, 1, n)).squeeze(-2)
+
+
+def _bravo_lambda(G: Tensor, p: Tensor, sig: Tensor, Gp: Tensor) -> Tensor:
+    """Bravo, Alamo & Camacho 2006, Property 1: of ``lambda = 0`` (Z itself) and ``lambda_j =
+    g_j / (p.g_j)`` (the strip replaces generator j: ``T_i = g_i - (p.g_i / p.g_j) g_j``,
+    ``T_j = sigma g_j / (p.g_j)``), the one whose generator matrix ``T`` has the least
+    ``det(T T')`` -> ``lambda [..., n]``.
+
+    Every candidate is a member of the Alamo et al. 2005 family, so each is an outer bound of
+    ``Z cap S``. A generator nearly orthogonal to ``p`` (``|p.g_j| <= 1e-10 |p| |g_j|``, a
+    zero padding column among them) is no candidate; ties keep the first (``lambda = 0``, then
+    the lowest j), as CORA's VolMin-B does. The choice is detached; lambda is differentiable
+    in ``G`` and ``p`` through the chosen candidate.
+    """
+    n = G.shape[-2]
+    with torch.no_grad():
+        scale = p.detach().norm(dim=-1, keepdim=True) * G.detach().norm(dim=-2)
+        ok = Gp.detach().abs() > 1e-10 * scale  # [..., m]
+    safe = torch.where(ok, Gp, torch.ones_like(Gp))
+    lam_g = (G / safe.unsqueeze(-2)).transpose(-1, -2)  # [..., m, n]
+    cands = torch.cat([torch.zeros_like(lam_g[..., :1, :]), lam_g], -2)  # [..., 1 + m, n]
+    with torch.no_grad():
+        cd, pd, Gd = cands.detach(), p.detach(), G.detach()
+        eye = torch.eye(n, dtype=G.dtype, device=G.device)
+        A = eye - cd.unsqueeze(-1) * pd.unsqueeze(-2).unsqueeze(-2)  # I - lam p' [..., K, n, n]
+        AG = A @ Gd.unsqueeze(-3)
+        sd = sig.detach().reshape(*sig.shape, 1, 1, 1)
+        TT = AG @ AG.transpose(-1, -2) + sd * sd * (cd.unsqueeze(-1) * cd.unsqueeze(-2))
+        det = torch.linalg.det(TT)
+        bad = torch.cat([torch.zeros_like(ok[..., :1]), ~ok], -1)
+        det = torch.where(bad | ~torch.isfinite(det), torch.full_like(det, torch.inf), det)
+        k = det.argmin(-1)  # the first of equal minima
+    return torch.gather(cands, -2, k.reshape(*k.shape, 1, 1).expand(*k.shape, 1, n)).squeeze(-2)
 
 
 def _l1_vertex(
