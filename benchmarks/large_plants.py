@@ -40,24 +40,8 @@ VARIANTS = {"mszm-cut": ("mszm", {"tighten_strips": True})}
 
 
 def tank_cascade(n: int) -> ds.System:
-    """``n`` tanks in a row with square-root outflows; levels 2, 4, ... measured."""
-    g, k, dt = 9.81, 0.015, 1.0
-
-    def f(x, u=None, theta=None):
-        q = k * torch.sqrt(2 * g * x)
-        inflow = torch.cat([torch.full_like(x[..., :1], 0.1), q[..., :-1]], -1)
-        return x + dt * (inflow - q)
-
-    idx = list(range(1, n, 2))
-
-    def h(x):
-        return x[..., idx]
-
-    def box(lo: float, hi: float, d: int) -> ds.Interval:
-        return ds.Interval(torch.full((d,), lo, dtype=F64), torch.full((d,), hi, dtype=F64))
-
-    return ds.System(f, h, box(16.0, 24.0, n), box(-0.01, 0.01, n), box(-0.2, 0.2, len(idx)),
-                     name=f"tanks_{n}")
+    """``n`` tanks in a row (the built-in ``tank_cascade``)."""
+    return ds.systems.get("tank_cascade", n=n)
 
 
 def run_one(name: str, system: ds.System, traj, steps: int) -> dict:

@@ -20,7 +20,7 @@ from diffsmf.systems import System, Trajectory
 
 __version__ = "0.1.0"
 
-_LAZY = ("audit", "linearize", "observers", "plot", "pwl", "tightness", "tuning")
+_LAZY = ("audit", "comparison", "linearize", "observers", "plot", "pwl", "tightness", "tuning")
 
 
 def __getattr__(name: str):
@@ -29,10 +29,16 @@ def __getattr__(name: str):
         import importlib
 
         return importlib.import_module(f"diffsmf.{name}")
+    if name == "compare":  # observers on the same data (`diffsmf.comparison.compare`)
+        from diffsmf.comparison import compare
+
+        return compare
     raise AttributeError(f"module 'diffsmf' has no attribute {name!r}")
 
 __all__ = [
     "audit",
+    "compare",
+    "comparison",
     "linearize",
     "observers",
     "plot",

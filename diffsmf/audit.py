@@ -29,7 +29,7 @@ from torch import Tensor
 from diffsmf.convex import ConvexSet, as_vector
 from diffsmf.filters import is_guaranteed
 from diffsmf.filters.base import check_filter
-from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope
+from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope, ZonotopeBundle
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
 from diffsmf.systems.system import check_system
 from diffsmf.tightness import TightnessReport, inner_bounds, tightness  # noqa: F401 (re-exported)
@@ -107,7 +107,8 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
     accepts (with ``atol = tol * scale``) get gauge 0 (not computed) and the others an LP. For
     a ConstrainedZonotope (whose centre may lie outside it) points that ``contains`` accepts
     (not proved farther than ``tol * scale``) get 0 and the others ``1 + distance / scale``
-    (HiGHS distance; > 1 means outside).
+    (HiGHS distance; > 1 means outside). For a ZonotopeBundle, the largest of its members'
+    gauges (each about its own centre: above 1 exactly where x is outside the bundle).
     """
     from diffsmf.filters.events import is_marked
 
@@ -125,6 +126,8 @@ def gauge(S: ConvexSet, x: Tensor, tol: float = TOL) -> Tensor:
         return a.abs().amax(-1)
     if isinstance(S, Ellipsoid):
         return S.mahalanobis2(x).clamp_min(0).sqrt()
+    if isinstance(S, ZonotopeBundle):  # outside the bundle = outside some member
+        return gauge(S.members, x.unsqueeze(-2), tol).amax(-1)
     if isinstance(S, Zonotope):
         scale = 1.0 + x.abs().amax(-1) + S.generators.abs().sum(-1).amax(-1)
         inside = S.contains(x, atol=tol * float(scale.max()))

@@ -35,6 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "bounds_figure",
     "comparison_figure",
+    "observers_figure",
     "plot_bounds",
     "plot_set",
     "plot_volumes",
@@ -367,3 +368,78 @@ def _gap_limit(results: dict[str, FilterResult], x: np.ndarray, index: int, i: i
         if d.size:
             gaps.append(float(np.median(d)))
     return 0.1 * max(gaps) if gaps else None
+
+
+def observers_figure(
+    results: dict[str, FilterResult],
+    path: str | Path | None = None,
+    trajectory: int = 0,
+    states: Sequence[int] | None = None,
+    title: str = "",
+) -> Figure:
+    """Observers on the same data (`diffsmf.comparison.compare`) -> a Figure (saved to
+    ``path``).
+
+    Panel 1: the interval hull's width sum over time per observer (log scale); steps where
+    an observer's set is unbounded are left out of its line and marked by a cross at the
+    top. Panels 2..: the lower and upper bounds of ``states`` (default the first four) for
+    ``trajectory``, one colour per observer, the widest drawn first.
+
+    Args:
+        results: ``{name: FilterResult}``, each with ``lower``/``upper [B, T+1, n]``.
+        trajectory: the batch index drawn in the state panels.
+        states: the state indices drawn (default ``0 .. min(n, 4) - 1``).
+    """
+    if not results:
+        raise ValueError("results: no observer ran, nothing to draw")
+    first = next(iter(results.values()))
+    n = first.lower.shape[-1]
+    states = list(range(min(n, 4))) if states is None else list(states)
+    if any(not 0 <= i < n for i in states):
+        raise ValueError(f"states: indices must be in 0..{n - 1}, got {states}")
+    fig = _figure((8.0, 2.2 * (1 + len(states))))
+    axes = fig.subplots(1 + len(states), 1, sharex=True, squeeze=False)[:, 0]
+    order = sorted(results, key=lambda k: -_finite_mean_width(results[k]))
+    colors = {name: f"C{i}" for i, name in enumerate(results)}
+    ax = axes[0]
+    top = max(_finite_max_width(r) for r in results.values())
+    lost = False
+    for name in results:
+        w = _np((results[name].upper - results[name].lower).sum(-1)).mean(0)
+        t = np.arange(len(w))
+        ok = np.isfinite(w)
+        ax.semilogy(t[ok], w[ok], color=colors[name], label=name)
+        if (~ok).any():
+            ax.plot(t[~ok], np.full((~ok).sum(), top), "x", color=colors[name])
+            lost = True
+    if lost:
+        ax.plot([], [], "x", color="0.3", label="x: set unbounded")
+    ax.set_ylabel("width sum")
+    ax.legend(fontsize=7, ncol=min(len(results), 4))
+    if title:
+        ax.set_title(title, fontsize=9)
+    for ax, i in zip(axes[1:], states):
+        for name in order:
+            lo = _np(results[name].lower[trajectory, :, i])
+            up = _np(results[name].upper[trajectory, :, i])
+            t = np.arange(len(lo))
+            ok = np.isfinite(lo) & np.isfinite(up)
+            ax.fill_between(t[ok], lo[ok], up[ok], color=colors[name], alpha=0.25, lw=0)
+            ax.plot(t[ok], lo[ok], color=colors[name], lw=0.8)
+            ax.plot(t[ok], up[ok], color=colors[name], lw=0.8)
+        ax.set_ylabel(f"x{i + 1}")
+    axes[-1].set_xlabel("step k")
+    fig.tight_layout()
+    return _save(fig, path, 120)
+
+
+def _finite_max_width(res: FilterResult) -> float:
+    w = _np((res.upper - res.lower).sum(-1)).mean(0)
+    w = w[np.isfinite(w)]
+    return float(w.max()) if w.size else 1.0
+
+
+def _finite_mean_width(res: FilterResult) -> float:
+    w = _np((res.upper - res.lower).sum(-1))
+    w = w[np.isfinite(w)]
+    return float(w.mean()) if w.size else math.inf

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from diffsmf import systems
-from diffsmf.compare import build_filters, format_table, guarantees, rows, run_filters
+from diffsmf.comparison import build_filters, format_table, guarantees, rows, run_filters
 from diffsmf.plot import comparison_figure
 
 PAPER_ORDER = ["HSNSMF", "MSZM", "CDSMF"]

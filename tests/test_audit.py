@@ -1,4 +1,4 @@
-"""Containment audit (diffsmf.audit) and the comparison/demo helpers (diffsmf.compare)."""
+"""Containment audit (diffsmf.audit) and the comparison/demo helpers (diffsmf.comparison)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import torch
 import diffsmf as ds
 from diffsmf import audit, filters, systems
 from diffsmf.cli import audit as audit_cli
-from diffsmf.compare import compare, demo, format_table
+from diffsmf.comparison import compare_simulated, demo, format_table
 
 
 def test_gauge_matches_the_scale_of_a_scaled_point():
@@ -90,7 +90,7 @@ def test_gaussian_noise_is_said_and_does_not_fail_the_audit(capsys, monkeypatch)
 
 def test_compare_rows_and_demo(tmp_path):
     system = systems.get("spring_damper")
-    rows = compare(system, ["hsnsmf", "ekf"], trials=3, steps=6, noise="vertex")
+    rows = compare_simulated(system, ["hsnsmf", "ekf"], trials=3, steps=6, noise="vertex")
     assert [r["filter"] for r in rows] == ["hsnsmf", "ekf"]
     assert rows[0]["guaranteed"] and not rows[1]["guaranteed"] and rows[0]["violations"] == 0
     text = format_table(rows)
@@ -292,7 +292,7 @@ def test_guaranteed_is_a_class_attribute_that_subclasses_inherit(tmp_path):
     system = systems.get("spring_damper")
     mine = MyHSNSMF(system)
     assert mine.guaranteed and filters.is_guaranteed(mine) and filters.is_guaranteed(MyHSNSMF)
-    rows = compare(system, {"mine": mine, "ekf": filters.EKF(system)}, trials=2, steps=4)
+    rows = compare_simulated(system, {"mine": mine, "ekf": filters.EKF(system)}, trials=2, steps=4)
     assert [r["guaranteed"] for r in rows] == [True, False]
     # the audit's warning about Gaussian noise is for guaranteed filters: the subclass gets it
     with pytest.warns(UserWarning, match="radar has Gaussian noise"):

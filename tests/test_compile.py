@@ -21,6 +21,7 @@ CASES = [
     ("FRad-B", "spring_damper"),  # MSZM's strip weights: the gains and Bravo's choice
     ("FRad-C", "fermenter"),
     ("VolMin-B", "spring_damper"),
+    ("zbsmf", "vdp"),
     ("cdsmf", "spring_damper"),
     ("esmf", "spring_damper"),
     ("esmf", "mismatch_quadratic"),  # square H: the two-sided update, traced branch-free

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import load_script
 
 import diffsmf as ds
 
@@ -112,10 +111,10 @@ def test_noise_override_errors_name_the_argument(bad):
 
 
 def _tank_cascade(n: int = 6) -> ds.System:
-    """Tanks in a row with square-root outflows, every second level measured (the plant of
-    ``benchmarks/large_plants.py``): the ellipsoidal sets of ESMF grow until they leave
-    sqrt's domain (levels below 0)."""
-    return load_script("benchmarks", "large_plants").tank_cascade(n)
+    """Tanks in a row with square-root outflows, every second level measured (the built-in
+    ``tank_cascade``): the ellipsoidal sets of ESMF grow until they leave sqrt's domain
+    (levels below 0)."""
+    return ds.systems.get("tank_cascade", n=n)
 
 def test_esmf_on_a_tank_cascade_flags_each_trajectory_and_never_raises():
     """Three measured levels make the update's factorisations LAPACK's (m >= 3); a diverged

@@ -9,10 +9,11 @@ import torch
 
 import diffsmf as ds
 from diffsmf import filters
-from diffsmf.sets import ConstrainedZonotope, Ellipsoid, Parallelotope, Zonotope
+from diffsmf.sets import ConstrainedZonotope, Ellipsoid, Parallelotope, Zonotope, ZonotopeBundle
 
 SET_CLASS = {"parallelotope": Parallelotope, "zonotope": Zonotope, "ellipsoid": Ellipsoid,
-             "constrained-zonotope": ConstrainedZonotope, "interval": ds.Interval}
+             "constrained-zonotope": ConstrainedZonotope, "interval": ds.Interval,
+             "zonotope-bundle": ZonotopeBundle}
 
 
 @pytest.mark.parametrize(("name", "cls"), [

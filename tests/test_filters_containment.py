@@ -16,13 +16,26 @@ from diffsmf import filters, systems
 from diffsmf.audit import containment
 
 # (trajectories, steps) per system: cheap 2-D systems get 1000 trajectories
-BUDGET = {"fermenter": (200, 4), "oscillator_chain": (20, 4)}  # n = 8: 256 vertices
+BUDGET = {"fermenter": (200, 4), "oscillator_chain": (20, 4),  # n = 8: 256 vertices
+          "tank6": (100, 6), "tank_cascade": (100, 6)}  # n = 6, 72 zonotope generators
 DEFAULT = (1000, 8)
 
 
+#: (filter, system) pairs where the filter loses the bound on some trajectories: flagged per
+#: trajectory (inf, never a finite set), the cause on the "Which filter?" page (the ellipsoid
+#: outgrows the unmeasured levels until it leaves the square root's domain). Containment is
+#: required all the same; the finite mean volume is not.
+LOSES_BOUND = {("cdsmf", "tank6"), ("cdsmf", "tank_cascade")}
+
+
 def _bounded_systems() -> list[str]:
+    """The built-ins with bounded noise; ``tank_cascade`` (the shape of ``tank6``, audited at
+    30 states by benchmarks/large_plants.py, filtered at 6 in tests/test_divergence.py) is left
+    out."""
     out = []
     for name in systems.names():
+        if name == "tank_cascade":
+            continue
         s = systems.get(name)
         if s.process_cov is None and s.measurement_cov is None:
             out.append(name)
@@ -40,6 +53,9 @@ def test_guaranteed_containment(filter_name, system_name, noise):
     assert rep.pairs == trials * (steps + 1)
     assert rep.violations == 0, str(rep)
     assert rep.inconsistent == 0, str(rep)  # true data never contradict the model
+    if (filter_name, system_name) in LOSES_BOUND:
+        assert rep.mean_volume > 0
+        return
     assert rep.mean_volume > 0 and torch.isfinite(torch.tensor(rep.mean_volume))
 
 
@@ -68,3 +84,15 @@ def test_mszm_strip_weights_contain(weight, system_name):
     rep = containment(filt, system, trials=trials, steps=steps, noise="vertex", seed=12)
     assert rep.violations == 0 and rep.inconsistent == 0, str(rep)
     assert rep.pairs == trials * (steps + 1)
+
+
+@pytest.mark.parametrize("system_name", _bounded_systems())
+def test_zonotope_bundle_contains(system_name):
+    """ZBSMF (two members, F-radius and Bravo weights): 0 outside with vertex noise (a
+    smaller batch: Bravo's weight costs a QR per generator)."""
+    system = systems.get(system_name)
+    trials, steps = BUDGET.get(system_name, (300, 6))
+    rep = containment(filters.ZBSMF(system), system, trials=min(trials, 300), steps=steps,
+                      noise="vertex", seed=13)
+    assert rep.violations == 0 and rep.inconsistent == 0, str(rep)
+    assert torch.isfinite(torch.tensor(rep.mean_volume))

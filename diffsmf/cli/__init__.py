@@ -22,6 +22,7 @@ from diffsmf import __version__
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("diffsmf.cli.demo", "run the built-in demo (filters on spring_damper, sets, PWL fit)"),
     "filter": ("diffsmf.cli.filter", "run a set-membership filter on your model and logged data"),
+    "compare": ("diffsmf.cli.compare", "several observers on the same data, side by side"),
     "audit": ("diffsmf.cli.audit", "containment audit of a filter on a built-in system"),
     "fit-pwl": ("diffsmf.cli.pwl", "fit an SCPLNN piecewise-linear model to a CSV file"),
     "design-observer": ("diffsmf.cli.observer", "PWL model + LMI observer design pipeline"),

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from diffsmf.cli.pwl_demo import demo as pwl_demo
-from diffsmf.compare import demo as filters_demo
+from diffsmf.comparison import demo as filters_demo
 from diffsmf.plot import plot_set
 from diffsmf.sets import Strip, Zonotope
 

@@ -1,10 +1,11 @@
-"""Filters: HSNSMF, MSZM, CDSMF, ESMF, CZSMF, IntervalFilter, CombinedFilter, EKF (all
+"""Filters: HSNSMF, MSZM, CDSMF, ESMF, CZSMF, ZBSMF, IntervalFilter, CombinedFilter, EKF (all
 ``nn.Module``).
 
 `SetFilter` is the contract of every filter; `LinearisingFilter` the base of the ones that
 linearise about the set's centre (HSNSMF, MSZM, CDSMF, ESMF, CZSMF, IntervalFilter)."""
 
 from diffsmf.filters.base import FilterResult, FilterState, SetFilter
+from diffsmf.filters.bundle import ZBSMF
 from diffsmf.filters.cdsmf import CDSMF
 from diffsmf.filters.combined import CombinedFilter
 from diffsmf.filters.czsmf import CZSMF
@@ -26,6 +27,7 @@ __all__ = [
     "HSNSMF",
     "IntervalFilter",
     "MSZM",
+    "ZBSMF",
     "FilterEvent",
     "FilterResult",
     "FilterState",
@@ -45,7 +47,7 @@ __all__ = [
 
 _NAMES: dict[str, type[SetFilter]] = {
     "hsnsmf": HSNSMF, "mszm": MSZM, "cdsmf": CDSMF, "esmf": ESMF, "ekf": EKF, "czsmf": CZSMF,
-    "combined": CombinedFilter, "interval": IntervalFilter,
+    "combined": CombinedFilter, "interval": IntervalFilter, "zbsmf": ZBSMF,
 }
 
 #: Other names of the filters: CORA's observer names (Althoff's toolbox) for the ones it has,
@@ -56,6 +58,7 @@ ALIASES: dict[str, str] = {
     "HS-NSMF": "hsnsmf",
     "CD-SMF": "cdsmf",
     "CombinedFilter": "combined",
+    "zonotope-bundle": "zbsmf",
 }
 
 #: Filters with options fixed, by CORA's observer names: the strip weights of `MSZM`

@@ -1,5 +1,5 @@
 """Batched, differentiable convex sets: Interval (box), Zonotope, Parallelotope, Ellipsoid,
-Strip."""
+Strip, ConstrainedZonotope, ZonotopeBundle."""
 
 from diffsmf.convex import ConvexSet, align, cat, stack, where
 from diffsmf.sets import conversions  # noqa: F401  (registers the conversions between families)
@@ -9,6 +9,7 @@ from diffsmf.sets.interval import Interval, interval_eval
 from diffsmf.sets.parallelotope import Parallelotope
 from diffsmf.sets.strip import Strip
 from diffsmf.sets.zonotope import Zonotope
+from diffsmf.sets.zonotope_bundle import ZonotopeBundle
 
 __all__ = [
     "ConstrainedZonotope",
@@ -18,6 +19,7 @@ __all__ = [
     "Parallelotope",
     "Strip",
     "Zonotope",
+    "ZonotopeBundle",
     "align",
     "cat",
     "interval_eval",

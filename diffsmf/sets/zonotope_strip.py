@@ -92,17 +92,47 @@ def _bravo_lambda(G: Tensor, p: Tensor, sig: Tensor, Gp: Tensor) -> Tensor:
     lam_g = (G / safe.unsqueeze(-2)).transpose(-1, -2)  # [..., m, n]
     cands = torch.cat([torch.zeros_like(lam_g[..., :1, :]), lam_g], -2)  # [..., 1 + m, n]
     with torch.no_grad():
-        cd, pd, Gd = cands.detach(), p.detach(), G.detach()
-        eye = torch.eye(n, dtype=G.dtype, device=G.device)
-        A = eye - cd.unsqueeze(-1) * pd.unsqueeze(-2).unsqueeze(-2)  # I - lam p' [..., K, n, n]
-        AG = A @ Gd.unsqueeze(-3)
-        sd = sig.detach().reshape(*sig.shape, 1, 1, 1)
-        TT = AG @ AG.transpose(-1, -2) + sd * sd * (cd.unsqueeze(-1) * cd.unsqueeze(-2))
-        det = torch.linalg.det(TT)
+        logdet = _bravo_logdets(G.detach(), p.detach(), sig.detach(), lam_g.detach())
         bad = torch.cat([torch.zeros_like(ok[..., :1]), ~ok], -1)
-        det = torch.where(bad | ~torch.isfinite(det), torch.full_like(det, torch.inf), det)
-        k = det.argmin(-1)  # the first of equal minima
+        logdet = torch.where(bad | torch.isnan(logdet), torch.full_like(logdet, torch.inf),
+                             logdet)
+        k = logdet.argmin(-1)  # the first of equal minima
     return torch.gather(cands, -2, k.reshape(*k.shape, 1, 1).expand(*k.shape, 1, n)).squeeze(-2)
+
+
+def _bravo_logdets(G: Tensor, p: Tensor, sig: Tensor, lam_g: Tensor) -> Tensor:
+    """``log det(T T')`` ``[..., 1 + m]`` of Bravo's candidates: ``G G'`` for lambda = 0, and for
+    ``lambda_j`` (with ``p.lambda_j = 1``) the same determinant without cancellation: the
+    unimodular map ``Q = I - (lambda_j - p / |p|^2) p'`` keeps the hyperplane ``p'x = 0``
+    (where the columns ``C = (I - lambda_j p') G`` lie) and sends ``sigma lambda_j`` to ``sigma
+    p / |p|^2``, so ``det(T T') = sigma^2 / |p|^2 det(C_U C_U')`` with ``C_U = U' C`` in an
+    orthonormal basis ``U`` of the hyperplane. Each Gram determinant is taken from a QR
+    factorisation of the generator matrix (``det(C C') = prod r_ii^2``), never from ``C C'``
+    itself, whose condition number is the square of C's: a large candidate (a generator nearly
+    orthogonal to ``p``) would lose every digit of it."""
+    n = G.shape[-2]
+    ld0 = _gram_logdet(G)
+    if n == 1:  # the hyperplane is {0}: det(T T') = sigma^2 / p^2
+        ldj = (sig * sig / (p * p).sum(-1)).log().unsqueeze(-1).expand(lam_g.shape[:-1])
+        return torch.cat([ld0.unsqueeze(-1), ldj], -1)
+    Q = torch.linalg.qr(p.unsqueeze(-1), mode="complete").Q  # [..., n, n]
+    U = Q[..., 1:]  # orthonormal basis of p'x = 0, [..., n, n-1]
+    UG = U.transpose(-1, -2) @ G  # [..., n-1, m]
+    Ul = lam_g @ U  # U' lambda_j as rows [..., m, n-1]
+    Gp = (p.unsqueeze(-1) * G).sum(-2)  # [..., m]
+    C = UG.unsqueeze(-3) - Ul.unsqueeze(-1) * Gp.unsqueeze(-2).unsqueeze(-2)  # [..., m, n-1, m]
+    ldj = _gram_logdet(C) + (sig * sig / (p * p).sum(-1)).log().unsqueeze(-1)
+    return torch.cat([ld0.unsqueeze(-1), ldj], -1)
+
+
+def _gram_logdet(M: Tensor) -> Tensor:
+    """``log det(M M')`` ``[...]`` of ``M [..., k, m]`` from the R of ``M' = Q R`` (-inf where
+    the rows of M are dependent, i.e. ``m < k`` or a zero ``r_ii``)."""
+    k, m = M.shape[-2], M.shape[-1]
+    if m < k:
+        return torch.full(M.shape[:-2], -torch.inf, dtype=M.dtype, device=M.device)
+    R = torch.linalg.qr(M.transpose(-1, -2), mode="r").R  # [..., k, k]
+    return 2.0 * torch.diagonal(R, dim1=-2, dim2=-1).abs().log().sum(-1)
 
 
 def _l1_vertex(

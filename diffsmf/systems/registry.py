@@ -5,22 +5,26 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable
 
-from diffsmf.systems import chain, library, radar
+from diffsmf.systems import chain, library, observer_tests, radar
 from diffsmf.systems.system import System
 
 __all__ = ["BUILTINS", "check_name", "get", "names", "register"]
 
 #: The built-in systems, registered here in one place (their modules do not import the
 #: registry): the Wang et al. 2022 systems and the other built-ins of `library`, the
-#: n-dimensional oscillator chain and the Jiang et al. 2016 radar system.
+#: n-dimensional oscillator chain, the Jiang et al. 2016 radar system, and the systems of the
+#: reference toolbox's observer tests with the tank cascade of any size (`observer_tests`).
 BUILTINS: dict[str, Callable[..., System]] = {
     "bilinear": library.bilinear,
     "cstr": library.cstr,
     "fermenter": library.fermenter,
+    "linear_2d": observer_tests.linear_2d,
     "mismatch_quadratic": library.mismatch_quadratic,
     "oscillator_chain": chain.oscillator_chain,
     "radar": radar.radar,
     "spring_damper": library.spring_damper,
+    "tank6": observer_tests.tank6,
+    "tank_cascade": observer_tests.tank_cascade,
     "unicycle_rb": library.unicycle_rb,
     "vdp": library.vdp,
 }
