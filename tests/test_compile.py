@@ -19,7 +19,7 @@ CASES = [
     ("hsnsmf", "spring_damper"),
     ("mszm", "spring_damper"),
     ("FRad-B", "spring_damper"),  # MSZM's strip weights: the gains and Bravo's choice
-    ("FRad-C", "fermenter"),
+    ("FRad-C", "mismatch_quadratic"),
     ("VolMin-B", "spring_damper"),
     ("zbsmf", "vdp"),
     ("cdsmf", "spring_damper"),
