@@ -104,7 +104,8 @@ def main() -> None:
     ref = _width(*CORA_TANK6["FRad-A"])
     print(f"\ntank6, the other families (defaults) against CORA's FRad-A ({ref:.3f})")
     print(f"{'observer':<10} {'family':<21} {'ours':>10} {'/FRad-A':>8} {'ms/step':>8}")
-    for name in ("interval", "hsnsmf", "mszm", "VolMin-A", "VolMin-B", "czsmf", "cdsmf", "esmf"):
+    for name in ("interval", "hsnsmf", "mszm", "VolMin-A", "VolMin-B", "zbsmf", "czsmf", "cdsmf",
+                 "esmf"):
         hull, ok, sec = cora_run(name, "tank6")
         w = _width(hull.lower, hull.upper) if ok else float("inf")
         fam = ds.filters.get(name).set_family

@@ -383,7 +383,8 @@ def observers_figure(
     Panel 1: the interval hull's width sum over time per observer (log scale); steps where
     an observer's set is unbounded are left out of its line and marked by a cross at the
     top. Panels 2..: the lower and upper bounds of ``states`` (default the first four) for
-    ``trajectory``, one colour per observer, the widest drawn first.
+    ``trajectory``, one colour per observer, the widest drawn first, in a frame of twice the
+    observers' median initial range (a set that outgrows it is cut at the frame).
 
     Args:
         results: ``{name: FilterResult}``, each with ``lower``/``upper [B, T+1, n]``.
@@ -419,6 +420,12 @@ def observers_figure(
     if title:
         ax.set_title(title, fontsize=9)
     for ax, i in zip(axes[1:], states):
+        # the common view: the observers' median initial range, padded by half of it (a set
+        # that outgrows it is cut at the frame, its width stays readable in panel 1)
+        lo0 = np.median([float(results[k].lower[trajectory, 0, i]) for k in results])
+        hi0 = np.median([float(results[k].upper[trajectory, 0, i]) for k in results])
+        pad = 0.5 * (hi0 - lo0) if hi0 > lo0 else 1.0
+        ax.set_ylim(lo0 - pad, hi0 + pad)
         for name in order:
             lo = _np(results[name].lower[trajectory, :, i])
             up = _np(results[name].upper[trajectory, :, i])
