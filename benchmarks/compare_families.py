@@ -24,9 +24,9 @@ import torch
 
 import diffsmf as ds
 
-SMALL = ["interval", "hsnsmf", "FRad-A", "FRad-B", "VolMin-B", "zbsmf", "czsmf", "cdsmf",
+SMALL = ["interval", "hsnsmf", "FRad-A", "FRad-B", "VolMin-B", "zbsmf", "czsmf", "cdsmf", "ESO-B",
          "esmf", "ekf"]
-LARGE = ["interval", "hsnsmf", "FRad-A", "zbsmf", "cdsmf", "esmf", "ekf"]
+LARGE = ["interval", "hsnsmf", "FRad-A", "zbsmf", "cdsmf", "ESO-B", "esmf", "ekf"]
 
 
 def _data(name: str, steps: int) -> tuple[ds.System, torch.Tensor, torch.Tensor | None]:

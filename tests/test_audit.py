@@ -287,7 +287,8 @@ class MyHSNSMF(filters.HSNSMF):
 
 def test_guaranteed_is_a_class_attribute_that_subclasses_inherit(tmp_path):
     expect = {"hsnsmf": True, "mszm": True, "cdsmf": True, "esmf": True, "czsmf": True,
-              "ekf": False, "combined": False, "interval": True, "zbsmf": True}
+              "ekf": False, "combined": False, "interval": True, "zbsmf": True,
+              "eso": True}
     assert {n: filters.by_name(n).guaranteed for n in filters.names()} == expect
     system = systems.get("spring_damper")
     mine = MyHSNSMF(system)

@@ -206,4 +206,4 @@ def test_audit_sized_system_and_czsmf(capsys):
     assert main([*argv, "--filter", "czsmf"]) == 0
     out = capsys.readouterr().out
     assert "CZSMF on oscillator_chain(n=4)" in out
-    assert "guaranteed filters (cdsmf, czsmf, esmf, hsnsmf, interval, mszm, zbsmf)" in out
+    assert "guaranteed filters (cdsmf, czsmf, esmf, eso, hsnsmf, interval, mszm, zbsmf)" in out

@@ -22,6 +22,7 @@ CASES = [
     ("FRad-C", "mismatch_quadratic"),
     ("VolMin-B", "spring_damper"),
     ("zbsmf", "vdp"),
+    ("ESO-B", "mismatch_quadratic"),  # the ellipsoidal strip observers, two outputs
     ("cdsmf", "spring_damper"),
     ("esmf", "spring_damper"),
     ("esmf", "mismatch_quadratic"),  # square H: the two-sided update, traced branch-free

@@ -24,8 +24,10 @@ DEFAULT = (1000, 8)
 #: (filter, system) pairs where the filter loses the bound on some trajectories: flagged per
 #: trajectory (inf, never a finite set), the cause on the "Which filter?" page (the ellipsoid
 #: outgrows the unmeasured levels until it leaves the square root's domain). Containment is
-#: required all the same; the finite mean volume is not.
-LOSES_BOUND = {("cdsmf", "tank6"), ("cdsmf", "tank_cascade")}
+#: required all the same; the finite mean volume is not. CORA's ESO-A bounds its weight by
+#: 1e-4, so it hardly uses the measurements and its set grows out of the models' domains.
+LOSES_BOUND = {("cdsmf", "tank6"), ("cdsmf", "tank_cascade"), ("ESO-B", "fermenter"),
+               ("ESO-A", "cstr"), ("ESO-A", "fermenter")}
 
 
 def _bounded_systems() -> list[str]:
@@ -96,3 +98,16 @@ def test_zonotope_bundle_contains(system_name):
                       noise="vertex", seed=13)
     assert rep.violations == 0 and rep.inconsistent == 0, str(rep)
     assert torch.isfinite(torch.tensor(rep.mean_volume))
+
+
+@pytest.mark.parametrize("name", ["ESO-A", "ESO-B"])
+@pytest.mark.parametrize("system_name", _bounded_systems())
+def test_ellipsoidal_strip_observers_contain(name, system_name):
+    """CORA's ESO-A and ESO-B as diffsmf derives them: 0 outside with vertex noise."""
+    system = systems.get(system_name)
+    trials, steps = BUDGET.get(system_name, (300, 8))
+    rep = containment(filters.get(name)(system), system, trials=trials, steps=steps,
+                      noise="vertex", seed=14)
+    assert rep.violations == 0 and rep.inconsistent == 0, str(rep)
+    if (name, system_name) not in LOSES_BOUND:
+        assert torch.isfinite(torch.tensor(rep.mean_volume)), str(rep)

@@ -11,6 +11,7 @@ from diffsmf.filters.combined import CombinedFilter
 from diffsmf.filters.czsmf import CZSMF
 from diffsmf.filters.ekf import EKF
 from diffsmf.filters.esmf import ESMF
+from diffsmf.filters.eso import ESO
 from diffsmf.filters.events import FilterEvent, describe_events, event_text
 from diffsmf.filters.hsnsmf import HSNSMF
 from diffsmf.filters.interval_filter import IntervalFilter
@@ -24,6 +25,7 @@ __all__ = [
     "CZSMF",
     "EKF",
     "ESMF",
+    "ESO",
     "HSNSMF",
     "IntervalFilter",
     "MSZM",
@@ -47,7 +49,7 @@ __all__ = [
 
 _NAMES: dict[str, type[SetFilter]] = {
     "hsnsmf": HSNSMF, "mszm": MSZM, "cdsmf": CDSMF, "esmf": ESMF, "ekf": EKF, "czsmf": CZSMF,
-    "combined": CombinedFilter, "interval": IntervalFilter, "zbsmf": ZBSMF,
+    "combined": CombinedFilter, "interval": IntervalFilter, "zbsmf": ZBSMF, "eso": ESO,
 }
 
 #: Other names of the filters: CORA's observer names (Althoff's toolbox) for the ones it has,
@@ -68,6 +70,8 @@ PRESETS: dict[str, Preset] = {
     "FRad-C": Preset("FRad-C", MSZM, strip_method="combastel"),  # Combastel 2015
     "VolMin-A": Preset("VolMin-A", MSZM, strip_method="volume"),  # Alamo et al. 2005
     "VolMin-B": Preset("VolMin-B", MSZM, strip_method="bravo"),  # Bravo et al. 2006
+    "ESO-A": Preset("ESO-A", ESO, method="gollamudi", alpha=1e-4),  # Gollamudi et al. 1996
+    "ESO-B": Preset("ESO-B", ESO, method="liu"),  # Liu et al. 2016
 }
 
 #: The set families a filter declares (``set_family``), as the nonlinear observer comparison
@@ -90,7 +94,8 @@ def get(name: str) -> type[SetFilter] | Preset:
     """The filter for any of its names: the class for ``"hsnsmf" | "mszm" | "cdsmf" | "esmf" |
     "ekf" | "czsmf" | "combined" | "interval"`` or an alias (`ALIASES`: CORA's ``"FRad-A"``,
     ``"CZN-A"``, the papers' ``"HS-NSMF"``), a `Preset` for CORA's names of a filter with
-    options (`PRESETS`: ``"FRad-B"``, ``"FRad-C"``, ``"VolMin-A"``, ``"VolMin-B"``); without
+    options (`PRESETS`: ``"FRad-B"``, ``"FRad-C"``, ``"VolMin-A"``, ``"VolMin-B"``, ``"ESO-A"``,
+    ``"ESO-B"``); without
     regard to case, ``-`` or ``_``. Either is built as ``get(name)(system, **options)``.
 
     Raises:

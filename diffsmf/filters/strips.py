@@ -24,6 +24,7 @@ from diffsmf.systems.system import System
 
 __all__ = [
     "angle_ambiguous",
+    "linearised_strips",
     "measurement_strips",
     "sequential_strip_update",
     "simultaneous_strip_update",
@@ -305,6 +306,19 @@ def stirling_strip_update(
     alone (`_affine_strips`): the same strips to rounding, without the Stirling points and
     the remainder's machinery.
     """
+    a, d, w, ev_h = linearised_strips(filt, S, region, y)
+    new, ok, ev = _intersect_all(S, a, d, w, intersect, gain)
+    return (new, ok, ev) if ev_h is None else (new, ok, ev | ev_h)
+
+
+def linearised_strips(
+    filt: SetFilter, S: ConvexSet, region: ConvexSet, y: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """The measurement strips of `stirling_strip_update` (Wang et al. 2022, Theorem 3): normal
+    ``[B, m, n]``, offset and half-width ``[B, m]`` (``|normal_i . x - offset_i| <= half_i`` for
+    every state consistent with ``y``), and the events ``[B]`` of the remainder of ``h`` over
+    ``region``. Stirling slopes at ``S``'s centre; an affine ``h`` takes its exact slopes and a
+    remainder that is the float padding alone (no events: None)."""
     from diffsmf.linearize import stirling_jacobian
     from diffsmf.linearize.jacobians import value_and_jacobian
 
@@ -314,11 +328,9 @@ def stirling_strip_update(
     if is_affine(h, region):
         hc, H = value_and_jacobian(h, c)  # h(c) and the exact slopes from one call of h
         a, d, w = _affine_strips(h, region, c, H, y, vbox, system, hc=hc)
-        return _intersect_all(S, a, d, w, intersect, gain)
+        return a, d, w, None
     H = stirling_jacobian(h, c, stirling_steps(filt, c, region.interval_hull().radius))
-    a, d, w, ev_h = _strips(h, filt.remainder_fn, region, c, H, y, vbox, system)
-    new, ok, ev = _intersect_all(S, a, d, w, intersect, gain)
-    return new, ok, ev | ev_h
+    return _strips(h, filt.remainder_fn, region, c, H, y, vbox, system)
 
 
 def _intersect_all(
