@@ -112,7 +112,7 @@ def _gollamudi(c: Tensor, Q: Tensor, s2: Tensor, H: Tensor, delta: Tensor, w: Te
     dd = (delta * delta).sum(-1)
     # the weight (Theorem 2), differentiable where it is chosen; any value in (0, 1) is an
     # outer bound, elsewhere the element keeps its prior
-    g = torch.linalg.eigvalsh(linalg.sym(G))[..., -1]
+    g = _largest_eigenvalue(G)
     beta = (g2 - s2) / dd.clamp_min(1e-300)
     omega = 1 + beta * (g - 1)
     with torch.no_grad():
@@ -149,7 +149,7 @@ def _liu(c: Tensor, Q: Tensor, s2: Tensor, H: Tensor, delta: Tensor, w: Tensor,
     # the weight (Theorem 3), differentiable where it is chosen
     Vi = 1 / (m * w * w).sqrt()
     Gn = Vi.unsqueeze(-1) * G * Vi.unsqueeze(-2)  # bar V G bar V'
-    g = torch.linalg.eigvalsh(linalg.sym(Gn))[..., -1]
+    g = _largest_eigenvalue(Gn)
     beta = (1 - s2) / dd.clamp_min(1e-300)
     omega = 1 + beta * (g - 1)
     with torch.no_grad():
@@ -170,3 +170,13 @@ def _liu(c: Tensor, Q: Tensor, s2: Tensor, H: Tensor, delta: Tensor, w: Tensor,
     Q2 = (Q - K @ HQ) / (1 - lam_)
     c2 = c + (K @ delta.unsqueeze(-1)).squeeze(-1)
     return c2, Q2, s22, ok
+
+
+def _largest_eigenvalue(G: Tensor) -> Tensor:
+    """``lambda_max`` of the symmetric ``G [..., m, m]``; NaN where G is not finite (a diverged
+    element: its weight is then not found and it keeps its prior), never a batch error."""
+    fin = torch.isfinite(G).all(-1).all(-1)
+    eye = torch.eye(G.shape[-1], dtype=G.dtype, device=G.device)
+    safe = torch.where(fin.unsqueeze(-1).unsqueeze(-1), linalg.sym(G), eye)
+    g = torch.linalg.eigvalsh(safe)[..., -1]
+    return torch.where(fin, g, torch.full_like(g, torch.nan))
