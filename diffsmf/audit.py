@@ -29,6 +29,7 @@ from torch import Tensor
 from diffsmf.convex import ConvexSet, as_vector
 from diffsmf.filters import is_guaranteed
 from diffsmf.filters.base import check_filter
+from diffsmf.filters.presets import filter_name
 from diffsmf.sets import Ellipsoid, Interval, Parallelotope, Zonotope, ZonotopeBundle
 from diffsmf.sets.constrained_zonotope import ConstrainedZonotope, distance_lp
 from diffsmf.systems.system import check_system
@@ -230,7 +231,7 @@ def containment(
         bar.close()
     pairs = count * (steps + 1)
     return AuditReport(
-        filter=type(filt).__name__,
+        filter=filter_name(filt),
         system=system.name,
         noise=noise,
         trials=count,

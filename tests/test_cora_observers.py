@@ -120,3 +120,13 @@ def test_six_tanks_within_five_percent_of_cora(name):
     ours, cora = float((hull.upper - hull.lower).sum()), float((hi - lo).sum())
     assert abs(ours / cora - 1) <= 0.05, f"{name}: width sum {ours:.3f}, CORA {cora:.3f}"
     assert (hull.lower[0].numpy() < hi).all() and (hull.upper[0].numpy() > lo).all()
+
+
+def test_reports_name_the_preset(capsys):
+    """A filter built by a CORA name keeps that name in reports (the audit's ``filter``)."""
+    from diffsmf.audit import containment
+
+    s = ds.systems.get("vdp")
+    rep = containment(ds.filters.get("VolMin-B")(s), s, trials=3, steps=2, noise="vertex")
+    assert rep.filter == "VolMin-B"
+    assert containment(ds.filters.MSZM(s), s, trials=3, steps=2).filter == "MSZM"

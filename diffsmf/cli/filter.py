@@ -45,6 +45,7 @@ import torch
 import diffsmf as ds
 from diffsmf.filters import names as filter_names
 from diffsmf.filters.events import describe_events
+from diffsmf.filters.presets import filter_name
 from diffsmf.plot import bounds_figure
 from diffsmf.systems import System
 from diffsmf.tuning.bounds import bound_sets, read_bounds
@@ -455,7 +456,7 @@ def main(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     bounds_path = write_bounds(out, run, args.format, state_names)
     files = {"bounds": bounds_path.name}
-    name = type(filt).__name__
+    name = filter_name(filt)
     guaranteed = ds.filters.is_guaranteed(filt)
     skipped = [int(k) + 1 for k in np.flatnonzero(np.isnan(Y).any(1))]
     if args.figure:

@@ -9,7 +9,13 @@ from typing import Any
 from diffsmf.filters.base import SetFilter
 from diffsmf.systems.system import System
 
-__all__ = ["Preset"]
+__all__ = ["Preset", "filter_name"]
+
+
+def filter_name(filt: Any) -> str:
+    """The name reports give a filter: its preset's (``"FRad-B"``) where it was built by one,
+    else its class's (``"MSZM"``)."""
+    return getattr(filt, "preset", None) or type(filt).__name__
 
 
 class Preset:
@@ -29,7 +35,9 @@ class Preset:
         self.name, self.cls, self.options = name, cls, dict(options)
 
     def __call__(self, system: System, **kw: Any) -> SetFilter:
-        return self.cls(system, **{**self.options, **kw})
+        filt = self.cls(system, **{**self.options, **kw})
+        filt.preset = self.name  # reports name it (`filter_name`)
+        return filt
 
     def __getattr__(self, attr: str) -> Any:
         if attr.startswith("__") or attr in ("name", "cls", "options"):
