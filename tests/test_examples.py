@@ -44,3 +44,15 @@ def test_learning_a_network_through_the_filter_fits_and_plots(tmp_path):
     path = tmp_path / "learned.png"
     ex.figure(out, path)
     assert path.stat().st_size > 10_000
+
+
+def test_cora_observers_example_compares_and_matches_cora(tmp_path):
+    ex = _load("cora_observers")
+    cmp = ex.compare(["FRad-A", "VolMin-B", "ESO-B"])
+    assert [r["filter"] for r in cmp.rows] == ["FRad-A", "VolMin-B", "ESO-B"]
+    assert all(r["error"] is None and r["bounded"] == r["pairs"] for r in cmp.rows)
+    cmp.figure(tmp_path / "c.png")
+    hull = ex.frad_a_as_cora()
+    width = float((hull.upper - hull.lower).sum())
+    cora = sum(h - lo for lo, h in zip(*ex.CORA_FRAD_A))
+    assert abs(width / cora - 1) < 0.05
