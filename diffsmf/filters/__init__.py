@@ -1,5 +1,5 @@
-"""Filters: HSNSMF, MSZM, CDSMF, ESMF, CZSMF, ZBSMF, IntervalFilter, CombinedFilter, EKF (all
-``nn.Module``).
+"""Filters: HSNSMF, MSZM, CDSMF, ESMF, ESO, CZSMF, ZBSMF, IntervalFilter, CombinedFilter, EKF
+(all ``nn.Module``), by name (`get`, `names`; CORA's observer names are `PRESETS`).
 
 `SetFilter` is the contract of every filter; `LinearisingFilter` the base of the ones that
 linearise about the set's centre (HSNSMF, MSZM, CDSMF, ESMF, CZSMF, IntervalFilter)."""
