@@ -66,8 +66,8 @@ def test_bad_input_names_the_argument(linear):
         ds.compare(s, torch.zeros(5, 2))
     with pytest.raises(ValueError, match="^u: expected inputs"):
         ds.compare(s, y, torch.zeros(3, 1))
-    with pytest.raises(ValueError, match="^filters: unknown filter 'PRad-A'"):
-        ds.compare(s, y, filters=["hsnsmf", "PRad-A"])
+    with pytest.raises(ValueError, match="^filters: unknown filter 'Hinf-G'"):
+        ds.compare(s, y, filters=["hsnsmf", "Hinf-G"])
     with pytest.raises(ValueError, match="^filters: expected a list"):
         ds.compare(s, y, filters="hsnsmf")
 

@@ -75,11 +75,12 @@ def test_mszm_with_tightened_strips_contains_and_is_no_looser(system_name):
     assert rep.mean_volume <= plain.mean_volume * (1 + 1e-9), (rep, plain)
 
 
-@pytest.mark.parametrize("weight", ["volume", "bravo", "wang", "combastel"])
+@pytest.mark.parametrize("weight", ["volume", "bravo", "wang", "combastel", "pradius-a",
+                                    "pradius-b"])
 @pytest.mark.parametrize("system_name", _bounded_systems())
 def test_mszm_strip_weights_contain(weight, system_name):
-    """Every strip weight of MSZM (CORA's VolMin-A/B, FRad-B/C): 0 outside with vertex noise,
-    no inconsistent step on true data."""
+    """Every strip weight of MSZM (CORA's VolMin-A/B, FRad-B/C, PRad-A/B): 0 outside with
+    vertex noise, no inconsistent step on true data."""
     system = systems.get(system_name)
     trials, steps = BUDGET.get(system_name, (300, 8))
     filt = filters.MSZM(system, strip_method=weight)

@@ -70,6 +70,8 @@ PRESETS: dict[str, Preset] = {
     "FRad-C": Preset("FRad-C", MSZM, strip_method="combastel"),  # Combastel 2015
     "VolMin-A": Preset("VolMin-A", MSZM, strip_method="volume"),  # Alamo et al. 2005
     "VolMin-B": Preset("VolMin-B", MSZM, strip_method="bravo"),  # Bravo et al. 2006
+    "PRad-A": Preset("PRad-A", MSZM, strip_method="pradius-a"),  # Le et al. 2013, per output
+    "PRad-B": Preset("PRad-B", MSZM, strip_method="pradius-b"),  # Le et al. 2013
     "ESO-A": Preset("ESO-A", ESO, method="gollamudi", alpha=1e-4),  # Gollamudi et al. 1996
     "ESO-B": Preset("ESO-B", ESO, method="liu"),  # Liu et al. 2016
 }
@@ -94,8 +96,8 @@ def get(name: str) -> type[SetFilter] | Preset:
     """The filter for any of its names: the class for ``"hsnsmf" | "mszm" | "cdsmf" | "esmf" |
     "ekf" | "czsmf" | "combined" | "interval"`` or an alias (`ALIASES`: CORA's ``"FRad-A"``,
     ``"CZN-A"``, the papers' ``"HS-NSMF"``), a `Preset` for CORA's names of a filter with
-    options (`PRESETS`: ``"FRad-B"``, ``"FRad-C"``, ``"VolMin-A"``, ``"VolMin-B"``, ``"ESO-A"``,
-    ``"ESO-B"``); without
+    options (`PRESETS`: ``"FRad-B"``, ``"FRad-C"``, ``"VolMin-A"``, ``"VolMin-B"``,
+    ``"PRad-A"``, ``"PRad-B"``, ``"ESO-A"``, ``"ESO-B"``); without
     regard to case, ``-`` or ``_``. Either is built as ``get(name)(system, **options)``.
 
     Raises:

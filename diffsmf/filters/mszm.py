@@ -39,6 +39,7 @@ order 5 (full audit), on ``vdp`` 27 % tighter. Full table in ``docs/filters.md``
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -53,7 +54,7 @@ from diffsmf.filters.strips import stirling_strip_update
 from diffsmf.filters.zonotope_gains import GAINS, STRIP_WEIGHTS
 from diffsmf.sets.conversions import as_zonotope
 from diffsmf.systems.system import System
-from diffsmf.utils import descending_order, is_int, tracing
+from diffsmf.utils import descending_order, is_int, tracing, user_stacklevel
 
 __all__ = ["MSZM", "STRIP_WEIGHTS"]
 
@@ -71,7 +72,11 @@ class MSZM(LinearisingFilter):
             ``"volume"`` (VolMin-A, Alamo et al. 2005), ``"bravo"`` (VolMin-B, Bravo et al.
             2006), one strip at a time (`Zonotope.intersect_strip`); ``"wang"`` (FRad-B,
             Wang, Puig & Cembrano 2018) and ``"combastel"`` (FRad-C, Combastel 2015), all
-            strips at once with one gain matrix (`Zonotope.intersect_strips`). Every weight
+            strips at once with one gain matrix (`Zonotope.intersect_strips`);
+            ``"pradius-a"`` / ``"pradius-b"`` (PRad-A / PRad-B, Le et al. 2013) the same with a
+            fixed gain designed once by an LMI (`diffsmf.filters.pradius`) on the model
+            linearised at the initial set's centre (buffer ``strip_gain [n, m]``, the design
+            in ``gain_design``; a design the numpy check does not verify warns). Every weight
             gives a guaranteed set; they differ in tightness.
         tighten_strips: cut each measurement strip to the zonotope's range along it before
             the intersection (``Zonotope.intersect_strip(tighten=True)``): the same
@@ -114,9 +119,41 @@ class MSZM(LinearisingFilter):
             raise ValueError(f"tighten_strips: cuts the strips of the one-at-a-time weights; "
                              f"strip_method={strip_method!r} takes all strips at once")
         self.tighten_strips = tighten_strips
+        if strip_method in ("pradius-a", "pradius-b"):
+            self._design_gain(per_output=strip_method == "pradius-a")
 
     def _convert_initial(self, S: ConvexSet) -> ConvexSet:
         return as_zonotope(S)
+
+    def _design_gain(self, per_output: bool) -> None:
+        """PRad-A/B's offline gain (Le et al. 2013) on ``f`` and ``h`` linearised at the
+        initial set's centre (the first scheduled input, or 0), with the noises' generators."""
+        import warnings
+
+        from diffsmf.filters.pradius import pradius_gain
+        from diffsmf.filters.prediction import noise_generators
+        from diffsmf.linearize.jacobians import jacobian
+
+        s = self.system
+        c = self._x0.center.detach().reshape(1, -1)
+        u = s.input_at(0, 1) if s.inputs is not None else (
+            None if s.n_inputs == 0 else c.new_zeros(1, s.n_inputs))
+        fn = step_function(s, u)
+        with torch.no_grad():
+            A = jacobian(fn, c)[0].numpy()
+            C = jacobian(s.h, c)[0].numpy()
+            _, wr, Gw = noise_generators(self)
+            E = torch.diag(wr) if Gw is None else torch.cat([torch.diag(wr), Gw], -1)
+            E = E[:, E.abs().sum(0) > 0].numpy()
+            F = torch.diag(self.measurement_half_widths).numpy()
+        design = pradius_gain(A, C, E if E.shape[1] else np.zeros((A.shape[0], 1)), F,
+                              per_output=per_output)
+        if design.status != "verified":
+            warnings.warn(f"strip_method: the P-radius gain is {design.status} "
+                          f"({design.message}); the sets stay guaranteed, only less tight",
+                          stacklevel=user_stacklevel())
+        self.gain_design = design
+        self.register_buffer("strip_gain", torch.as_tensor(design.gain, dtype=c.dtype))
 
     @property
     def n_generators(self) -> int:

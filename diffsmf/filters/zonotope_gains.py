@@ -5,6 +5,8 @@ for a matrix ``R`` that stands for the spread of the set:
 
 * ``"combastel"``: ``R = G G'`` of the set itself (Combastel 2015, eq. 11-12; CORA's FRad-C
   and its strip method ``normGen``);
+* ``"pradius-a"`` / ``"pradius-b"``: the offline P-radius gain of Le et al. 2013
+  (`diffsmf.filters.pradius`), designed once at construction (CORA's PRad-A and PRad-B);
 * ``"wang"``: ``R = J G G' J' + E E'`` (Wang, Puig & Cembrano 2018, Theorem 2, eq. 12-15), with
   ``J`` the Jacobian of the last prediction and ``E`` the process noise generators. As in
   CORA's FRad-B, ``G`` is the generator matrix of the *predicted* set (see the errata page).
@@ -53,12 +55,19 @@ def _wang(filt: SetFilter, state: FilterState, S: ConvexSet, A: Tensor, w: Tenso
     return fradius_gain(R, A, w)
 
 
+def _fixed(filt: SetFilter, state: FilterState, S: ConvexSet, A: Tensor, w: Tensor) -> Tensor:
+    """The offline gain of PRad-A/B (`MSZM.strip_gain`, designed at construction)."""
+    L = filt.strip_gain.to(dtype=A.dtype, device=A.device)
+    return L.expand(*A.shape[:-2], *L.shape)
+
+
 #: The gains by `MSZM` ``strip_method`` name: ``(filter, state, set, A, w) -> L``
-GAINS: dict[str, Callable[..., Tensor]] = {"wang": _wang, "combastel": _combastel}
+GAINS: dict[str, Callable[..., Tensor]] = {"wang": _wang, "combastel": _combastel,
+                                           "pradius-a": _fixed, "pradius-b": _fixed}
 
 #: Every `MSZM` strip weight: `Zonotope.intersect_strip`'s one-at-a-time methods, then the
 #: gains, with CORA's observer names
 STRIP_WEIGHTS: dict[str, str] = {
     "fradius": "FRad-A", "volume": "VolMin-A", "bravo": "VolMin-B", "wang": "FRad-B",
-    "combastel": "FRad-C",
+    "combastel": "FRad-C", "pradius-a": "PRad-A", "pradius-b": "PRad-B",
 }
