@@ -711,3 +711,20 @@ def test_outer_parallelogram_pair_table_matches_the_basis_search(monkeypatch):
         assert torch.equal(zmod._outer_parallelotope(G[b : b + 1])[0], T[b])  # batch-free
     monkeypatch.setattr(zmod, "_PAIR_CHUNK_ELEMS", 3 * 49)  # chunks of 3 elements
     assert torch.equal(zmod._outer_parallelotope(G), T)
+
+
+@pytest.mark.parametrize(("k", "m", "scale"), [(2, 6, 1.0), (5, 20, 1.0), (5, 20, 1e6)])
+def test_bravo_rank_one_determinants_equal_one_qr_per_candidate(k, m, scale):
+    """The determinants of Bravo's candidates from one QR (``C_j C_j' = K + z_j z_j'``) equal
+    the QR of each ``C_j``, also for candidates of size 1e6 (a generator nearly orthogonal to
+    the strip), where ``C_j C_j'`` itself would lose every digit."""
+    from diffsmf.sets.zonotope_strip import _gram_logdet, _rank_one_logdets
+
+    g = torch.Generator().manual_seed(k + m)
+    B = torch.randn(k, m, generator=g, dtype=torch.float64)
+    Ul = scale * torch.randn(m, k, generator=g, dtype=torch.float64)
+    v = torch.randn(m, generator=g, dtype=torch.float64)
+    fast, regular = _rank_one_logdets(B, Ul, v)
+    C = B.unsqueeze(0) - Ul.unsqueeze(-1) * v.reshape(1, 1, m)
+    assert bool(regular)
+    torch.testing.assert_close(fast, _gram_logdet(C), rtol=1e-9, atol=1e-9)

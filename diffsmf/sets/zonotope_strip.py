@@ -20,6 +20,7 @@ from diffsmf.sets.combinatorics import (
     _planar_pair_area,
     _sum_abs_det,
 )
+from diffsmf.utils import tracing
 
 __all__ = []
 
@@ -120,9 +121,36 @@ def _bravo_logdets(G: Tensor, p: Tensor, sig: Tensor, lam_g: Tensor) -> Tensor:
     UG = U.transpose(-1, -2) @ G  # [..., n-1, m]
     Ul = lam_g @ U  # U' lambda_j as rows [..., m, n-1]
     Gp = (p.unsqueeze(-1) * G).sum(-2)  # [..., m]
-    C = UG.unsqueeze(-3) - Ul.unsqueeze(-1) * Gp.unsqueeze(-2).unsqueeze(-2)  # [..., m, n-1, m]
-    ldj = _gram_logdet(C) + (sig * sig / (p * p).sum(-1)).log().unsqueeze(-1)
+    ld_fast, regular = _rank_one_logdets(UG, Ul, Gp)
+    if tracing() or not bool(regular.all()):
+        C = UG.unsqueeze(-3) - Ul.unsqueeze(-1) * Gp.unsqueeze(-2).unsqueeze(-2)  # [.., m, n-1, m]
+        ld_fast = torch.where(regular.unsqueeze(-1), ld_fast, _gram_logdet(C))
+    ldj = ld_fast + (sig * sig / (p * p).sum(-1)).log().unsqueeze(-1)
     return torch.cat([ld0.unsqueeze(-1), ldj], -1)
+
+
+def _rank_one_logdets(UG: Tensor, Ul: Tensor, Gp: Tensor) -> tuple[Tensor, Tensor]:
+    """``log det(C_j C_j')`` ``[..., m]`` for ``C_j = B - u_j v'`` (``B = UG [..., k, m]``,
+    ``u_j`` the rows of ``Ul [..., m, k]``, ``v = Gp [..., m]``), all from one QR: with
+    ``B_perp = B (I - v v'/|v|^2)``, ``C_j = B_perp + z_j v'/|v|`` and ``B_perp v = 0``, so
+    ``C_j C_j' = K + z_j z_j'`` with ``K = B_perp B_perp'`` and ``z_j = B v/|v| - |v| u_j``;
+    ``log det = log det K + log(1 + |R^-T z_j|^2)`` with ``B_perp' = Q R``. ``O(m k^2)``
+    instead of a QR per candidate; a large ``u_j`` enters only through the rank-one factor.
+    Returns also ``regular [...]``: False where ``K`` is (nearly) singular, where the formula
+    does not hold and the caller takes the QR of each ``C_j``."""
+    vn = Gp.norm(dim=-1, keepdim=True)  # [..., 1]
+    vh = Gp / vn.clamp_min(torch.finfo(Gp.dtype).tiny)
+    Bv = (UG * vh.unsqueeze(-2)).sum(-1)  # B v / |v|, [..., k]
+    Bp = UG - Bv.unsqueeze(-1) * vh.unsqueeze(-2)
+    R = torch.linalg.qr(Bp.transpose(-1, -2), mode="r").R  # [..., k, k]
+    d = torch.diagonal(R, dim1=-2, dim2=-1).abs()
+    regular = (d.amin(-1) > 1e-10 * d.amax(-1)) & (vn.squeeze(-1) > 0)
+    eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
+    Rs = torch.where(regular.unsqueeze(-1).unsqueeze(-1), R, eye)
+    z = Bv.unsqueeze(-2) - vn.unsqueeze(-1) * Ul  # [..., m, k]
+    w = torch.linalg.solve_triangular(Rs.transpose(-1, -2), z.transpose(-1, -2), upper=False)
+    ldK = 2.0 * torch.where(regular.unsqueeze(-1), d, torch.ones_like(d)).log().sum(-1)
+    return ldK.unsqueeze(-1) + torch.log1p((w * w).sum(-2)), regular
 
 
 def _gram_logdet(M: Tensor) -> Tensor:
