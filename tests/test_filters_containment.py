@@ -99,8 +99,8 @@ def test_mszm_strip_weights_contain(weight, system_name):
 
 @pytest.mark.parametrize("system_name", _bounded_systems())
 def test_zonotope_bundle_contains(system_name):
-    """ZBSMF (two members, F-radius and Bravo weights): 0 outside with vertex noise (a
-    smaller batch: Bravo's weight costs a QR per generator)."""
+    """ZBSMF (two members, F-radius and Bravo weights): 0 outside with vertex noise (at most
+    300 trajectories: two members cost about three zonotope steps)."""
     system = systems.get(system_name)
     trials, steps = BUDGET.get(system_name, (300, 6))
     rep = containment(filters.ZBSMF(system), system, trials=min(trials, 300), steps=steps,
