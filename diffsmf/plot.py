@@ -383,7 +383,8 @@ def observers_figure(
     Panel 1: the interval hull's width sum over time per observer (log scale); steps where
     an observer's set is unbounded are left out of its line and marked by a cross at the
     top. Panels 2..: the lower and upper bounds of ``states`` (default the first four) for
-    ``trajectory``, one colour per observer, the widest drawn first, in a frame of twice the
+    ``trajectory``, one colour per observer (a dashed line from the eleventh on), the widest
+    drawn first, in a frame of twice the
     observers' median initial range (a set that outgrows it is cut at the frame).
 
     Args:
@@ -401,7 +402,8 @@ def observers_figure(
     fig = _figure((8.0, 2.2 * (1 + len(states))))
     axes = fig.subplots(1 + len(states), 1, sharex=True, squeeze=False)[:, 0]
     order = sorted(results, key=lambda k: -_finite_mean_width(results[k]))
-    colors = {name: f"C{i}" for i, name in enumerate(results)}
+    colors = {name: f"C{i % 10}" for i, name in enumerate(results)}
+    styles = {name: ("-", "--", ":")[min(i // 10, 2)] for i, name in enumerate(results)}
     ax = axes[0]
     top = max(_finite_max_width(r) for r in results.values())
     lost = False
@@ -409,7 +411,7 @@ def observers_figure(
         w = _np((results[name].upper - results[name].lower).sum(-1)).mean(0)
         t = np.arange(len(w))
         ok = np.isfinite(w)
-        ax.semilogy(t[ok], w[ok], color=colors[name], label=name)
+        ax.semilogy(t[ok], w[ok], color=colors[name], ls=styles[name], label=name)
         if (~ok).any():
             ax.plot(t[~ok], np.full((~ok).sum(), top), "x", color=colors[name])
             lost = True
@@ -432,8 +434,8 @@ def observers_figure(
             t = np.arange(len(lo))
             ok = np.isfinite(lo) & np.isfinite(up)
             ax.fill_between(t[ok], lo[ok], up[ok], color=colors[name], alpha=0.25, lw=0)
-            ax.plot(t[ok], lo[ok], color=colors[name], lw=0.8)
-            ax.plot(t[ok], up[ok], color=colors[name], lw=0.8)
+            ax.plot(t[ok], lo[ok], color=colors[name], ls=styles[name], lw=0.8)
+            ax.plot(t[ok], up[ok], color=colors[name], ls=styles[name], lw=0.8)
         ax.set_ylabel(f"x{i + 1}")
     axes[-1].set_xlabel("step k")
     fig.tight_layout()
