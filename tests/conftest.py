@@ -44,3 +44,18 @@ def load_script(folder: str, name: str):
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def gradcheck_noise_bounds(filt, traj, outputs=("volume", "center")) -> bool:
+    """``torch.autograd.gradcheck`` of ``filt(traj.y, u=traj.u)``'s last-step ``outputs``
+    (names of `FilterResult` fields) in the filter's two stored noise parameters."""
+    from torch.func import functional_call
+
+    names = ["raw_process_noise", "raw_measurement_noise"]
+    params = tuple(getattr(filt, n).detach().clone().requires_grad_(True) for n in names)
+
+    def fn(a, b):
+        res = functional_call(filt, {names[0]: a, names[1]: b}, (traj.y,), {"u": traj.u})
+        return tuple(getattr(res, o)[:, -1] for o in outputs)
+
+    return torch.autograd.gradcheck(fn, params, eps=1e-7, atol=1e-6, rtol=1e-4)

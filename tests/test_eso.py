@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from torch.func import functional_call
+from conftest import gradcheck_noise_bounds
 
 import diffsmf as ds
 
@@ -172,14 +172,7 @@ def test_gradcheck_noise_bounds(name):
     s = ds.systems.get("vdp")
     tr = s.simulate(steps=3, batch=2, seed=6, noise="vertex")
     filt = ds.filters.get(name)(s, alpha=0.5) if name == "ESO-A" else ds.filters.get(name)(s)
-    names = ["raw_process_noise", "raw_measurement_noise"]
-    params = tuple(getattr(filt, n).detach().clone().requires_grad_(True) for n in names)
-
-    def fn(a, b):
-        res = functional_call(filt, {names[0]: a, names[1]: b}, (tr.y,), {"u": tr.u})
-        return res.volume[:, -1], res.center[:, -1]
-
-    assert torch.autograd.gradcheck(fn, params, eps=1e-7, atol=1e-6, rtol=1e-4)
+    assert gradcheck_noise_bounds(filt, tr)
 
 
 def test_bad_options_name_the_argument():

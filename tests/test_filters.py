@@ -189,19 +189,11 @@ def test_batch_equals_loop(cls):
 # ---------------------------------------------------------------------- gradients
 @pytest.mark.parametrize("cls", ALL, ids=lambda c: c.__name__)
 def test_gradcheck_noise_bounds(cls):
-    from torch.func import functional_call
+    from conftest import gradcheck_noise_bounds
 
     sys = quadratic_system()
     traj = sys.simulate(steps=3, batch=2, seed=6)
-    filt = cls(sys)
-    names = ["raw_process_noise", "raw_measurement_noise"]
-    params = tuple(getattr(filt, n).detach().clone().requires_grad_(True) for n in names)
-
-    def fn(a, b):
-        res = functional_call(filt, {names[0]: a, names[1]: b}, (traj.y,), {"u": traj.u})
-        return res.volume[:, -1], res.center[:, -1]  # EKF: volume of the 3-sigma ellipsoid
-
-    assert torch.autograd.gradcheck(fn, params, eps=1e-7, atol=1e-6, rtol=1e-4)
+    assert gradcheck_noise_bounds(cls(sys), traj)  # EKF: volume of the 3-sigma ellipsoid
 
 
 def test_gradient_reaches_stirling_step():

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torch.func import functional_call
+from conftest import gradcheck_noise_bounds
 
 import diffsmf as ds
 
@@ -18,15 +18,7 @@ WEIGHTS = ["volume", "bravo", "wang", "combastel"]
 def test_gradcheck_noise_bounds(weight):
     s = ds.systems.get("spring_damper")
     tr = s.simulate(steps=3, batch=2, seed=6, noise="vertex")
-    filt = ds.filters.MSZM(s, strip_method=weight)
-    names = ["raw_process_noise", "raw_measurement_noise"]
-    params = tuple(getattr(filt, n).detach().clone().requires_grad_(True) for n in names)
-
-    def fn(a, b):
-        res = functional_call(filt, {names[0]: a, names[1]: b}, (tr.y,), {"u": tr.u})
-        return res.volume[:, -1], res.center[:, -1]
-
-    assert torch.autograd.gradcheck(fn, params, eps=1e-7, atol=1e-6, rtol=1e-4)
+    assert gradcheck_noise_bounds(ds.filters.MSZM(s, strip_method=weight), tr)
 
 
 @pytest.mark.parametrize("weight", WEIGHTS)
