@@ -112,15 +112,7 @@ def _gollamudi(c: Tensor, Q: Tensor, s2: Tensor, H: Tensor, delta: Tensor, w: Te
     dd = (delta * delta).sum(-1)
     # the weight (Theorem 2), differentiable where it is chosen; any value in (0, 1) is an
     # outer bound, elsewhere the element keeps its prior
-    g = _largest_eigenvalue(G)
-    beta = (g2 - s2) / dd.clamp_min(1e-300)
-    omega = 1 + beta * (g - 1)
-    with torch.no_grad():
-        near1 = (g - 1).abs() < 1e-12
-        pos = omega > 0
-    nu = torch.where(near1, (1 - beta) / 2,
-                     (1 - torch.sqrt(g / torch.where(pos, omega, torch.ones_like(omega))))
-                     / torch.where(near1, torch.ones_like(g), 1 - g))
+    nu, pos = _obe_weight(_largest_eigenvalue(G), (g2 - s2) / dd.clamp_min(1e-300))
     nu = torch.where(pos, nu, torch.full_like(nu, alpha))
     lam = torch.minimum(nu, torch.full_like(nu, alpha))
     with torch.no_grad():
@@ -149,15 +141,7 @@ def _liu(c: Tensor, Q: Tensor, s2: Tensor, H: Tensor, delta: Tensor, w: Tensor,
     # the weight (Theorem 3), differentiable where it is chosen
     Vi = 1 / (m * w * w).sqrt()
     Gn = Vi.unsqueeze(-1) * G * Vi.unsqueeze(-2)  # bar V G bar V'
-    g = _largest_eigenvalue(Gn)
-    beta = (1 - s2) / dd.clamp_min(1e-300)
-    omega = 1 + beta * (g - 1)
-    with torch.no_grad():
-        near1 = (g - 1).abs() < 1e-12
-        pos = omega > 0
-    lam = torch.where(near1, (1 - beta) / 2,
-                      (1 - torch.sqrt(g / torch.where(pos, omega, torch.ones_like(omega))))
-                      / torch.where(near1, torch.ones_like(g), 1 - g))
+    lam, pos = _obe_weight(_largest_eigenvalue(Gn), (1 - s2) / dd.clamp_min(1e-300))
     with torch.no_grad():
         ok = (lam > 1e-12) & (lam < 1 - 1e-12) & torch.isfinite(lam) & pos & (s2 + dd > 1)
     lam = torch.where(ok, lam, torch.full_like(lam, 0.5))
@@ -170,6 +154,21 @@ def _liu(c: Tensor, Q: Tensor, s2: Tensor, H: Tensor, delta: Tensor, w: Tensor,
     Q2 = (Q - K @ HQ) / (1 - lam_)
     c2 = c + (K @ delta.unsqueeze(-1)).squeeze(-1)
     return c2, Q2, s22, ok
+
+
+def _obe_weight(g: Tensor, beta: Tensor) -> tuple[Tensor, Tensor]:
+    """The optimal-bounding-ellipsoid weight shared by both rules (Gollamudi et al. 1996,
+    Theorem 2; Liu et al. 2016, Theorem 3): ``(1 - sqrt(g / omega)) / (1 - g)`` with ``omega =
+    1 + beta (g - 1)``, ``(1 - beta) / 2`` at ``g = 1`` -> (weight, ``omega > 0`` [...]);
+    the weight is meaningless where ``omega <= 0`` (the caller replaces or rejects it)."""
+    omega = 1 + beta * (g - 1)
+    with torch.no_grad():
+        near1 = (g - 1).abs() < 1e-12
+        pos = omega > 0
+    w = torch.where(near1, (1 - beta) / 2,
+                    (1 - torch.sqrt(g / torch.where(pos, omega, torch.ones_like(omega))))
+                    / torch.where(near1, torch.ones_like(g), 1 - g))
+    return w, pos
 
 
 def _largest_eigenvalue(G: Tensor) -> Tensor:
