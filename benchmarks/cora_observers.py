@@ -68,15 +68,16 @@ CORA_TANK6 = {
 }
 
 
-def inscribed_2d() -> ds.System:
+def inscribed_2d(scale: float = 1.0) -> ds.System:
     """The 2-D example with the ellipsoids CORA's test inscribes for its ESO observers: the
-    ball of radius 3, the segment's ``g g'`` (+ 1e-12 I), ``|v| <= 0.2``."""
+    ball of radius 3, the segment's ``g g'`` (+ 1e-12 I), ``|v| <= 0.2``; noises times
+    ``scale``."""
     s0 = ds.systems.get("linear_2d")
     f64 = torch.float64
-    g = torch.tensor([-0.12, 0.02], dtype=f64)
+    g = scale * torch.tensor([-0.12, 0.02], dtype=f64)
     X0 = ds.Ellipsoid(torch.zeros(2, dtype=f64), 9 * torch.eye(2, dtype=f64))
     W = ds.Ellipsoid(torch.zeros(2, dtype=f64), torch.outer(g, g) + 1e-12 * torch.eye(2, dtype=f64))
-    v = torch.tensor([0.2], dtype=f64)
+    v = torch.tensor([0.2 * scale], dtype=f64)
     return ds.System(s0.f, s0.h, X0, W, ds.Interval(-v, v), name="linear_2d")
 
 

@@ -14,28 +14,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import gradcheck_noise_bounds
+from conftest import gradcheck_noise_bounds, load_script
 
 import diffsmf as ds
 
-F64 = torch.float64
 A = np.array([[0.0, -0.5], [1.0, 1.0]])
 C = np.array([[-2.0, 1.0]])
 G_W = np.array([-0.12, 0.02])
-CORA_ESO_A = ([-0.3846268741740866, -0.4863796623829761],
-              [0.3847350367311811, 0.4863161984311742])
-
-
-def _inner_system(scale: float = 1.0) -> ds.System:
-    """CORA's 2-D example with the test's inscribed ellipsoids: ``X0`` the ball of radius 3,
-    ``W`` the segment's ellipsoid ``g g'`` (+ 1e-12 I), ``|v| <= 0.2``; noises times
-    ``scale``."""
-    s0 = ds.systems.get("linear_2d")
-    g = torch.tensor(G_W * scale, dtype=F64)
-    X0 = ds.Ellipsoid(torch.zeros(2, dtype=F64), 9 * torch.eye(2, dtype=F64))
-    W = ds.Ellipsoid(torch.zeros(2, dtype=F64), torch.outer(g, g) + 1e-12 * torch.eye(2, dtype=F64))
-    v = torch.tensor([0.2 * scale], dtype=F64)
-    return ds.System(s0.f, s0.h, X0, W, ds.Interval(-v, v), name="linear_2d_inner")
+BENCH = load_script("benchmarks", "cora_observers")  # CORA's saved hulls, inscribed sets
+CORA_ESO_A = BENCH.CORA_2D["ESO-A"]
+_inner_system = BENCH.inscribed_2d
 
 
 def _run(filt, y: torch.Tensor) -> list:
