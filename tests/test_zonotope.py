@@ -728,3 +728,18 @@ def test_bravo_rank_one_determinants_equal_one_qr_per_candidate(k, m, scale):
     C = B.unsqueeze(0) - Ul.unsqueeze(-1) * v.reshape(1, 1, m)
     assert bool(regular)
     torch.testing.assert_close(fast, _gram_logdet(C), rtol=1e-9, atol=1e-9)
+
+
+def test_intersect_strips_bad_input_names_the_argument():
+    Z = ds.Zonotope(torch.zeros(2, dtype=torch.float64), torch.eye(2, dtype=torch.float64))
+    A, d, w = torch.ones(1, 2), torch.zeros(1), torch.ones(1)
+    with pytest.raises(ValueError, match=r"^gain: expected \[\.\.\., 2, 1\]"):
+        Z.intersect_strips(A, d, w, torch.ones(1, 2))
+    with pytest.raises(ValueError, match=r"^normal: expected \[\.\.\., k, 2\]"):
+        Z.intersect_strips(torch.ones(1, 3), d, w, torch.ones(2, 1))
+    with pytest.raises(ValueError, match="^gain: contains NaN"):
+        Z.intersect_strips(A, d, w, torch.full((2, 1), float("nan")))
+    with pytest.raises(ValueError, match="^halfwidth: contains NaN or inf"):
+        Z.intersect_strips(A, d, torch.full((1,), float("inf")), torch.ones(2, 1))
+    R = Z.intersect_strips(A, d, w, torch.ones(2, 1, dtype=torch.float32))  # dtype follows Z
+    assert R.center.dtype == torch.float64 and R.num_generators == 3

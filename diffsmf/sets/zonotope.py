@@ -421,8 +421,14 @@ class Zonotope(ConvexSet):
 
         Returns:
             a Zonotope with ``m + k`` generators (batch: the broadcast of the inputs').
+
+        Raises:
+            ValueError: naming the argument whose shape does not fit, or that holds NaN or
+                inf (outside a filter step, as every set check: `diffsmf.utils.checking`).
         """
         c, G = self._c, self.generators
+        normal, offset, halfwidth, gain = _strips_with_gain(self, normal, offset, halfwidth,
+                                                            gain)
         LA = gain @ normal  # [..., n, n]
         r = offset - (normal @ c.unsqueeze(-1)).squeeze(-1)  # d - A c [..., k]
         cn = c + (gain @ r.unsqueeze(-1)).squeeze(-1)
@@ -439,6 +445,26 @@ class Zonotope(ConvexSet):
 
 
 # ---------------------------------------------------------------------- helpers
+def _strips_with_gain(Z: Zonotope, normal: Any, offset: Any, halfwidth: Any, gain: Any
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The arguments of `Zonotope.intersect_strips` in Z's dtype, their shapes checked
+    (``[..., k, n]``, ``[..., k]``, ``[..., k]``, ``[..., n, k]``) and finite."""
+    n = Z.dim
+    A = as_tensor("normal", normal, like=Z._c, min_dim=2)
+    k = A.shape[-2]
+    if A.shape[-1] != n:
+        raise ValueError(f"normal: expected [..., k, {n}], got {tuple(A.shape)}")
+    d = as_tensor("offset", offset, like=Z._c, min_dim=1)
+    w = as_tensor("halfwidth", halfwidth, like=Z._c, min_dim=1)
+    L = as_tensor("gain", gain, like=Z._c, min_dim=2)
+    for name, t, want in (("offset", d, (k,)), ("halfwidth", w, (k,)), ("gain", L, (n, k))):
+        if tuple(t.shape[t.dim() - len(want):]) != want:
+            raise ValueError(f"{name}: expected [..., {', '.join(map(str, want))}] for {k} "
+                             f"strips in {n} dimensions, got {tuple(t.shape)}")
+    return (check_finite("normal", A), check_finite("offset", d),
+            check_finite("halfwidth", w), check_finite("gain", L))
+
+
 def _hull_weights(G: Tensor, A: Tensor | None = None) -> Tensor:
     """``1 / r [..., n]`` for the interval hull half-widths ``r = sum_j |G_ij|`` (``A``:
     ``|G|`` if already at hand), detached: the row weights that make generator scores
