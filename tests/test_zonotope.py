@@ -743,3 +743,29 @@ def test_intersect_strips_bad_input_names_the_argument():
         Z.intersect_strips(A, d, torch.full((1,), float("inf")), torch.ones(2, 1))
     R = Z.intersect_strips(A, d, w, torch.ones(2, 1, dtype=torch.float32))  # dtype follows Z
     assert R.center.dtype == torch.float64 and R.num_generators == 3
+
+
+def test_bravo_determinants_of_a_batch_with_a_singular_element():
+    """Where ``K`` is singular for one batch element (here: two generators in 3-D, every
+    candidate's ``T`` of rank 2), that element takes the QR of each candidate and the other
+    keeps the one-QR formula: the regular element equals the QR of each ``T``, the singular
+    one's determinants are 0 (log below -30) as the true ones are."""
+    from diffsmf.sets.zonotope_strip import _bravo_logdets, _gram_logdet
+
+    g = torch.Generator().manual_seed(4)
+    G = torch.randn(2, 3, 6, generator=g, dtype=torch.float64)
+    G[1, :, 2:] = 0.0  # element 1: two generators, K singular
+    p = torch.randn(2, 3, generator=g, dtype=torch.float64)
+    sig = torch.tensor([0.3, 0.4], dtype=torch.float64)
+    Gp = (p.unsqueeze(-1) * G).sum(-2)
+    lam = (G / torch.where(Gp == 0, 1.0, Gp).unsqueeze(-2)).transpose(-1, -2)
+    got = _bravo_logdets(G, p, sig, lam)
+    for b in range(2):
+        T = [G[b]] + [torch.cat([G[b] - lam[b, j].unsqueeze(-1) * Gp[b].unsqueeze(0),
+                                 (sig[b] * lam[b, j]).unsqueeze(-1)], -1) for j in range(6)]
+        ref = torch.stack([_gram_logdet(t) for t in T])
+        valid = torch.cat([torch.ones(1, dtype=torch.bool), Gp[b] != 0])  # the candidates
+        if b == 0:
+            torch.testing.assert_close(got[b], ref, rtol=1e-8, atol=1e-8)
+        else:
+            assert (got[b][valid] < -30).all() and (ref[valid] < -30).all(), (got[b], ref)

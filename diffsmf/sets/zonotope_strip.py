@@ -122,11 +122,21 @@ def _bravo_logdets(G: Tensor, p: Tensor, sig: Tensor, lam_g: Tensor) -> Tensor:
     Ul = lam_g @ U  # U' lambda_j as rows [..., m, n-1]
     Gp = (p.unsqueeze(-1) * G).sum(-2)  # [..., m]
     ld_fast, regular = _rank_one_logdets(UG, Ul, Gp)
-    if tracing() or not bool(regular.all()):
-        C = UG.unsqueeze(-3) - Ul.unsqueeze(-1) * Gp.unsqueeze(-2).unsqueeze(-2)  # [.., m, n-1, m]
-        ld_fast = torch.where(regular.unsqueeze(-1), ld_fast, _gram_logdet(C))
+    if tracing():  # one graph: the QR of every candidate, kept where K is singular
+        ld_fast = torch.where(regular.unsqueeze(-1), ld_fast, _candidate_logdets(UG, Ul, Gp))
+    elif not bool(regular.all()):  # eagerly, only for those elements (a diverged one, ...)
+        bad = ~regular
+        ld_fast = ld_fast.clone()
+        ld_fast[bad] = _candidate_logdets(UG[bad], Ul[bad], Gp[bad])
     ldj = ld_fast + (sig * sig / (p * p).sum(-1)).log().unsqueeze(-1)
     return torch.cat([ld0.unsqueeze(-1), ldj], -1)
+
+
+def _candidate_logdets(UG: Tensor, Ul: Tensor, Gp: Tensor) -> Tensor:
+    """``log det(C_j C_j')`` ``[..., m]`` from the QR of each ``C_j = UG - u_j v'``
+    (`_rank_one_logdets`' fallback where ``K`` is singular)."""
+    C = UG.unsqueeze(-3) - Ul.unsqueeze(-1) * Gp.unsqueeze(-2).unsqueeze(-2)  # [..., m, k, m]
+    return _gram_logdet(C)
 
 
 def _rank_one_logdets(UG: Tensor, Ul: Tensor, Gp: Tensor) -> tuple[Tensor, Tensor]:
